@@ -1,0 +1,1 @@
+"""Subcommands of the ``onfly`` CLI, one module each (see :mod:`onfly.cli`)."""
