@@ -1,0 +1,106 @@
+"""The task manager: a queue of subtasks advanced by the monitoring agent's status.
+
+The instruction is decomposed once when it arrives (``vlm.decompose``); the manager then
+holds the current subtask, counts consecutive STOPs (a *stable* STOP advances), ends the
+episode on the last subtask's stable STOP, and records the last *normal* point (the pose at
+the most recent CONTINUE) that LOST recovery turns back to.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+
+import numpy as np
+
+__all__ = ["Status", "TaskEvent", "TaskManager", "TaskManagerError"]
+
+
+class TaskManagerError(ValueError):
+    """Invalid subtask list or status."""
+
+
+class Status(str, Enum):
+    """The monitoring agent's forced-choice output."""
+
+    CONTINUE = "CONTINUE"
+    STOP = "STOP"
+    LOST = "LOST"
+
+
+class TaskEvent(str, Enum):
+    """What a status did to the task."""
+
+    NONE = "none"  # CONTINUE, or a STOP not yet stable
+    ADVANCED = "advanced"  # stable STOP on a non-final subtask: the next one is current
+    FINISHED = "finished"  # stable STOP on the last subtask: the episode ends
+    LOST = "lost"  # recovery: stop, turn to the last normal heading, resume
+
+
+@dataclass(frozen=True)
+class _NormalPoint:
+    t_s: float
+    position: np.ndarray
+    yaw: float
+
+
+class TaskManager:
+    """Holds the subtask queue and turns statuses into task events.
+
+    Parameters
+    ----------
+    subtasks : non-empty ordered list of non-empty strings
+    stop_confirmations : consecutive STOPs that make a STOP stable (1 = act on the first)
+    """
+
+    def __init__(self, subtasks: list[str], stop_confirmations: int = 2) -> None:
+        subtasks = [s.strip() for s in subtasks]
+        if not subtasks or any(not s for s in subtasks):
+            raise TaskManagerError(f"subtasks must be a non-empty list of non-empty strings, got {subtasks!r}")
+        if stop_confirmations < 1:
+            raise TaskManagerError(f"stop_confirmations must be >= 1, got {stop_confirmations}")
+        self.subtasks = subtasks
+        self.stop_confirmations = stop_confirmations
+        self.index = 0
+        self.finished = False
+        self._stops = 0
+        self.last_normal: _NormalPoint | None = None
+        self.history: list[tuple[float, int, Status, TaskEvent]] = []
+
+    @property
+    def current(self) -> str:
+        """The current subtask (the last one once finished)."""
+        return self.subtasks[min(self.index, len(self.subtasks) - 1)]
+
+    @property
+    def is_last(self) -> bool:
+        return self.index == len(self.subtasks) - 1
+
+    def on_status(self, status: Status | str, t_s: float, position, yaw: float) -> TaskEvent:
+        """Feed one monitoring status observed at ``t_s`` with the body pose at that time."""
+        status = Status(status)
+        if self.finished:
+            return TaskEvent.NONE
+        event = TaskEvent.NONE
+        if status is Status.CONTINUE:
+            self._stops = 0
+            self.last_normal = _NormalPoint(float(t_s), np.asarray(position, float).copy(), float(yaw))
+        elif status is Status.STOP:
+            self._stops += 1
+            if self._stops >= self.stop_confirmations:
+                self._stops = 0
+                if self.is_last:
+                    self.finished = True
+                    event = TaskEvent.FINISHED
+                else:
+                    self.index += 1
+                    event = TaskEvent.ADVANCED
+        else:
+            self._stops = 0
+            event = TaskEvent.LOST
+        self.history.append((float(t_s), self.index, status, event))
+        return event
+
+    def recovery_yaw(self, fallback_yaw: float) -> float:
+        """Heading to turn to after LOST: the last normal point's, else ``fallback_yaw``."""
+        return self.last_normal.yaw if self.last_normal is not None else float(fallback_yaw)

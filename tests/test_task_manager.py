@@ -1,0 +1,44 @@
+import pytest
+
+from onfly.task_manager import Status, TaskEvent, TaskManager, TaskManagerError
+
+
+def test_stable_stop_advances_then_finishes():
+    tm = TaskManager(["fly through the gate", "stop next to the red van"], stop_confirmations=2)
+    assert tm.on_status("CONTINUE", 0, [0, 0, 1], 0.0) is TaskEvent.NONE
+    assert tm.on_status("STOP", 2, [1, 0, 1], 0.0) is TaskEvent.NONE  # not yet stable
+    assert tm.current == "fly through the gate"
+    assert tm.on_status("STOP", 4, [2, 0, 1], 0.0) is TaskEvent.ADVANCED
+    assert tm.current == "stop next to the red van" and tm.is_last
+    assert tm.on_status(Status.STOP, 6, [3, 0, 1], 0.0) is TaskEvent.NONE
+    assert tm.on_status(Status.STOP, 8, [3, 0, 1], 0.0) is TaskEvent.FINISHED
+    assert tm.finished
+    assert tm.on_status("CONTINUE", 10, [3, 0, 1], 0.0) is TaskEvent.NONE
+
+
+def test_interrupted_stops_do_not_count():
+    tm = TaskManager(["a"], stop_confirmations=2)
+    tm.on_status("STOP", 0, [0, 0, 0], 0)
+    tm.on_status("CONTINUE", 1, [0, 0, 0], 0)
+    assert tm.on_status("STOP", 2, [0, 0, 0], 0) is TaskEvent.NONE
+    tm.on_status("LOST", 3, [0, 0, 0], 0)
+    assert tm.on_status("STOP", 4, [0, 0, 0], 0) is TaskEvent.NONE
+    assert not tm.finished
+
+
+def test_lost_recovery_heading_is_last_normal_point():
+    tm = TaskManager(["a"])
+    assert tm.recovery_yaw(0.7) == 0.7  # nothing normal yet
+    tm.on_status("CONTINUE", 0, [0, 0, 1], 1.2)
+    tm.on_status("CONTINUE", 2, [1, 0, 1], 1.4)
+    assert tm.on_status("LOST", 4, [2, 0, 1], -2.0) is TaskEvent.LOST
+    assert tm.recovery_yaw(0.0) == pytest.approx(1.4)
+
+
+def test_invalid_input():
+    with pytest.raises(TaskManagerError, match="non-empty"):
+        TaskManager([])
+    with pytest.raises(TaskManagerError, match="non-empty"):
+        TaskManager(["a", "  "])
+    with pytest.raises(ValueError):
+        TaskManager(["a"]).on_status("MAYBE", 0, [0, 0, 0], 0)
