@@ -5,7 +5,7 @@ Every source yields these: the embedded world, log and TUM/bag readers, the onbo
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -38,7 +38,7 @@ class Observation:
     T_world_cam: np.ndarray
     camera: PinholeCamera
     frame_id: str
-    T_body_cam: np.ndarray = T_BODY_CAM
+    T_body_cam: np.ndarray = field(default_factory=T_BODY_CAM.copy)
     annotation: object | None = None
 
     def __post_init__(self) -> None:
