@@ -1,0 +1,184 @@
+"""Task decomposition: one VLM call, and a deterministic splitter when the call fails.
+
+:func:`decompose` asks the backend once with the decomposition prompt
+(:func:`vlm.prompts.build_decompose_prompt`, structured output :func:`vlm.prompts.subtasks_schema`)
+and parses the answer strictly (:func:`vlm.parsing.parse_subtasks`). On any failure (no
+backend, timeout, server error, unparsable or empty answer) it falls back to
+:func:`split_instruction`.
+
+The fallback splitter
+---------------------
+Works on the instruction with whitespace collapsed. It cuts at
+
+1. sentence ends: ``.``, ``!`` or ``?`` followed by a space (so ``2.5 m`` stays whole) or,
+   after a letter, directly by a capital (``hallway.Go``); and ``;``;
+2. sequencing connectives: ``then``, ``and then``, ``after that``, ``and after that``,
+   ``afterwards`` (the connective itself is dropped, with a comma around it);
+3. a comma followed by a movement verb (``go``, ``turn``, ``fly``, ... see
+   :data:`MOVEMENT_VERBS`, optionally after ``and``): ``walk to the stairs, turn right``.
+   Not at the first comma of a clause that starts with a subordinator or a place preposition
+   (``once``, ``when``, ``after``, ``before``, ``as soon as``, ``until``, ``if``, ``while``,
+   ``at``, ``in``, ``on``, ``upon``, ``from``, ``inside``, ``outside``): ``once you reach the
+   top, turn left`` and ``at the landing, turn right`` stay one subtask each.
+
+Pieces are stripped of surrounding punctuation and whitespace; pieces without a letter or
+digit are dropped. Nothing else is removed, so the word tokens of the subtasks, in order, are
+the instruction's word tokens minus the dropped connectives (:data:`CONNECTIVE_WORDS`); that
+is the coverage property the tests check on every R2R instruction. The order is the text
+order: ``before`` / ``after`` clauses are not reordered (``turn left after the tree`` stays as
+written; reordering needs parsing we do not trust without a model).
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from dataclasses import dataclass
+
+from vlm.parsing import parse_subtasks
+from vlm.prompts import build_decompose_prompt, subtasks_schema
+from vlm.types import VlmBackend, VlmError, VlmResponse
+
+__all__ = [
+    "DecompositionError",
+    "Decomposition",
+    "decompose",
+    "decompose_detailed",
+    "split_instruction",
+    "MOVEMENT_VERBS",
+    "CONNECTIVE_WORDS",
+]
+
+log = logging.getLogger(__name__)
+
+MOVEMENT_VERBS = (
+    "approach", "ascend", "bear", "circle", "climb", "continue", "cross", "descend", "enter",
+    "exit", "face", "fly", "follow", "go", "halt", "head", "hover", "keep", "land", "leave",
+    "make", "move", "navigate", "pass", "proceed", "return", "rise", "rotate", "stand", "step",
+    "stop", "take", "travel", "turn", "veer", "wait", "walk",
+)  # fmt: skip
+#: Words the splitter may drop at a cut (and only there).
+CONNECTIVE_WORDS = frozenset({"then", "and", "after", "that", "afterwards"})
+_SUBORDINATORS = (
+    "once", "when", "after", "before", "as soon as", "until", "if", "while",
+    "at", "in", "on", "upon", "from", "inside", "outside",
+)  # fmt: skip
+
+_VERBS = "|".join(MOVEMENT_VERBS)
+_CUT_RE = re.compile(
+    r"(?P<sentence>(?<=[.!?])\s+|(?<=[^\W\d_][.!?])(?=(?-i:[A-Z])))"
+    r"|(?P<semicolon>\s*;\s*)"
+    r"|(?P<connective>\s*,?\s*\b(?:and\s+then|and\s+after\s+that|after\s+that|afterwards|then)\b\s*,?\s*)"
+    r"|(?P<verb>\s*,\s*(?:and\s+)?(?=(?:" + _VERBS + r")\b))",
+    re.IGNORECASE,
+)
+_STRIP = " \t,.;:!?"
+
+
+class DecompositionError(ValueError):
+    """The instruction has no words to decompose."""
+
+
+@dataclass(frozen=True)
+class Decomposition:
+    """Result of :func:`decompose_detailed`.
+
+    Attributes
+    ----------
+    subtasks : tuple of str, non-empty, in execution order
+    source : ``"vlm"`` or ``"fallback"``
+    reason : why the fallback was used ("" for ``"vlm"``)
+    response : the backend's response, if a call was made
+    """
+
+    subtasks: tuple[str, ...]
+    source: str
+    reason: str = ""
+    response: VlmResponse | None = None
+
+
+def _check_instruction(instruction: object) -> str:
+    if not isinstance(instruction, str):
+        raise DecompositionError(f"instruction must be a str, got {type(instruction).__name__}")
+    text = " ".join(instruction.split())
+    if not re.search(r"[^\W_]", text):
+        raise DecompositionError(f"instruction has no words: {instruction!r}")
+    return text
+
+
+def split_instruction(instruction: str) -> list[str]:
+    """Deterministic fallback: split ``instruction`` into ordered subtasks (rules above).
+
+    Returns a non-empty list of non-empty strings; raises :class:`DecompositionError` if the
+    instruction has no letter or digit.
+    """
+    text = _check_instruction(instruction)
+    pieces: list[str] = []
+    start = 0
+    for m in _CUT_RE.finditer(text):
+        clause = text[start : m.start()]
+        if m.lastgroup == "verb" and _starts_with_subordinator(clause) and "," not in clause:
+            continue
+        pieces.append(clause)
+        start = m.end()
+    pieces.append(text[start:])
+    out = [p.strip(_STRIP) for p in pieces]
+    out = [p for p in out if re.search(r"[^\W_]", p)]
+    if not out:  # cannot happen for text with a word character; kept as a guard
+        raise DecompositionError(f"instruction has no words: {instruction!r}")
+    return out
+
+
+def _starts_with_subordinator(clause: str) -> bool:
+    """True if the current clause (since the last sentence/connective cut) opens with one."""
+    low = clause.strip(_STRIP).lower()
+    return any(low == s or low.startswith(s + " ") for s in _SUBORDINATORS)
+
+
+def decompose_detailed(
+    instruction: str,
+    backend: VlmBackend | None = None,
+    *,
+    deadline_s: float | None = None,
+    max_new_tokens: int = 512,
+    structured: bool = True,
+) -> Decomposition:
+    """Decompose with one VLM call; fall back to :func:`split_instruction` on any failure.
+
+    ``structured`` passes :func:`vlm.prompts.subtasks_schema` as ``json_schema``.
+    """
+    text = _check_instruction(instruction)
+    if backend is None:
+        return Decomposition(tuple(split_instruction(text)), "fallback", "no backend")
+    messages, images = build_decompose_prompt(text)
+    try:
+        response = backend.complete(
+            messages,
+            images,
+            deadline_s=deadline_s,
+            json_schema=subtasks_schema() if structured else None,
+            max_new_tokens=max_new_tokens,
+            cache_key="decompose",
+        )
+    except VlmError as exc:
+        log.warning("decomposition call raised %s; using the fallback splitter", exc)
+        return Decomposition(tuple(split_instruction(text)), "fallback", f"backend raised: {exc}")
+    if not response.ok:
+        log.warning("decomposition call failed (%s: %s); using the fallback splitter", response.status.value, response.error)
+        return Decomposition(tuple(split_instruction(text)), "fallback", f"{response.status.value}: {response.error}", response)
+    parsed = parse_subtasks(response.text)
+    if not parsed.ok:
+        log.warning("decomposition answer unparsable (%s): %r; using the fallback splitter", parsed.reason, response.text[:200])
+        return Decomposition(tuple(split_instruction(text)), "fallback", f"parse: {parsed.reason}", response)
+    return Decomposition(parsed.subtasks, "vlm", "", response)
+
+
+def decompose(
+    instruction: str,
+    backend: VlmBackend | None = None,
+    *,
+    deadline_s: float | None = None,
+    max_new_tokens: int = 512,
+) -> list[str]:
+    """Ordered, non-empty subtasks of ``instruction`` (see :func:`decompose_detailed`)."""
+    return list(decompose_detailed(instruction, backend, deadline_s=deadline_s, max_new_tokens=max_new_tokens).subtasks)
