@@ -1,0 +1,378 @@
+"""Local Euclidean signed distance field built from depth frames (a :class:`DistanceField`).
+
+Pipeline of one :meth:`EsdfMap.integrate` call, and what each stage uses:
+
+1. **Recentre** the rolling window on the vehicle (numpy slice copies, whole voxels on the
+   global lattice ``floor(p / voxel_m)``: no resampling, so obstacles never smear).
+2. **Occupancy** (:mod:`planning.esdf_occupancy`): Open3D back-projects the depth image into
+   world points (``PointCloud.create_from_depth_image``), numpy bins them into hit voxels and
+   projects the obstacle voxels of the frustum into the image for free-space clearing, then a
+   log-odds update. Output: the voxels whose obstacle state flipped.
+3. **Distance** (:mod:`planning.esdf_edt`): Fast-Planner's bounding-box idea. The box of the
+   flipped voxels, grown by the clamp ``K = max_distance_m``, is the only region whose
+   distances can change; it is rewritten from an exact truncated EDT computed on the box grown
+   by ``2 K`` (every obstacle within ``K`` of a rewritten voxel is inside that block), so the
+   field stays exactly the full-grid EDT (clamped) after every frame.
+
+Field convention (Fast-Planner's): for a free voxel, the distance between its centre and the
+nearest obstacle voxel centre; for an obstacle voxel, minus the distance to the nearest free
+voxel centre plus one voxel (so the outermost obstacle voxels read 0 and the zero level sits
+on the voxel centres that hold the measured surface). Values are clamped to
+``[-max_inside_distance_m, max_distance_m]``. Queries interpolate trilinearly between voxel
+centres.
+
+Grid edges and outside: coordinates are clamped to the box of voxel centres (within half a voxel
+of the faces and beyond). With ``unknown_policy="free"`` the field is extended as a constant
+along the outward normal (gradient component 0). With ``"occupied"`` space outside the window is
+an obstacle: the transform treats the faces as bordering obstacles, and beyond the centre box
+the value decreases at unit slope, ``d(q) = d(c) - |q - c|`` (``c`` the clamped point), with
+the matching gradient.
+
+The map assumes nothing about which world axis is up.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from planning.camera import PinholeCamera
+from planning.esdf_config import EsdfConfig
+from planning.esdf_edt import truncated_squared_edt
+from planning.esdf_occupancy import IndexBox, RollingOccupancy, shift_array
+from planning.frames import check_transform
+
+__all__ = ["EsdfMap", "EsdfUpdate", "EsdfError", "DistanceSlice"]
+
+log = logging.getLogger(__name__)
+
+
+class EsdfError(ValueError):
+    """Bad input to the ESDF map (wrong shape, non-finite points, wrong camera type)."""
+
+
+@dataclass(frozen=True)
+class EsdfUpdate:
+    """Statistics of one :meth:`EsdfMap.integrate` call.
+
+    Attributes
+    ----------
+    n_points : back-projected depth points within range (after the stride)
+    n_hit_voxels, n_miss_voxels : distinct voxels hit / seen through in this frame
+    n_changed_voxels : voxels whose obstacle state flipped
+    changed_box_min_m, changed_box_max_m : world AABB (voxel faces, metres) of the flipped
+        voxels, or None when nothing flipped
+    shift_voxels : (3,) whole voxels the window moved before this frame
+    esdf_voxels : voxels whose distance was rewritten (all boxes, including shift slabs)
+    shift_ms, backproject_ms, occupancy_ms, esdf_ms, total_ms : wall time of each stage
+    """
+
+    n_points: int
+    n_hit_voxels: int
+    n_miss_voxels: int
+    n_changed_voxels: int
+    changed_box_min_m: tuple[float, float, float] | None
+    changed_box_max_m: tuple[float, float, float] | None
+    shift_voxels: tuple[int, int, int]
+    esdf_voxels: int
+    shift_ms: float
+    backproject_ms: float
+    occupancy_ms: float
+    esdf_ms: float
+    total_ms: float
+
+
+@dataclass(frozen=True)
+class DistanceSlice:
+    """One horizontal layer of the field, for pictures.
+
+    Attributes
+    ----------
+    z_m : world z of the layer (a voxel-centre height), metres
+    x_m : shape (nx,), world x of the voxel centres, metres
+    y_m : shape (ny,), world y of the voxel centres, metres
+    distance_m : shape (nx, ny), signed distance at the voxel centres, metres
+    """
+
+    z_m: float
+    x_m: np.ndarray
+    y_m: np.ndarray
+    distance_m: np.ndarray
+
+
+# Corner offsets of a trilinear cell, ordered (dx, dy, dz) as bits 4, 2, 1.
+_CORNERS = np.array([[dx, dy, dz] for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)], dtype=np.int64)
+
+
+class EsdfMap:
+    """Rolling occupancy + incrementally updated, exact, clamped ESDF.
+
+    Build once, integrate every depth frame, query at any rate::
+
+        esdf = EsdfMap(EsdfConfig())
+        stats = esdf.integrate(depth_m, camera, T_world_cam)
+        d, grad = esdf.query(points)          # (n,), (n, 3)
+    """
+
+    def __init__(self, config: EsdfConfig | None = None) -> None:
+        self.config = config if config is not None else EsdfConfig()
+        if not isinstance(self.config, EsdfConfig):
+            raise EsdfError(f"config must be an EsdfConfig, got {type(self.config).__name__}")
+        cfg = self.config
+        self._occ = RollingOccupancy(cfg)
+        self.shape = self._occ.shape
+        self._shape_arr = np.asarray(self.shape, dtype=np.int64)
+        self._strides = np.array([self.shape[1] * self.shape[2], self.shape[2], 1], dtype=np.int64)
+        self._corner_offsets = _CORNERS @ self._strides
+        self._hi_centre = (self._shape_arr - 1).astype(float)
+        self._cell_max = self._shape_arr - 2
+        self._unknown_solid = cfg.unknown_policy == "occupied"
+        self._k_out = cfg.max_distance_voxels
+        self._k_in = cfg.max_inside_voxels
+        v = cfg.voxel_m
+        k2 = np.arange(self._k_out**2 + 2, dtype=float)
+        self._lut_out = np.minimum(np.sqrt(k2) * v, cfg.max_distance_m).astype(np.float32)
+        k2 = np.arange(self._k_in**2 + 2, dtype=float)
+        lut_in = -np.minimum((np.sqrt(k2) - 1.0) * v, cfg.max_inside_distance_m)
+        lut_in[0] = 0.0
+        self._lut_in = lut_in.astype(np.float32)
+        self._distance = np.empty(self.shape, dtype=np.float32)
+        self._update_box(((0, 0, 0), self.shape))
+
+    # -- window -----------------------------------------------------------------------------
+    @property
+    def voxel_m(self) -> float:
+        return self.config.voxel_m
+
+    @property
+    def origin_index(self) -> np.ndarray:
+        """Global lattice index (3,) int of local voxel (0, 0, 0)."""
+        return self._occ.origin_index.copy()
+
+    @property
+    def bounds_world(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(lo (3,), hi (3,))``: world AABB of the window (outer voxel faces), metres."""
+        lo = self._occ.origin_index * self.voxel_m
+        return lo.astype(float), (lo + self._shape_arr * self.voxel_m).astype(float)
+
+    @property
+    def distance_grid(self) -> np.ndarray:
+        """Read-only view of the signed distance at voxel centres, (nx, ny, nz), metres."""
+        view = self._distance.view()
+        view.flags.writeable = False
+        return view
+
+    def voxel_centers(self) -> np.ndarray:
+        """World centres of all voxels, shape (nx, ny, nz, 3), metres."""
+        idx = np.stack(np.meshgrid(*(np.arange(n) for n in self.shape), indexing="ij"), axis=-1)
+        return (idx + self._occ.origin_index + 0.5) * self.voxel_m
+
+    def reset(self) -> None:
+        """Forget every observation (the window stays where it is)."""
+        self._occ.reset()
+        self._update_box(((0, 0, 0), self.shape))
+
+    def recenter(self, center_world) -> tuple[int, int, int]:
+        """Move the window so ``center_world`` (3,) metres lies in voxel ``shape // 2``.
+
+        Returns the shift in whole voxels. Overlapping content is kept voxel for voxel; entering
+        voxels are unknown; distances near the entering and leaving faces are recomputed.
+        """
+        center = np.asarray(center_world, dtype=float)
+        if center.shape != (3,) or not np.all(np.isfinite(center)):
+            raise EsdfError(f"center_world must be a finite array of shape (3,), got {center!r}")
+        shift, boxes = self._occ.shift_to(self._occ.origin_for_center(center))
+        if shift.any():
+            fill = -self.config.max_inside_distance_m if self._unknown_solid else self.config.max_distance_m
+            self._distance = shift_array(self._distance, shift, np.float32(fill))
+            for box in boxes:
+                self._update_box(box)
+        return tuple(int(s) for s in shift)
+
+    # -- integration ------------------------------------------------------------------------
+    def integrate(self, depth_m, camera: PinholeCamera, T_world_cam, center_world=None) -> EsdfUpdate:
+        """Fuse one depth frame and update the field where it changed.
+
+        Parameters
+        ----------
+        depth_m : array, shape (camera.height, camera.width), z-depth in metres (float32
+            preferred). 0, NaN, inf, negative values and readings below ``min_range_m`` are no
+            reading and ignored; readings beyond ``max_range_m`` only clear free space.
+        camera : PinholeCamera of the depth image
+        T_world_cam : (4, 4) rigid transform camera optical -> world. Checked with
+            :func:`planning.frames.check_transform` (raises ``FrameError`` for NaN / inf,
+            a non-orthonormal or reflecting rotation block, or a bad last row).
+        center_world : (3,) metres, centre of the rolling window; default the camera position.
+
+        Returns
+        -------
+        EsdfUpdate with counts, the changed box and per-stage timings.
+        """
+        t0 = time.perf_counter()
+        if not isinstance(camera, PinholeCamera):
+            raise EsdfError(f"camera must be a PinholeCamera, got {type(camera).__name__}")
+        T = check_transform(T_world_cam, "T_world_cam")
+        depth = np.asarray(depth_m)
+        if depth.ndim != 2:
+            raise EsdfError(f"depth_m must be a 2-D (height, width) array, got shape {depth.shape}")
+        camera.check_image(depth, "depth_m")
+        if depth.dtype != np.float32:
+            if not np.issubdtype(depth.dtype, np.number):
+                raise EsdfError(f"depth_m must be numeric metres, got dtype {depth.dtype}")
+            depth = depth.astype(np.float32)
+        center = T[:3, 3] if center_world is None else center_world
+        t_shift = time.perf_counter()
+        shift = self.recenter(center)
+        t_occ = time.perf_counter()
+        delta = self._occ.integrate(depth, camera, T)
+        t_esdf = time.perf_counter()
+        box_min = box_max = None
+        n_esdf = 0
+        if delta.flipped.size:
+            idx = np.stack(np.unravel_index(delta.flipped, self.shape), axis=-1)
+            lo, hi = idx.min(axis=0), idx.max(axis=0) + 1
+            n_esdf = self._update_box((tuple(int(v) for v in lo), tuple(int(v) for v in hi)))
+            box_min = tuple(float(v) for v in (lo + self._occ.origin_index) * self.voxel_m)
+            box_max = tuple(float(v) for v in (hi + self._occ.origin_index) * self.voxel_m)
+        t_end = time.perf_counter()
+        return EsdfUpdate(
+            n_points=delta.n_points,
+            n_hit_voxels=delta.n_hit_voxels,
+            n_miss_voxels=delta.n_miss_voxels,
+            n_changed_voxels=int(delta.flipped.size),
+            changed_box_min_m=box_min,
+            changed_box_max_m=box_max,
+            shift_voxels=shift,
+            esdf_voxels=n_esdf,
+            shift_ms=(t_occ - t_shift) * 1e3,
+            backproject_ms=delta.backproject_ms,
+            occupancy_ms=delta.update_ms,
+            esdf_ms=(t_end - t_esdf) * 1e3,
+            total_ms=(t_end - t0) * 1e3,
+        )
+
+    def _update_box(self, box: IndexBox) -> int:
+        """Rewrite the distance of every voxel within ``K`` of ``box``; returns how many.
+
+        ``box`` is a half-open local index box of voxels whose obstacle state changed. The
+        outside transform runs on the box grown by ``2 K`` (clipped to the grid), the inside
+        one on the write region grown by the inside clamp.
+        """
+        shape = self._shape_arr
+        lo, hi = np.asarray(box[0], dtype=np.int64), np.asarray(box[1], dtype=np.int64)
+        w_lo, w_hi = np.maximum(lo - self._k_out, 0), np.minimum(hi + self._k_out, shape)
+        solid = self._occ.solid
+        d2_out = self._block_edt(solid, w_lo, w_hi, self._k_out, sites_are_solid=True)
+        d2_in = self._block_edt(solid, w_lo, w_hi, self._k_in, sites_are_solid=False)
+        w = tuple(slice(int(a), int(b)) for a, b in zip(w_lo, w_hi))
+        self._distance[w] = self._lut_out[d2_out] + self._lut_in[d2_in]
+        return int(np.prod(w_hi - w_lo))
+
+    def _block_edt(self, solid, w_lo, w_hi, k: int, sites_are_solid: bool) -> np.ndarray:
+        """Truncated squared EDT on the write region ``[w_lo, w_hi)``, from a block grown by k.
+
+        Sites are the solid voxels (outside distance) or the free ones (inside distance).
+        Faces of the block on the grid boundary are padded with one layer of the state that
+        the unknown policy gives to space outside the window.
+        """
+        shape = self._shape_arr
+        b_lo, b_hi = np.maximum(w_lo - k, 0), np.minimum(w_hi + k, shape)
+        block = solid[tuple(slice(int(a), int(b)) for a, b in zip(b_lo, b_hi))]
+        sites = block if sites_are_solid else ~block
+        outside_is_site = self._unknown_solid if sites_are_solid else not self._unknown_solid
+        pad = None
+        if outside_is_site:
+            pad = [(int(a == 0), int(b == n)) for a, b, n in zip(b_lo, b_hi, shape)]
+            if any(p != (0, 0) for p in pad):
+                sites = np.pad(sites, pad, mode="constant", constant_values=True)
+            else:
+                pad = None
+        if not sites.any():
+            d2 = np.full(sites.shape, k * k + 1, dtype=np.uint16)
+        elif sites.all():
+            d2 = np.zeros(sites.shape, dtype=np.uint8)
+        else:
+            d2 = truncated_squared_edt(sites, k)
+        if pad is not None:
+            d2 = d2[tuple(slice(p0, d2.shape[i] - p1) for i, (p0, p1) in enumerate(pad))]
+        off_lo = w_lo - b_lo
+        off_hi = off_lo + (w_hi - w_lo)
+        return d2[tuple(slice(int(a), int(b)) for a, b in zip(off_lo, off_hi))]
+
+    # -- queries ----------------------------------------------------------------------------
+    def query(self, points) -> tuple[np.ndarray, np.ndarray]:
+        """Signed distance and its gradient at many points (trilinear between voxel centres).
+
+        Parameters
+        ----------
+        points : array, shape (n, 3), metres, world frame
+
+        Returns
+        -------
+        distance : shape (n,), metres, clamped to [-max_inside_distance_m, max_distance_m]
+            (beyond the window with unknown as occupied it keeps decreasing, see module doc)
+        gradient : shape (n, 3), 1/1 (metres per metre), derivative of the interpolant
+            (piecewise constant across cells; zero where the field is clamped flat)
+        """
+        P = np.asarray(points, dtype=float)
+        if P.ndim != 2 or P.shape[1] != 3:
+            raise EsdfError(f"points must have shape (n, 3), got {P.shape}")
+        if not np.isfinite(P).all():
+            raise EsdfError("points contain NaN or inf")
+        v = self.voxel_m
+        c = P * (1.0 / v) - (self._occ.origin_index + 0.5)
+        cc = np.clip(c, 0.0, self._hi_centre)
+        i0 = np.minimum(cc.astype(np.int64), self._cell_max)
+        f = cc - i0
+        idx = (i0 @ self._strides)[:, None] + self._corner_offsets
+        vals = self._distance.reshape(-1)[idx].astype(float).reshape(-1, 2, 2, 2)
+        fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
+        dz = vals[..., 1] - vals[..., 0]  # (n, 2, 2) over (x, y)
+        a = vals[..., 0] + dz * fz[:, None, None]  # interpolated in z, (n, 2, 2)
+        ay = a[:, :, 1] - a[:, :, 0]  # (n, 2) over x
+        b = a[:, :, 0] + ay * fy[:, None]  # (n, 2) over x
+        bx = b[:, 1] - b[:, 0]
+        dist = b[:, 0] + bx * fx
+        dzy = dz[:, :, 0] + (dz[:, :, 1] - dz[:, :, 0]) * fy[:, None]  # (n, 2) over x
+        grad = np.empty_like(P)
+        grad[:, 0] = bx
+        grad[:, 1] = ay[:, 0] + (ay[:, 1] - ay[:, 0]) * fx
+        grad[:, 2] = dzy[:, 0] + (dzy[:, 1] - dzy[:, 0]) * fx
+        grad *= 1.0 / v
+        outside = c != cc
+        if outside.any():
+            grad[outside] = 0.0
+            if self._unknown_solid:
+                e = (c - cc) * v
+                r = np.sqrt(np.einsum("ij,ij->i", e, e))
+                out = r > 0
+                dist[out] -= r[out]
+                grad[out] -= e[out] / r[out, None]
+        return dist, grad
+
+    def is_free(self, points, margin_m: float = 0.0) -> np.ndarray:
+        """True where the interpolated distance at ``points`` (n, 3) exceeds ``margin_m`` metres.
+
+        Unknown space counts by the unknown policy.
+        """
+        dist, _ = self.query(points)
+        return dist > margin_m
+
+    def occupied_points(self) -> np.ndarray:
+        """World centres (m, 3), metres, of the observed obstacle voxels (for pictures)."""
+        occ = self._occ.observed & (self._occ.logodds > np.float32(self.config.occupied_logodds))
+        return self._occ.centers_of(np.flatnonzero(occ))
+
+    def distance_slice(self, z_m: float) -> DistanceSlice:
+        """The layer of voxel centres nearest world height ``z_m`` (clamped into the window)."""
+        if not np.isfinite(z_m):
+            raise EsdfError(f"z_m must be finite, got {z_m}")
+        v = self.voxel_m
+        o = self._occ.origin_index
+        k = int(np.clip(np.floor(z_m / v) - o[2], 0, self.shape[2] - 1))
+        x = (np.arange(self.shape[0]) + o[0] + 0.5) * v
+        y = (np.arange(self.shape[1]) + o[1] + 0.5) * v
+        return DistanceSlice(float((k + o[2] + 0.5) * v), x, y, self._distance[:, :, k].copy())

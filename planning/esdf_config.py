@@ -1,0 +1,146 @@
+"""Every parameter of the local ESDF map, in one frozen dataclass.
+
+Defaults follow the issue and the paper where they say something (10 x 10 x 4 m at 0.1 m,
+D_max = 7 m); the rest are our documented choices (log-odds after OctoMap / Fast-Planner).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+__all__ = ["EsdfConfig", "EsdfConfigError", "UNKNOWN_POLICIES"]
+
+#: Valid values of :attr:`EsdfConfig.unknown_policy`.
+UNKNOWN_POLICIES = ("free", "occupied")
+
+
+class EsdfConfigError(ValueError):
+    """An :class:`EsdfConfig` field out of range; the message names the field."""
+
+
+@dataclass(frozen=True)
+class EsdfConfig:
+    """Parameters of :class:`planning.esdf.EsdfMap`.
+
+    Grid
+    ----
+    voxel_m : edge of a cubic voxel, metres. Voxels sit on the global lattice
+        ``floor(p_world / voxel_m)``, so the rolling window moves by whole voxels.
+    size_m : (x, y, z) extent of the rolling window in world axes, metres; each is rounded to a
+        whole number of voxels (at least 2). Default 10 x 10 x 4 m around the vehicle.
+
+    Sensor model
+    ------------
+    max_range_m : D_max of the paper (7 m). Readings beyond it mark no obstacle; they only clear
+        free space up to ``max_range_m`` along their ray (an inf reading is no reading).
+    min_range_m : readings closer than this are dropped as no reading (sensor dead zone,
+        propellers in view).
+    stride_px : back-project every ``stride_px``-th row and column for obstacle hits. Free-space
+        clearing always looks up the full-resolution image. At 640 x 480 with fx ~ 320-585 and
+        stride 2, neighbouring samples are at most 5 cm apart at 7 m, below one voxel.
+    clear_margin_m : a voxel is passed through (a miss) only when its centre's z-depth is at
+        least this much shorter than the reading of the pixel it projects to; keeps the voxel
+        that holds the surface (its centre may sit half a voxel diagonal in front) and absorbs
+        depth noise.
+    surface_thickness_m : besides the voxel holding each measured point, the voxels up to this
+        far behind it along the ray are also hit, so obstacles have an inside (negative
+        distance) even where the camera never sees their interior. 0 disables.
+
+    Occupancy (log-odds, one update per voxel per frame; a hit wins over a miss)
+    ---------------------------------------------------------------------------
+    hit_logodds : added on a hit (0.85 = p 0.70).
+    miss_logodds : added on a miss, negative (-0.4 = p 0.40).
+    min_logodds, max_logodds : clamps; with the defaults a fully confident obstacle is cleared
+        after 5 frames that see through it, and one frame of hits makes a voxel occupied.
+    occupied_logodds : a voxel is occupied when its log-odds exceed this (0 = p 0.5).
+
+    Distance field
+    --------------
+    max_distance_m : clamp of the Euclidean distance transform. Distances beyond it are
+        reported as exactly ``max_distance_m`` (gradient 0 there), and the incremental update
+        only recomputes the changed box grown by this distance (Fast-Planner's idea), so it is
+        the main cost knob. Within the clamp the field is the exact voxel-centre EDT.
+    max_inside_distance_m : clamp of the depth inside obstacles (negative side). A body centre
+        half a metre inside an obstacle has already crashed, so a short clamp is enough to give
+        a gradient out of thin obstacles and costs less.
+    unknown_policy : what never-observed space means for the field: ``"free"`` (Fast-Planner's
+        optimistic map: only observed obstacles count; cheapest, since only occupied voxels
+        need the free-space test) or ``"occupied"`` (conservative: unknown voxels and the space
+        outside the grid are obstacles, so the frustum sweep marks observed free space).
+    """
+
+    voxel_m: float = 0.1
+    size_m: tuple[float, float, float] = (10.0, 10.0, 4.0)
+    max_range_m: float = 7.0
+    min_range_m: float = 0.05
+    stride_px: int = 2
+    clear_margin_m: float = 0.15
+    surface_thickness_m: float = 0.2
+    hit_logodds: float = 0.85
+    miss_logodds: float = -0.4
+    min_logodds: float = -2.0
+    max_logodds: float = 2.0
+    occupied_logodds: float = 0.0
+    max_distance_m: float = 1.0
+    max_inside_distance_m: float = 0.5
+    unknown_policy: Literal["free", "occupied"] = "free"
+
+    def __post_init__(self) -> None:
+        def positive(name: str) -> None:
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise EsdfConfigError(f"{name} must be a positive finite number, got {value!r}")
+
+        for name in ("voxel_m", "max_range_m", "max_distance_m", "max_inside_distance_m", "hit_logodds"):
+            positive(name)
+        for name in ("min_range_m", "clear_margin_m", "surface_thickness_m"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise EsdfConfigError(f"{name} must be a finite number >= 0, got {value!r}")
+        if self.min_range_m >= self.max_range_m:
+            raise EsdfConfigError(
+                f"min_range_m ({self.min_range_m}) must be smaller than max_range_m ({self.max_range_m})"
+            )
+        size = tuple(self.size_m)
+        if len(size) != 3 or not all(isinstance(s, (int, float)) and math.isfinite(s) for s in size):
+            raise EsdfConfigError(f"size_m must be three finite numbers (x, y, z), got {self.size_m!r}")
+        if min(size) < 2 * self.voxel_m:
+            raise EsdfConfigError(f"size_m must be at least two voxels ({2 * self.voxel_m} m) per axis, got {size}")
+        object.__setattr__(self, "size_m", tuple(float(s) for s in size))
+        if not (isinstance(self.stride_px, int) and not isinstance(self.stride_px, bool) and self.stride_px >= 1):
+            raise EsdfConfigError(f"stride_px must be an integer >= 1, got {self.stride_px!r}")
+        if not (math.isfinite(self.miss_logodds) and self.miss_logodds < 0):
+            raise EsdfConfigError(f"miss_logodds must be negative, got {self.miss_logodds!r}")
+        if not (self.min_logodds < self.occupied_logodds < self.max_logodds):
+            raise EsdfConfigError(
+                "need min_logodds < occupied_logodds < max_logodds, got "
+                f"{self.min_logodds} / {self.occupied_logodds} / {self.max_logodds}"
+            )
+        if self.hit_logodds <= self.occupied_logodds:
+            # A first hit starts from 0 (unknown); it must be able to make a voxel occupied.
+            raise EsdfConfigError(
+                f"hit_logodds ({self.hit_logodds}) must exceed occupied_logodds ({self.occupied_logodds})"
+            )
+        if self.unknown_policy not in UNKNOWN_POLICIES:
+            raise EsdfConfigError(f"unknown_policy must be one of {UNKNOWN_POLICIES}, got {self.unknown_policy!r}")
+        for name in ("max_distance_m", "max_inside_distance_m"):
+            if getattr(self, name) / self.voxel_m > 180:
+                raise EsdfConfigError(f"{name} must be at most 180 voxels ({180 * self.voxel_m} m)")
+
+    # -- derived quantities -----------------------------------------------------------------
+    @property
+    def grid_shape(self) -> tuple[int, int, int]:
+        """Voxels per axis ``(nx, ny, nz)``: ``size_m / voxel_m`` rounded, at least 2."""
+        return tuple(max(2, int(round(s / self.voxel_m))) for s in self.size_m)
+
+    @property
+    def max_distance_voxels(self) -> int:
+        """Outside clamp in voxels, rounded up so every distance <= ``max_distance_m`` is exact."""
+        return max(1, math.ceil(self.max_distance_m / self.voxel_m - 1e-9))
+
+    @property
+    def max_inside_voxels(self) -> int:
+        """Inside clamp in voxels, rounded up."""
+        return max(1, math.ceil(self.max_inside_distance_m / self.voxel_m - 1e-9))

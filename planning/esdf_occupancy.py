@@ -1,0 +1,328 @@
+"""Rolling log-odds occupancy grid fed by depth frames (the input of the ESDF).
+
+The grid is a window of ``(nx, ny, nz)`` voxels on the global lattice
+``index = floor(p_world / voxel_m)``; ``origin_index`` is the global index of local voxel
+``(0, 0, 0)``. Arrays are indexed ``[ix, iy, iz]`` (C order, flat index
+``(ix * ny + iy) * nz + iz``), world axes, whatever the world frame is (nothing here assumes z up).
+
+One frame does, in order (the docstring of :meth:`RollingOccupancy.integrate` has details):
+
+1. **Hits** -- Open3D back-projects the (strided) depth image straight into the world frame
+   (``o3d.t.geometry.PointCloud.create_from_depth_image`` with the world-to-camera extrinsic;
+   C++, multi-threaded); numpy bins the points into voxels with a scatter into a scratch mask
+   (no sort). The voxels up to ``surface_thickness_m`` behind each hit voxel along its ray are
+   hit too.
+2. **Misses (free-space clearing)** -- projective: every voxel that could still change the
+   field (the obstacle voxels, plus the unknown ones when unknown counts as occupied) inside the
+   frustum's bounding box is projected into the full-resolution image (numpy, vectorized); it is
+   passed through when its z-depth is ``clear_margin_m`` shorter than the pixel's reading
+   (readings beyond ``max_range_m`` clear up to ``max_range_m``). A hit in the same frame wins.
+3. **Log-odds update** on the touched voxels only, and the list of voxels whose obstacle state
+   (the mask the distance transform sees) flipped.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+
+from planning.camera import PinholeCamera
+from planning.esdf_config import EsdfConfig
+from planning.frames import invert_transform
+
+__all__ = ["RollingOccupancy", "OccupancyDelta", "IndexBox"]
+
+log = logging.getLogger(__name__)
+
+#: Half-open box of local voxel indices: ``(lo (3,), hi (3,))`` with ``lo <= i < hi``.
+IndexBox = tuple[tuple[int, int, int], tuple[int, int, int]]
+
+
+@dataclass(frozen=True)
+class OccupancyDelta:
+    """What one frame did to the occupancy grid.
+
+    Attributes
+    ----------
+    flipped : int64 array, shape (k,), flat local indices whose obstacle state flipped
+    n_points : back-projected points within range (after the stride)
+    n_hit_voxels, n_miss_voxels : distinct voxels hit / passed through in this frame
+    backproject_ms, update_ms : wall time of the Open3D back-projection and of the rest
+    """
+
+    flipped: np.ndarray
+    n_points: int
+    n_hit_voxels: int
+    n_miss_voxels: int
+    backproject_ms: float
+    update_ms: float
+
+
+class RollingOccupancy:
+    """Log-odds occupancy in a window that moves with the vehicle by whole voxels.
+
+    State: ``logodds`` float32 (nx, ny, nz); ``observed`` bool (ever hit or passed through);
+    ``solid`` bool, the obstacle mask the distance transform sees: occupied voxels, plus unknown
+    ones when ``unknown_policy == "occupied"``.
+    """
+
+    def __init__(self, config: EsdfConfig) -> None:
+        self.config = config
+        self.shape = config.grid_shape
+        self._strides = np.array([self.shape[1] * self.shape[2], self.shape[2], 1], dtype=np.int64)
+        self._unknown_solid = config.unknown_policy == "occupied"
+        self._intrinsics: dict[tuple[PinholeCamera, int], o3d.core.Tensor] = {}
+        self.origin_index = np.zeros(3, dtype=np.int64)
+        self.logodds = np.zeros(self.shape, dtype=np.float32)
+        self.observed = np.zeros(self.shape, dtype=bool)
+        self.solid = np.full(self.shape, self._unknown_solid, dtype=bool)
+        self._scratch = np.zeros(int(np.prod(self.shape)), dtype=bool)
+
+    # -- geometry of the window -------------------------------------------------------------
+    @property
+    def voxel_m(self) -> float:
+        return self.config.voxel_m
+
+    def origin_for_center(self, center_world: np.ndarray) -> np.ndarray:
+        """Global index of local voxel 0 that puts ``center_world`` (3,) in voxel ``shape // 2``."""
+        g = np.floor(np.asarray(center_world, dtype=float) / self.voxel_m).astype(np.int64)
+        return g - np.asarray(self.shape, dtype=np.int64) // 2
+
+    def centers_of(self, flat: np.ndarray) -> np.ndarray:
+        """World centres (k, 3), metres, of flat local indices ``flat`` (k,)."""
+        idx = np.stack(np.unravel_index(flat, self.shape), axis=-1)
+        return (idx + self.origin_index + 0.5) * self.voxel_m
+
+    def reset(self) -> None:
+        """Forget everything: every voxel unknown (the window stays where it is)."""
+        self.logodds.fill(0.0)
+        self.observed.fill(False)
+        self.solid.fill(self._unknown_solid)
+
+    def shift_to(self, new_origin: np.ndarray) -> tuple[np.ndarray, list[IndexBox]]:
+        """Move the window so local voxel 0 is global voxel ``new_origin`` (3,) int.
+
+        Content that still overlaps keeps its global voxel (no resampling, so no smearing);
+        voxels that enter are unknown. Returns ``(shift (3,) int, boxes)`` where ``boxes`` are
+        the local index boxes whose obstacle state may differ from before for the distance
+        transform: the entering slabs and the one-voxel slab at each face content left through
+        (obstacles that left no longer count). A shift of a whole window or more resets the grid
+        and returns the whole grid as one box.
+        """
+        new_origin = np.asarray(new_origin, dtype=np.int64)
+        shift = new_origin - self.origin_index
+        if not shift.any():
+            return shift, []
+        shape = np.asarray(self.shape)
+        self.origin_index = new_origin.copy()
+        if np.any(np.abs(shift) >= shape):
+            self.reset()
+            return shift, [((0, 0, 0), tuple(int(n) for n in shape))]
+        self.logodds = shift_array(self.logodds, shift, 0.0)
+        self.observed = shift_array(self.observed, shift, False)
+        self.solid = shift_array(self.solid, shift, self._unknown_solid)
+        boxes: list[IndexBox] = []
+        for axis in range(3):
+            s = int(shift[axis])
+            if s == 0:
+                continue
+            n = int(shape[axis])
+            lo = [0, 0, 0]
+            hi = [int(v) for v in shape]
+            # Entering slab: content moved toward lower indices when s > 0.
+            enter_lo, enter_hi = (n - s, n) if s > 0 else (0, -s)
+            leave_lo, leave_hi = (0, 1) if s > 0 else (n - 1, n)
+            for a, b in ((enter_lo, enter_hi), (leave_lo, leave_hi)):
+                lo_b, hi_b = list(lo), list(hi)
+                lo_b[axis], hi_b[axis] = a, b
+                boxes.append((tuple(lo_b), tuple(hi_b)))
+        return shift, boxes
+
+    # -- one depth frame --------------------------------------------------------------------
+    def integrate(self, depth_m: np.ndarray, camera: PinholeCamera, T_world_cam: np.ndarray) -> OccupancyDelta:
+        """Fuse one depth frame. Inputs are assumed validated (see ``EsdfMap.integrate``).
+
+        Parameters
+        ----------
+        depth_m : float32 array, shape (camera.height, camera.width), z-depth in metres;
+            0 / NaN / inf / negative / below ``min_range_m`` are no reading.
+        camera : intrinsics of ``depth_m``
+        T_world_cam : (4, 4) rigid transform, camera optical frame -> world
+        """
+        cfg = self.config
+        t0 = time.perf_counter()
+        points = self._backproject(depth_m, camera, T_world_cam)
+        t1 = time.perf_counter()
+
+        flags = self._scratch
+        hit_lin = self._hit_voxels(points, T_world_cam[:3, 3], flags)
+        miss_lin = self._miss_voxels(depth_m, camera, T_world_cam, flags)
+        flags[hit_lin] = False
+
+        lo = self.logodds.reshape(-1)
+        obs = self.observed.reshape(-1)
+        solid = self.solid.reshape(-1)
+        lo[hit_lin] = np.minimum(lo[hit_lin] + np.float32(cfg.hit_logodds), np.float32(cfg.max_logodds))
+        lo[miss_lin] = np.maximum(lo[miss_lin] + np.float32(cfg.miss_logodds), np.float32(cfg.min_logodds))
+        obs[hit_lin] = True
+        obs[miss_lin] = True
+        touched = np.concatenate([hit_lin, miss_lin])
+        now_solid = lo[touched] > np.float32(cfg.occupied_logodds)
+        flipped = touched[now_solid != solid[touched]]
+        solid[flipped] = ~solid[flipped]
+        t2 = time.perf_counter()
+        return OccupancyDelta(
+            flipped=flipped,
+            n_points=int(points.shape[0]),
+            n_hit_voxels=int(hit_lin.size),
+            n_miss_voxels=int(miss_lin.size),
+            backproject_ms=(t1 - t0) * 1e3,
+            update_ms=(t2 - t1) * 1e3,
+        )
+
+    def _backproject(self, depth_m: np.ndarray, camera: PinholeCamera, T_world_cam: np.ndarray) -> np.ndarray:
+        """World points (n, 3) float32 of the strided readings in [min_range_m, max_range_m).
+
+        Open3D's ``create_from_depth_image`` drops 0, NaN, inf, negative and readings at or
+        beyond ``depth_max``; the dead zone below ``min_range_m`` is zeroed here first.
+        """
+        cfg = self.config
+        s = cfg.stride_px
+        d = depth_m[::s, ::s]
+        with np.errstate(invalid="ignore"):
+            d = np.where(d >= cfg.min_range_m, d, np.float32(0.0)) if cfg.min_range_m > 0 else np.ascontiguousarray(d)
+        key = (camera, s)
+        K = self._intrinsics.get(key)
+        if K is None:
+            Kn = np.array(
+                [[camera.fx / s, 0.0, camera.cx / s], [0.0, camera.fy / s, camera.cy / s], [0.0, 0.0, 1.0]]
+            )
+            K = self._intrinsics[key] = o3d.core.Tensor(Kn)
+        pcd = o3d.t.geometry.PointCloud.create_from_depth_image(
+            o3d.t.geometry.Image(o3d.core.Tensor.from_numpy(d)),
+            K,
+            o3d.core.Tensor(invert_transform(T_world_cam)),
+            depth_scale=1.0,
+            depth_max=float(cfg.max_range_m),
+            stride=1,
+        )
+        return pcd.point.positions.numpy()
+
+    def _flat_in_grid(self, idx_global: np.ndarray) -> np.ndarray:
+        """Flat local indices (k,) of global voxel indices (n, 3) that fall inside the window."""
+        local = idx_global - self.origin_index
+        inside = np.all((local >= 0) & (local < np.asarray(self.shape)), axis=1)
+        return local[inside] @ self._strides
+
+    def _hit_voxels(self, points: np.ndarray, cam_pos: np.ndarray, flags: np.ndarray) -> np.ndarray:
+        """Distinct flat indices hit by ``points`` (n, 3) world, plus the surface-thickness band.
+
+        Leaves ``flags`` set at the returned indices (the caller clears them).
+        """
+        cfg = self.config
+        inv_v = 1.0 / cfg.voxel_m
+        g = np.floor(points * np.float32(inv_v)).astype(np.int64)
+        flags[self._flat_in_grid(g)] = True
+        surface = np.flatnonzero(flags)
+        n_band = int(round(cfg.surface_thickness_m / cfg.voxel_m))
+        if n_band > 0 and surface.size:
+            c = self.centers_of(surface)
+            ray = c - cam_pos
+            ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-9)
+            steps = np.arange(1, n_band + 1, dtype=float) * cfg.voxel_m
+            behind = (c[:, None, :] + ray[:, None, :] * steps[None, :, None]).reshape(-1, 3)
+            flags[self._flat_in_grid(np.floor(behind * inv_v).astype(np.int64))] = True
+            return np.flatnonzero(flags)
+        return surface
+
+    def _frustum_box(self, camera: PinholeCamera, T_world_cam: np.ndarray) -> IndexBox | None:
+        """Local index box around the camera frustum cut at ``max_range_m``, or None if outside."""
+        r = self.config.max_range_m
+        w, h = camera.width - 1.0, camera.height - 1.0
+        corners_px = np.array([[0.0, 0.0], [w, 0.0], [0.0, h], [w, h]])
+        P_cam = np.vstack([np.zeros((1, 3)), camera.back_project(corners_px, np.full(4, r))])
+        P = P_cam @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
+        g_lo = np.floor(P.min(axis=0) / self.voxel_m).astype(np.int64) - self.origin_index
+        g_hi = np.floor(P.max(axis=0) / self.voxel_m).astype(np.int64) - self.origin_index + 1
+        lo = np.maximum(g_lo, 0)
+        hi = np.minimum(g_hi, np.asarray(self.shape))
+        if np.any(hi <= lo):
+            return None
+        return tuple(int(v) for v in lo), tuple(int(v) for v in hi)
+
+    def _miss_voxels(
+        self, depth_m: np.ndarray, camera: PinholeCamera, T_world_cam: np.ndarray, flags: np.ndarray
+    ) -> np.ndarray:
+        """Flat indices of solid voxels in the frustum that this frame sees through.
+
+        Only ``solid`` voxels can change the field by being passed through: obstacles, plus
+        unknown voxels under ``unknown_policy == "occupied"``. Voxels hit in this frame
+        (``flags``) are skipped.
+        """
+        cfg = self.config
+        box = self._frustum_box(camera, T_world_cam)
+        if box is None:
+            return np.zeros(0, dtype=np.int64)
+        (x0, y0, z0), (x1, y1, z1) = box
+        sub = self.solid[x0:x1, y0:y1, z0:z1]
+        loc = np.flatnonzero(sub)
+        if loc.size == 0:
+            return loc.astype(np.int64)
+        sx, sy, sz = sub.shape
+        ix = loc // (sy * sz) + x0
+        rem = loc % (sy * sz)
+        iy = rem // sz + y0
+        iz = rem % sz + z0
+        flat = (ix * self.shape[1] + iy) * self.shape[2] + iz
+        keep = ~flags[flat]
+        flat, ix, iy, iz = flat[keep], ix[keep], iy[keep], iz[keep]
+        # Voxel centres in the camera frame: R^T (c - t), c = (i + origin + 0.5) * voxel.
+        R = T_world_cam[:3, :3]
+        t = T_world_cam[:3, 3]
+        v = cfg.voxel_m
+        a = (self.origin_index + 0.5) * v - t  # (3,)
+        cx_w = (ix * v + a[0]).astype(np.float32)
+        cy_w = (iy * v + a[1]).astype(np.float32)
+        cz_w = (iz * v + a[2]).astype(np.float32)
+        Rt = R.T.astype(np.float32)
+        xc = Rt[0, 0] * cx_w + Rt[0, 1] * cy_w + Rt[0, 2] * cz_w
+        yc = Rt[1, 0] * cx_w + Rt[1, 1] * cy_w + Rt[1, 2] * cz_w
+        zc = Rt[2, 0] * cx_w + Rt[2, 1] * cy_w + Rt[2, 2] * cz_w
+        front = zc > np.float32(cfg.min_range_m)
+        flat, xc, yc, zc = flat[front], xc[front], yc[front], zc[front]
+        u = np.floor(np.float32(camera.fx) * xc / zc + np.float32(camera.cx + 0.5)).astype(np.int64)
+        vv = np.floor(np.float32(camera.fy) * yc / zc + np.float32(camera.cy + 0.5)).astype(np.int64)
+        inside = (u >= 0) & (u < camera.width) & (vv >= 0) & (vv < camera.height)
+        flat, zc = flat[inside], zc[inside]
+        d = depth_m[vv[inside], u[inside]]
+        with np.errstate(invalid="ignore"):
+            valid = d >= np.float32(cfg.min_range_m)  # False for NaN, negative, -inf
+            reach = np.minimum(d, np.float32(cfg.max_range_m)) - np.float32(cfg.clear_margin_m)
+            miss = valid & (zc < reach)
+        return flat[miss]
+
+
+def shift_array(a: np.ndarray, shift: np.ndarray, fill) -> np.ndarray:
+    """Array ``b`` with ``b[i] = a[i + shift]`` where that index exists, ``fill`` elsewhere.
+
+    Parameters
+    ----------
+    a : array, shape (nx, ny, nz)
+    shift : int array (3,), voxels the window moved (new origin minus old origin)
+    """
+    out = np.full(a.shape, fill, dtype=a.dtype)
+    src, dst = [], []
+    for s, n in zip(shift, a.shape):
+        s = int(s)
+        if s >= 0:
+            src.append(slice(s, n))
+            dst.append(slice(0, n - s))
+        else:
+            src.append(slice(0, n + s))
+            dst.append(slice(-s, n))
+    out[tuple(dst)] = a[tuple(src)]
+    return out
