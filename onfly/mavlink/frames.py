@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from planning.frames import FrameError, wrap_angle
+from planning.frames import FrameError, quat_from_matrix, wrap_angle
 
 __all__ = [
     "R_ENU_NED",
@@ -41,6 +41,7 @@ __all__ = [
     "matrix_enu_flu_from_euler_ned_frd",
     "yaw_enu_from_quat_ned_frd",
     "euler_rates_from_body_rates",
+    "quat_ned_frd_from_matrix_enu_flu",
 ]
 
 #: Change of basis NED -> ENU (a proper rotation: pi about (1, 1, 0)/sqrt(2)). Symmetric.
@@ -229,3 +230,15 @@ def euler_rates_from_body_rates(roll, pitch, body_rates):
     pitch_dot = q * cr - r * sr
     yaw_dot = (q * sr + r * cr) / cp
     return np.stack(np.broadcast_arrays(roll_dot, pitch_dot, yaw_dot), axis=-1)
+
+
+def quat_ned_frd_from_matrix_enu_flu(R_enu_flu) -> np.ndarray:
+    """MAVLink attitude quaternion ``(w, x, y, z)`` (FRD -> NED, ``w >= 0``) from ``R_enu_flu`` (3, 3).
+
+    The inverse of :func:`matrix_enu_flu_from_quat_ned_frd` (both basis changes are symmetric
+    involutions, so ``R_ned_frd = R_ENU_NED @ R_enu_flu @ R_FLU_FRD``).
+    """
+    R = np.asarray(R_enu_flu, dtype=float)
+    if R.shape != (3, 3):
+        raise FrameError(f"R_enu_flu must have shape (3, 3), got {R.shape}")
+    return quat_from_matrix(R_ENU_NED @ R @ R_FLU_FRD)
