@@ -3,6 +3,10 @@ read back to the observations of the TUM folder they were made from."""
 
 from __future__ import annotations
 
+import json
+import re
+import subprocess
+import sys
 from itertools import islice
 from pathlib import Path
 
@@ -13,6 +17,7 @@ from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from scipy.spatial.transform import Rotation, Slerp
 
+from onfly.cli import main as cli_main
 from onfly.readers.rosbag import BagConfig, BagFormatError, BagReader, bag_summary, image_to_array, resolve_bag_path
 from onfly.readers.tum import TumReader
 from planning.frames import quat_from_matrix
@@ -320,3 +325,30 @@ def test_resolve_bag_path_rejects_other_things(tmp_path):
     (tmp_path / "broken.bag").write_bytes(b"#ROSBAG V2.0\n garbage")
     with pytest.raises(BagFormatError, match=r"broken\.bag: cannot open bag"):
         BagReader(tmp_path / "broken.bag")
+
+
+# -- onfly bag-info ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("ros2", [False, True], ids=["ros1", "ros2"])
+def test_bag_info_command_prints_the_table(tmp_path, kitchen, capsys, ros2):
+    path = write_bag(_bag_path(tmp_path, ros2), kitchen, ros2=ros2)
+    assert cli_main(["bag-info", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert f"format:    ROS {'2' if ros2 else '1'} bag" in out
+    assert "messages:  12" in out
+    assert re.search(r"/camera/depth/image_raw\s+sensor_msgs/msg/Image\s+3 msgs", out)
+    assert re.search(r"/odom\s+nav_msgs/msg/Odometry\s+3 msgs", out)
+    assert "duration:  0.067 s" in out
+    assert cli_main(["bag-info", "--json", str(path)]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["messages"] == 12 and {"name": "/odom", "type": "nav_msgs/msg/Odometry", "count": 3} in summary["topics"]
+
+
+def test_bag_info_on_a_missing_file_is_one_line_and_exit_2(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, "-m", "onfly.cli", "bag-info", str(tmp_path / "missing.bag")], capture_output=True, text=True, timeout=60
+    )
+    assert proc.returncode == 2
+    assert proc.stderr.strip() == f"onfly bag-info: error: {tmp_path / 'missing.bag'}: no such file or directory"
+    assert proc.stdout == ""

@@ -104,8 +104,9 @@ class LogReader:
         self.meta: dict = meta
         self.frames_path = self.path / FRAMES_FILE
         self.events_path = self.path / EVENTS_FILE
-        with self._open_frames():
-            pass
+        f = self._open_frames()
+        if f is not None:
+            f.close()
 
     # -- protocol --------------------------------------------------------------------------------
     def __enter__(self) -> "LogReader":
@@ -129,7 +130,8 @@ class LogReader:
         return n
 
     # -- frames ----------------------------------------------------------------------------------
-    def _open_frames(self) -> BinaryIO:
+    def _open_frames(self) -> BinaryIO | None:
+        """``frames.bin`` positioned after its file header; None while the header is unfinished."""
         try:
             f = open(self.frames_path, "rb")
         except FileNotFoundError:
@@ -138,7 +140,7 @@ class LogReader:
         if magic != FILE_MAGIC:
             f.close()
             if len(magic) < len(FILE_MAGIC) and FILE_MAGIC.startswith(magic):
-                raise LogFormatError(f"{self.frames_path}: truncated inside the file header")
+                return None  # the writer has created the file but not yet written its header
             raise LogFormatError(f"{self.frames_path}: wrong file magic {magic!r} (expected {FILE_MAGIC!r})")
         return f
 
@@ -147,7 +149,10 @@ class LogReader:
         yield from self._scan(decode=True)
 
     def _scan(self, decode: bool) -> Iterator[LogFrame | None]:
-        with self._open_frames() as f:
+        f = self._open_frames()
+        if f is None:
+            return
+        with f:
             index = 0
             while True:
                 offset = f.tell()
