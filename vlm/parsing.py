@@ -257,7 +257,7 @@ def _json_values(text: str) -> Iterator[tuple[int, Any]]:
     After a successful decode the scan resumes after the decoded value, so nested values are
     not reported twice.
     """
-    decoder = json.JSONDecoder()
+    decoder = json.JSONDecoder(strict=False)  # models put raw newlines inside strings
     pos, attempts = 0, 0
     while attempts < _MAX_JSON_ATTEMPTS:
         starts = [i for i in (text.find("{", pos), text.find("[", pos)) if i >= 0]

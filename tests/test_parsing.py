@@ -1,0 +1,345 @@
+"""Parsers: a corpus of realistic model outputs per format, and fuzzing for totality and bounds."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from vlm.parsing import (
+    MAX_TEXT_CHARS,
+    CoordFormat,
+    MonitorStatus,
+    parse_point,
+    parse_point_depth,
+    parse_status,
+    parse_subtasks,
+)
+
+W, H = 640, 480
+
+# (text, kwargs, expected uv) -- answers shaped like real models' output
+POINT_CORPUS = [
+    # our prompt's contract: JSON point_2d in pixels of the image as given
+    ('{"point_2d": [320, 240]}', {}, (320, 240)),
+    ('{"point_2d":[12,470]}', {}, (12, 470)),
+    ('```json\n{"point_2d": [101, 57]}\n```', {}, (101, 57)),
+    ('```\n{"point_2d": [101, 57]}\n```\nThis is the door.', {}, (101, 57)),
+    ('The red van is on the left. {"point_2d": [88, 300]} I chose its side.', {}, (88, 300)),
+    ('{"point": [5, 6]}', {}, (5, 6)),
+    ('{"x": 330, "y": 111}', {}, (330, 111)),
+    ('{"y": 111, "x": 330}', {"order": "yx"}, (330, 111)),  # named values are never swapped
+    ('{"point_2d": ["320", "240"]}', {}, (320, 240)),
+    ('{"point_2d": [320.6, 240.2]}', {}, (320.6, 240.2)),
+    ('{"answer": {"point_2d": [40, 50]}}', {}, (40, 50)),
+    # Qwen2.5-VL grounding lists (first point taken)
+    ('[{"point_2d": [100, 200], "label": "van"}, {"point_2d": [300, 400], "label": "van"}]', {}, (100, 200)),
+    ('```json\n[\n  {"bbox_2d": [100, 200, 300, 400], "label": "gate"}\n]\n```', {}, (200, 300)),
+    ('{"points": [[10, 20], [30, 40]]}', {}, (10, 20)),
+    ("[320, 240]", {}, (320, 240)),
+    ("[[50, 60], [70, 80]]", {}, (50, 60)),
+    # Qwen2.5-VL absolute pixels of the resized input (e.g. 1280x720 resized to 644x364 -> here 640x480 from 320x240)
+    ('{"point_2d": [160, 120]}', {"coord_format": "resized_pixel", "model_input_size": (320, 240)}, (320.5, 240.5)),
+    ('{"point_2d": [0, 0]}', {"coord_format": "resized_pixel", "model_input_size": (320, 240)}, (0.5, 0.5)),
+    # Qwen3-VL 0..1000 relative
+    ('{"point_2d": [500, 500]}', {"coord_format": "rel1000"}, (319.5, 239.5)),
+    ('{"point_2d": [0, 1000]}', {"coord_format": CoordFormat.REL1000}, (0.0, 479.0)),
+    ('[{"bbox_2d": [0, 0, 1000, 1000], "label": "all"}]', {"coord_format": "rel1000"}, (319.5, 239.5)),
+    # Gemini / SPF: [y, x] order, 0..1000
+    ('[{"point": [250, 750], "label": "tree"}]', {"coord_format": "rel1000", "order": "yx"}, (0.75 * 639, 0.25 * 479)),
+    ('{"box_2d": [0, 0, 500, 1000]}', {"coord_format": "rel1000", "order": "yx"}, (319.5, 0.25 * 479)),
+    ("[120, 40]", {"order": "yx"}, (40, 120)),
+    # Molmo XML, percent
+    ('<points x1="50.0" y1="25.0" x2="10.0" y2="10.0" alt="chairs">chairs</points>', {"coord_format": "rel100"}, (319.5, 119.75)),
+    ('<point x="10" y="20" alt="door">door</point>', {"coord_format": "rel100"}, (63.9, 95.8)),
+    ("<point>120, 340</point>", {}, (120, 340)),
+    ("<point>(120,340)</point>", {}, (120, 340)),
+    # Qwen2-VL box tokens (0..1000)
+    ("<|object_ref_start|>gate<|object_ref_end|><|box_start|>(100,200),(300,400)<|box_end|>", {"coord_format": "rel1000"}, (0.2 * 639, 0.3 * 479)),
+    # prose
+    ("The target is at (412, 233).", {}, (412, 233)),
+    ("I would fly to (12.5, 7) and then to (30, 30).", {}, (12.5, 7)),
+    ("Point: x = 300, y = 200", {}, (300, 200)),
+    ("y: 200, x: 300", {}, (300, 200)),
+    ("relative coordinates (0.5, 0.25)", {"coord_format": "rel1"}, (319.5, 119.75)),
+    # JSON wins over prose when both are present
+    ('It is near (1, 1). {"point_2d": [300, 300]}', {}, (300, 300)),
+]
+
+
+@pytest.mark.parametrize("text,kwargs,expected", POINT_CORPUS)
+def test_point_corpus(text, kwargs, expected):
+    res = parse_point(text, (W, H), **kwargs)
+    assert res.ok, res.reason
+    assert res.uv == pytest.approx(expected, abs=1e-9)
+    assert res.raw == text
+    assert res.reason == ""
+
+
+# near misses that must fail, with a fragment of the reason
+POINT_FAILURES = [
+    ("", "no point"),
+    ("I cannot see the target.", "no point"),
+    ("The target is slightly to the left of the centre.", "no point"),
+    ('{"point_2d": [320, ', "no point"),  # truncated
+    ('{"point_2d": "left"}', "not a pair"),
+    ('{"point_2d": [320]}', "not a pair"),
+    ('{"point_2d": [320, 240, 3.5]}', "not a pair"),
+    ('{"point_2d": [true, false]}', "not a pair"),
+    ('{"point_2d": [640, 100]}', "outside"),  # x == W is past the last pixel
+    ('{"point_2d": [-1, 100]}', "outside"),
+    ('{"point_2d": [100, 480]}', "outside"),
+    ('{"point_2d": [1e999, 1]}', "non-finite"),
+    ('{"point_2d": ["NaN", 1]}', "non-finite"),
+    ('{"point_2d": [NaN, 1]}', "non-finite"),
+    ('{"bbox_2d": [1, 2, 3]}', "not four numbers"),
+    ('```json\n{"label": "target"}\n```', "no point"),
+    ("[1, 2, 3, 4]", "no point"),  # a bare box is not a point
+    ("(12, )", "no point"),
+    # first point outside: a failure, never the second point instead
+    ('[{"point_2d": [900, 10]}, {"point_2d": [10, 10]}]', "first point"),
+]
+
+
+@pytest.mark.parametrize("text,reason", POINT_FAILURES)
+def test_point_failures_keep_raw_text(text, reason):
+    res = parse_point(text, (W, H))
+    assert not res.ok
+    assert res.uv is None
+    assert res.raw == text
+    assert reason in res.reason
+
+
+def test_relative_range_is_closed_and_outside_fails():
+    assert parse_point('{"point_2d": [1000, 1000]}', (W, H), "rel1000").uv == (W - 1, H - 1)
+    res = parse_point('{"point_2d": [1001, 5]}', (W, H), "rel1000")
+    assert not res.ok and "relative range" in res.reason
+
+
+def test_pixel_inside_extent_is_clamped_within_border_pixel():
+    res = parse_point('{"point_2d": [639.4, -0.4]}', (W, H))
+    assert res.ok and res.uv == (639.0, 0.0)
+
+
+def test_several_points_policy_first_and_all_candidates_kept():
+    res = parse_point('{"points": [[10, 20], [30, 40], [5000, 1]]}', (W, H))
+    assert res.uv == (10, 20)
+    assert res.candidates == ((10, 20), (30, 40))
+    assert res.source == "json:points"
+
+
+def test_bad_configuration_is_a_failure_naming_the_argument():
+    assert "model_input_size" in parse_point("[1, 2]", (W, H), "resized_pixel").reason
+    assert "coord_format" in parse_point("[1, 2]", (W, H), "furlongs").reason
+    assert "order" in parse_point("[1, 2]", (W, H), order="zx").reason
+    assert "image_size" in parse_point("[1, 2]", (0, H)).reason
+    assert "text must be str" in parse_point(None, (W, H)).reason  # type: ignore[arg-type]
+
+
+def test_too_long_text_is_refused_unread():
+    res = parse_point(" " * MAX_TEXT_CHARS + '{"point_2d": [1, 2]}', (W, H))
+    assert not res.ok and "longer" in res.reason
+
+
+def test_resized_pixel_maps_corners_inside():
+    kw = {"coord_format": "resized_pixel", "model_input_size": (1000, 700)}
+    top_left = parse_point("[0, 0]", (W, H), **kw).uv
+    bottom_right = parse_point("[999, 699]", (W, H), **kw).uv
+    assert top_left == (0.0, 0.0)
+    assert bottom_right == (W - 1.0, H - 1.0)
+    assert not parse_point("[1000, 10]", (W, H), **kw).ok
+
+
+# ---------------------------------------------------------------------------------------------
+# statuses
+
+STATUS_CORPUS = [
+    ("CONTINUE", MonitorStatus.CONTINUE),
+    ("STOP", MonitorStatus.STOP),
+    ("LOST", MonitorStatus.LOST),
+    ("**STOP**", MonitorStatus.STOP),
+    ("Status: stop.", MonitorStatus.STOP),
+    ("lost", MonitorStatus.LOST),
+    ("Continue\n", MonitorStatus.CONTINUE),
+    ('{"status": "LOST"}', MonitorStatus.LOST),
+    ("`STOP`", MonitorStatus.STOP),
+    ("The van is right in front of the drone. STOP. STOP!", MonitorStatus.STOP),
+    ("Answer: **Continue**.", MonitorStatus.CONTINUE),
+]
+
+
+@pytest.mark.parametrize("text,status", STATUS_CORPUS)
+def test_status_corpus(text, status):
+    res = parse_status(text)
+    assert res.ok and res.status is status and res.raw == text
+
+
+@pytest.mark.parametrize(
+    "text,reason",
+    [
+        ("CONTINUE or STOP", "ambiguous"),
+        ("I would not STOP; the target is LOST.", "ambiguous"),
+        ("", "no status"),
+        ("The drone is still approaching the target.", "no status"),
+        ("STOPPED", "no status"),
+        ("continuing", "no status"),
+        ("Status:", "no status"),
+    ],
+)
+def test_status_refusals(text, reason):
+    res = parse_status(text)
+    assert not res.ok and res.status is None and reason in res.reason and res.raw == text
+
+
+# ---------------------------------------------------------------------------------------------
+# point + depth, subtasks
+
+
+@pytest.mark.parametrize(
+    "text,uv,depth",
+    [
+        ('{"point_2d": [320, 240], "depth": 3.5}', (320, 240), 3.5),
+        ('{"point": [320, 240], "depth_m": "4 m"}', (320, 240), 4.0),
+        ('{"point_2d": [320, 240, 2.0]}', (320, 240), 2.0),
+        ("Fly to (100, 50), depth: 6.5 m", (100, 50), 6.5),
+        ("Target at (100, 50), about 7 meters away.", (100, 50), 7.0),
+    ],
+)
+def test_point_depth_corpus(text, uv, depth):
+    res = parse_point_depth(text, (W, H))
+    assert res.ok, res.reason
+    assert res.uv == pytest.approx(uv) and res.depth_m == pytest.approx(depth)
+
+
+@pytest.mark.parametrize(
+    "text,reason",
+    [
+        ('{"point_2d": [320, 240]}', "no depth"),
+        ('{"point_2d": [320, 240], "depth": -1}', "positive"),
+        ('{"point_2d": [320, 240], "depth": 0}', "positive"),
+        ('{"point_2d": [900, 240], "depth": 2}', "outside"),
+    ],
+)
+def test_point_depth_failures(text, reason):
+    res = parse_point_depth(text, (W, H))
+    assert not res.ok and reason in res.reason and res.raw == text
+
+
+@pytest.mark.parametrize(
+    "text,expected",
+    [
+        ('["fly through the gate", "stop next to the red van"]', ("fly through the gate", "stop next to the red van")),
+        ('```json\n["a", "b"]\n```', ("a", "b")),
+        ('Here you go: {"subtasks": ["go up", "land"]}', ("go up", "land")),
+        ('["  fly   to\nthe tree "]', ("fly to the tree",)),
+    ],
+)
+def test_subtasks_corpus(text, expected):
+    res = parse_subtasks(text)
+    assert res.ok and res.subtasks == expected
+
+
+@pytest.mark.parametrize(
+    "text,reason",
+    [
+        ("[]", "empty subtask list"),
+        ('{"subtasks": []}', "empty subtask list"),
+        ('["fly", 3]', "strings"),
+        ('["fly", "  "]', "empty subtask"),
+        ("Sure! Here are the subtasks:", "no JSON list"),
+        ('["fly to the gate", ', "no JSON list"),
+        (json.dumps(["x"] * 65), "more than"),
+    ],
+)
+def test_subtasks_failures(text, reason):
+    res = parse_subtasks(text)
+    assert not res.ok and res.subtasks == () and reason in res.reason
+
+
+# ---------------------------------------------------------------------------------------------
+# fuzzing: total functions, never a pixel outside the image
+
+_num = st.one_of(
+    st.integers(-5000, 5000),
+    st.floats(allow_nan=True, allow_infinity=True, width=64),
+    st.sampled_from(["1e999", "-0", "NaN", "320", "9" * 400, "0x10", "1_000"]),
+)
+_key = st.sampled_from(["point_2d", "point", "points", "bbox_2d", "box_2d", "bbox", "x", "pt", "label", "status"])
+
+
+@st.composite
+def _near_misses(draw) -> str:
+    """Real-model-shaped answers with random damage."""
+    a, b, c, d = (draw(_num) for _ in range(4))
+    shape = draw(
+        st.sampled_from(
+            [
+                '{{"{k}": [{a}, {b}]}}',
+                '{{"{k}": [{a}, {b}, {c}, {d}]}}',
+                '[{{"{k}": [{a}, {b}], "label": "van"}}]',
+                '{{"x": {a}, "y": {b}}}',
+                '```json\n{{"{k}": [{a}, {b}]}}\n```',
+                "The point is ({a}, {b}).",
+                "x = {a}, y = {b}",
+                '<points x1="{a}" y1="{b}" x2="{c}" y2="{d}">t</points>',
+                "<point>{a}, {b}</point>",
+                "<|box_start|>({a},{b}),({c},{d})<|box_end|>",
+                "[{a}, {b}]",
+                "[[{a}, {b}], [{c}, {d}]]",
+                '{{"{k}": {{"{k}": [{a}, {b}]}}}}',
+                "{a} {b}",
+            ]
+        )
+    )
+    text = shape.format(k=draw(_key), a=a, b=b, c=c, d=d)
+    cut = draw(st.integers(0, len(text)))
+    if draw(st.booleans()):
+        text = text[:cut]  # truncated generation
+    prefix = draw(st.sampled_from(["", "Sure. ", "[", "{", "((", "```", "<point "]))
+    return prefix + text + draw(st.sampled_from(["", " ", "}", "]]", "```", " (1, 2"]))
+
+
+_any_text = st.one_of(st.text(max_size=200), _near_misses(), st.text(alphabet="[]{}(),:\"0123456789.-e xy<>=/", max_size=300))
+_format = st.sampled_from(list(CoordFormat))
+_size = st.tuples(st.integers(1, 4000), st.integers(1, 4000))
+
+
+@settings(max_examples=3000, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(text=_any_text, size=_size, fmt=_format, order=st.sampled_from(["xy", "yx"]), model=_size)
+def test_fuzz_parse_point_never_raises_and_stays_inside(text, size, fmt, order, model):
+    res = parse_point(text, size, fmt, order=order, model_input_size=model)
+    assert res.raw == text
+    w, h = size
+    if res.ok:
+        u, v = res.uv
+        assert math.isfinite(u) and math.isfinite(v)
+        assert 0.0 <= u <= w - 1 and 0.0 <= v <= h - 1
+        assert res.uv == res.candidates[0]
+    else:
+        assert res.uv is None and res.reason
+    for u, v in res.candidates:
+        assert 0.0 <= u <= w - 1 and 0.0 <= v <= h - 1
+
+
+@settings(max_examples=1500, deadline=None)
+@given(text=_any_text, size=_size)
+def test_fuzz_point_depth_status_subtasks_are_total(text, size):
+    pd = parse_point_depth(text, size)
+    if pd.ok:
+        assert 0 <= pd.uv[0] <= size[0] - 1 and 0 <= pd.uv[1] <= size[1] - 1
+        assert math.isfinite(pd.depth_m) and pd.depth_m > 0
+    s = parse_status(text)
+    assert s.ok == (s.status is not None) and s.raw == text
+    t = parse_subtasks(text)
+    assert t.ok == bool(t.subtasks)
+
+
+@settings(max_examples=40, deadline=None)
+@given(depth=st.integers(1, 3000), bracket=st.sampled_from("[{"))
+def test_fuzz_deep_nesting_is_a_clean_failure(depth, bracket):
+    res = parse_point(bracket * depth + "1, 2", (W, H))
+    assert res.raw.endswith("1, 2")
+    assert not res.ok or res.uv == (1.0, 2.0)
