@@ -1,0 +1,149 @@
+"""Prompt templates: versions pinned to their text, builders, round trips, prefix stability."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vlm.parsing import parse_point
+from vlm.prompts import (
+    IMAGE_PLACEHOLDER,
+    DecisionPrompt,
+    DecomposePrompt,
+    MonitorPrompt,
+    PromptError,
+    build_decision_prompt,
+    build_decompose_prompt,
+    build_monitor_prompt,
+    count_placeholders,
+    decision_schema,
+    load_template,
+    parse_prompt,
+    prompt_segments,
+    status_schema,
+    subtasks_schema,
+)
+from vlm.types import ChatMessage, VlmImage
+
+# Editing a template's text without a new version breaks this test on purpose: a logged
+# version must name one exact text. Bump "## version:" in the file and update the pin.
+PINNED = {
+    "decision": ("decision/v1", "043a999f64cf635141b022af3ca0c480178e5f948edbe0a5685404fd51d6f202"),
+    "monitor": ("monitor/v1", "070bfc0058f6949d6d1c8db906a152960c9e017c4133cc56d078b41ec3a533d0"),
+    "decompose": ("decompose/v1", "531dcedca5041025b19524364a85a208ff85a9b1c8c2bf4598b36aff21d5aa4c"),
+}
+
+
+def _img(frame_id: str, w: int = 64, h: int = 48) -> VlmImage:
+    return VlmImage(np.zeros((h, w, 3), np.uint8), frame_id)
+
+
+@pytest.mark.parametrize("name", sorted(PINNED))
+def test_template_version_pins_text(name):
+    tpl = load_template(name)
+    assert (tpl.version, tpl.sha256) == PINNED[name]
+
+
+def test_unknown_template_lists_valid_names():
+    with pytest.raises(PromptError, match="unknown template 'chat'.*decision"):
+        load_template("chat")
+
+
+def test_decision_prompt_content_and_round_trip():
+    messages, images = build_decision_prompt("  fly to the\n red van ", _img("f7", 640, 480), history_uv=(412.4, 233.6))
+    assert [m.role for m in messages] == ["system", "user"]
+    assert images[0].frame_id == "f7"
+    assert count_placeholders(messages) == len(images) == 1
+    system, user = messages[0].content, messages[1].content
+    assert "decision agent" in system and '{"point_2d": [x, y]}' in system and "integer pixel" in system
+    # subtask before the image (stable within a subtask), history point after it
+    assert user.index("Current subtask: fly to the red van") < user.index(IMAGE_PLACEHOLDER) < user.index("History point: (412, 234)")
+    assert "640 x 480 pixels" in user
+    assert parse_prompt(messages) == DecisionPrompt("decision/v1", "fly to the red van", (640, 480), (412, 234))
+
+
+def test_decision_prompt_without_history_and_bad_history():
+    messages, _ = build_decision_prompt("go up", _img("a"))
+    assert "History point: none" in messages[1].content
+    assert parse_prompt(messages).history_uv is None
+    with pytest.raises(PromptError, match="outside the 64x48 image"):
+        build_decision_prompt("go up", _img("a"), history_uv=(64.0, 3.0))
+    with pytest.raises(PromptError, match="outside"):
+        build_decision_prompt("go up", _img("a"), history_uv=(float("nan"), 3.0))
+    with pytest.raises(PromptError, match="subtask is empty"):
+        build_decision_prompt(" \n ", _img("a"))
+    with pytest.raises(PromptError, match="image must be a VlmImage"):
+        build_decision_prompt("go", np.zeros((4, 4, 3), np.uint8))  # type: ignore[arg-type]
+
+
+def test_decision_schema_accepts_what_the_parser_reads():
+    schema = decision_schema()
+    assert schema["required"] == ["point_2d"]
+    assert schema["properties"]["point_2d"]["minItems"] == 2 == schema["properties"]["point_2d"]["maxItems"]
+    assert decision_schema() is not schema  # fresh dicts, callers may mutate
+    assert status_schema()["properties"]["status"]["enum"] == ["CONTINUE", "STOP", "LOST"]
+    assert subtasks_schema()["minItems"] == 1
+    assert parse_point('{"point_2d": [3, 4]}', (64, 48)).uv == (3, 4)
+
+
+def test_monitor_prompt_order_first_keyframes_latest():
+    first, keys, latest = _img("o1"), [_img("k1"), _img("k2"), _img("k3")], _img("ot")
+    messages, images = build_monitor_prompt("stop next to the red van", first, keys, latest)
+    assert [i.frame_id for i in images] == ["o1", "k1", "k2", "k3", "ot"]
+    assert count_placeholders(messages) == len(images)
+    user = messages[1].content
+    assert user.startswith("Current subtask: stop next to the red van\nFirst frame:\n<image>")
+    assert user.index("Keyframe 1:") < user.index("Keyframe 3:") < user.index("Latest frame:")
+    for word in ("CONTINUE", "STOP", "LOST"):
+        assert word in messages[0].content
+    assert parse_prompt(messages) == MonitorPrompt("monitor/v1", "stop next to the red van", 3)
+    messages0, images0 = build_monitor_prompt("stop", first, [], latest)
+    assert "Keyframes: none" in messages0[1].content and len(images0) == 2
+    assert parse_prompt(messages0).n_keyframes == 0
+
+
+def test_monitor_prefix_is_byte_stable_when_only_later_keyframes_change():
+    first = _img("o1")
+    a_msgs, a_imgs = build_monitor_prompt("fly to the tree", first, [_img("k1"), _img("k2")], _img("t10"))
+    b_msgs, b_imgs = build_monitor_prompt("fly to the tree", first, [_img("k1"), _img("k2"), _img("k5")], _img("t12"))
+    c_msgs, c_imgs = build_monitor_prompt("fly to the tree", first, [_img("k1"), _img("k2")], _img("t14"))
+    a, b, c = prompt_segments(a_msgs, a_imgs), prompt_segments(b_msgs, b_imgs), prompt_segments(c_msgs, c_imgs)
+    # the system text is byte-identical
+    assert a_msgs[0].content == b_msgs[0].content == c_msgs[0].content
+    # a and b share everything up to and including keyframe 2
+    k2 = a.index("\x00image:k2")
+    assert a[: k2 + 1] == b[: k2 + 1] and a[k2 + 1] != b[k2 + 1]
+    # same keyframes: everything but the latest frame (and what follows) is shared
+    assert a[:-3] == c[:-3] and a[-3] != c[-3]
+    # the user text up to the first differing image is a byte prefix of both
+    text_a, text_b = a_msgs[1].content, b_msgs[1].content
+    cut = text_a.index("Keyframe 2:\n<image>") + len("Keyframe 2:\n<image>")
+    assert text_a[:cut] == text_b[:cut]
+
+
+def test_monitor_prefix_changes_when_the_subtask_changes():
+    first = _img("o1")
+    a = prompt_segments(*build_monitor_prompt("fly to the tree", first, [], _img("t")))
+    b = prompt_segments(*build_monitor_prompt("land on the roof", first, [], _img("t")))
+    assert a[0] == b[0] and a[2] != b[2]
+
+
+def test_placeholder_count_must_equal_images():
+    messages, images = build_monitor_prompt("x", _img("a"), [_img("b")], _img("c"))
+    with pytest.raises(PromptError, match="3 <image> placeholders but 2 images"):
+        prompt_segments(messages, images[:2])
+
+
+def test_decompose_prompt_round_trip():
+    messages, images = build_decompose_prompt("Fly through the gate,\nthen stop next to the red van.")
+    assert images == [] and count_placeholders(messages) == 0
+    assert "JSON array of strings" in messages[0].content
+    assert parse_prompt(messages) == DecomposePrompt("decompose/v1", "Fly through the gate, then stop next to the red van.")
+
+
+def test_parse_prompt_refuses_foreign_chats():
+    assert parse_prompt([ChatMessage("user", "hello")]) is None
+    assert parse_prompt([ChatMessage("system", "You are helpful."), ChatMessage("user", "hi")]) is None
+    messages, _ = build_decision_prompt("go", _img("a"))
+    tampered = [messages[0], ChatMessage("user", messages[1].content.replace("History point", "Hint"))]
+    assert parse_prompt(tampered) is None
