@@ -1,0 +1,550 @@
+"""The receding-horizon planner: build once, step every control period.
+
+``Planner(config, solver="qp")`` builds the CasADi formulation and its solver once;
+``planner.step(state, goal_world, field)`` returns a :class:`PlanResult` with the trajectory,
+the first command and everything a log needs. One step (the fast path) is one real-time
+iteration:
+
+1. **Goal check.** A goal with clearance below ``d_safe + goal_clearance_margin`` is moved to
+   the nearest point with that clearance: Newton steps along the field gradient
+   (``g += (target - d) grad``), and if that fails within ``goal_search_max_m``, a line search
+   back along the segment toward the vehicle. ``PlanResult.goal_adjusted`` says so.
+2. **Linearization point.** The previous plan's inputs shifted by one knot, rolled out from the
+   *measured* state with the exact model (so it is dynamically consistent even after a
+   disturbance). On the first step (or after :meth:`Planner.reset`) the vehicle coasts
+   (zero inputs) and ``cold_start_iterations`` QPs are solved in sequence instead of one.
+3. **One QP.** Field distance and gradient at the linearized knots give
+   ``d(pbar_k) + grad_k . (p_k - pbar_k) + s_k >= d_safe`` for knots 1..N (knot 0 is the
+   measured state, pinned, never softened); the speed norm is cut by the half-space at the
+   previous direction plus cutting planes kept from earlier solves; OSQP is updated in place and
+   warm-started from the shifted previous primal/dual pair. If the true speed norm of the
+   result exceeds the limit by more than ``speed_tolerance_rel`` a cut is added at the violating
+   knots and the QP is solved again (at most ``max_speed_refinements`` times).
+4. **Check.** The inputs are clipped to their (exact) bounds, rolled out with the exact model,
+   and the plan is accepted only if the solve converged, the speed norm is within tolerance, and
+   the field's true clearance over the braking horizon stays above
+   ``min(d_safe, d(p_0)) - safety_tolerance_m``.
+5. **Fallback.** Otherwise the shifted previous plan is used if it passes the same check, and
+   else a braking plan (maximum deceleration along -v, yaw held). A step always returns a
+   command.
+
+Yaw. The reference is the goal bearing ``psi_g = atan2(g_y - y, g_x - x)`` from the current
+position (the paper's yaw term, not the path tangent), unwrapped near the current yaw with
+:func:`planning.frames.unwrap_near`. Within ``yaw_hold_radius_m`` (horizontal) of the goal the
+bearing is undefined and the reference is the current yaw: the vehicle holds its heading.
+
+Frames. The QP is posed in a frame translated to the vehicle's position (axes of the world
+ENU frame), so solver tolerances mean the same everywhere; every array in :class:`PlanResult`
+is in world ENU.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from planning.field import DistanceField
+from planning.frames import unwrap_near
+from planning.mpc_model import NU, NX, MpcFormulation, simulate
+from planning.planner_config import PlannerConfig
+from planning.trajectory import Trajectory, VehicleState
+
+__all__ = [
+    "Planner",
+    "PlanResult",
+    "ControlCommand",
+    "SolveStatus",
+    "Fallback",
+    "PlannerInputError",
+    "adjust_goal",
+]
+
+logger = logging.getLogger(__name__)
+
+SOLVERS = ("qp", "nlp")
+
+
+class PlannerInputError(ValueError):
+    """A state, goal or field answer the planner cannot use (wrong shape, NaN, wrong type)."""
+
+
+class SolveStatus(enum.Enum):
+    """Outcome of the optimization in one step (before any fallback)."""
+
+    SOLVED = "solved"
+    """Converged, within limits, clearance check passed."""
+    NOT_CONVERGED = "not_converged"
+    """Iteration limit or inaccurate solution."""
+    INFEASIBLE = "infeasible"
+    """The solver reported (primal or dual) infeasibility."""
+    UNSAFE = "unsafe"
+    """Converged, but the rolled-out plan failed the speed or clearance check."""
+    FAILED = "failed"
+    """Numerical failure (NaN) or solver error."""
+
+
+class Fallback(enum.Enum):
+    """Which plan the command comes from."""
+
+    NONE = "none"
+    """The fresh optimized plan."""
+    SHIFTED = "shifted"
+    """The previous plan shifted by one knot, re-rolled from the measured state."""
+    BRAKE = "brake"
+    """Maximum deceleration along -v, yaw held."""
+
+
+@dataclass(frozen=True, eq=False)
+class ControlCommand:
+    """The first input of a plan, to hold for one control period.
+
+    Attributes
+    ----------
+    a : array (3,), acceleration, m/s^2, world ENU
+    yaw_rate : float, rad/s
+    """
+
+    a: np.ndarray
+    yaw_rate: float
+
+
+@dataclass(frozen=True, eq=False)
+class PlanResult:
+    """Everything one planner step produced (world ENU, SI units).
+
+    Attributes
+    ----------
+    trajectory : Trajectory, the plan (knot 0 = the measured state)
+    command : ControlCommand, ``trajectory.a[0]`` and ``trajectory.yaw_rate[0]``
+    status : SolveStatus, outcome of the optimization this step
+    fallback : Fallback, NONE when the command comes from the fresh plan
+    iterations : int, solver iterations summed over the QPs (or ipopt iterations) of this step
+    qp_solves : int, number of solver calls this step
+    solve_time_ms : float, wall time of the whole step (data, solve, checks), milliseconds
+    slack_max_m : float, largest clearance slack of the accepted optimized plan, metres
+        (0 for fallback plans)
+    min_predicted_clearance_m : float, the field's distance minimized over knots 1..N of the
+        returned trajectory, metres
+    goal_used : array (3,), the goal the plan aims for (after adjustment), world ENU
+    goal_adjusted : bool, the requested goal was moved to a point with clearance
+    """
+
+    trajectory: Trajectory
+    command: ControlCommand
+    status: SolveStatus
+    fallback: Fallback
+    iterations: int
+    qp_solves: int
+    solve_time_ms: float
+    slack_max_m: float
+    min_predicted_clearance_m: float
+    goal_used: np.ndarray
+    goal_adjusted: bool
+
+    @property
+    def ok(self) -> bool:
+        """True when the command comes from a fresh, converged, checked plan."""
+        return self.fallback is Fallback.NONE
+
+
+def _query(field: DistanceField, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Query a field and validate its answer."""
+    try:
+        d, g = field.query(points)
+    except PlannerInputError:
+        raise
+    except (ValueError, TypeError) as exc:
+        raise PlannerInputError(f"the distance field rejected a query: {exc}") from exc
+    d = np.asarray(d, dtype=float)
+    g = np.asarray(g, dtype=float)
+    n = points.shape[0]
+    if d.shape != (n,) or g.shape != (n, 3):
+        raise PlannerInputError(
+            f"field.query returned shapes {d.shape}, {g.shape}; expected ({n},), ({n}, 3)"
+        )
+    if not (np.all(np.isfinite(d)) and np.all(np.isfinite(g))):
+        raise PlannerInputError("field.query returned NaN or inf distance/gradient")
+    return d, g
+
+
+def adjust_goal(
+    goal: np.ndarray,
+    vehicle_p: np.ndarray,
+    field: DistanceField,
+    clearance_m: float,
+    search_max_m: float,
+    iterations: int = 30,
+    goal_query: tuple[float, np.ndarray] | None = None,
+) -> tuple[np.ndarray, bool]:
+    """Move ``goal`` to the nearest point with clearance at least ``clearance_m``.
+
+    Newton steps on the distance field, ``g <- g + (clearance_m - d(g) + 1 mm) grad / |grad|``,
+    while the total displacement stays within ``search_max_m``; if that does not reach the
+    clearance (a medial ridge, a thick obstacle), the segment from the goal back toward the
+    vehicle is searched in 2.5 cm steps for the first point with the clearance. If no point on
+    it has the clearance, the point of largest clearance on the segment is returned.
+
+    Parameters
+    ----------
+    goal, vehicle_p : arrays (3,), metres, world ENU
+    field : DistanceField
+    clearance_m : required clearance, metres
+    search_max_m : largest displacement of the gradient ascent, metres
+    goal_query : optional ``(d, grad (3,))`` already known at ``goal`` (saves a query)
+
+    Returns
+    -------
+    goal_used (3,), adjusted (bool)
+    """
+    if goal_query is None:
+        d, g = _query(field, goal[None, :])
+        goal_query = (float(d[0]), g[0])
+    di, gi = goal_query
+    if di >= clearance_m:
+        return goal.copy(), False
+    p = goal.copy()
+    for _ in range(iterations):
+        n = np.linalg.norm(gi)
+        if n < 1e-9:
+            break
+        p = p + (clearance_m - di + 1e-3) * gi / n
+        if np.linalg.norm(p - goal) > search_max_m:
+            break
+        dd, gg = _query(field, p[None, :])
+        di, gi = dd[0], gg[0]
+        if di >= clearance_m:
+            return p, True
+    seg = vehicle_p - goal
+    length = float(np.linalg.norm(seg))
+    steps = max(2, int(np.ceil(length / 0.025)) + 1)
+    t = np.linspace(0.0, 1.0, steps)[:, None]
+    pts = goal[None, :] + t * seg[None, :]
+    dd, _ = _query(field, pts)
+    ok = np.flatnonzero(dd >= clearance_m)
+    if ok.size:
+        return pts[ok[0]].copy(), True
+    return pts[int(np.argmax(dd))].copy(), True
+
+
+class _ShiftedField:
+    """A field seen from a frame translated by ``origin`` (for the NLP callback)."""
+
+    def __init__(self, field: DistanceField, origin: np.ndarray) -> None:
+        self._field, self._origin = field, origin
+
+    def query(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return _query(self._field, np.asarray(points, dtype=float) + self._origin)
+
+
+class Planner:
+    """Receding-horizon MPC planner (see the module docstring for one step).
+
+    Parameters
+    ----------
+    config : PlannerConfig
+    solver : ``"qp"`` (fast path: persistent OSQP, one QP per step) or ``"nlp"`` (reference:
+        ipopt with exact speed norm and exact field constraints, every step from the shifted
+        previous plan)
+    """
+
+    def __init__(self, config: PlannerConfig | None = None, solver: str = "qp") -> None:
+        if solver not in SOLVERS:
+            raise ValueError(f"solver must be one of {SOLVERS}, got {solver!r}")
+        self.config = config if config is not None else PlannerConfig()
+        if not isinstance(self.config, PlannerConfig):
+            raise PlannerInputError(f"config must be a PlannerConfig, got {type(self.config).__name__}")
+        self.solver_name = solver
+        self.formulation = MpcFormulation(self.config)
+        self.layout = self.formulation.layout
+        if solver == "qp":
+            from planning.mpc_qp import MpcQp
+
+            self._qp = MpcQp(self.formulation)
+            self._nlp = None
+        else:
+            from planning.mpc_nlp import MpcNlp
+
+            self._qp = None
+            self._nlp = MpcNlp(self.formulation)
+        c, L = self.config, self.layout
+        N, K = L.N, L.speed_cuts
+        self._k_dt = np.arange(1, N + 1) * c.dt_s
+        self._u_max = np.array([c.a_max_mps2] * 3 + [c.yaw_rate_max_rps])
+        self._idx_u = L.idx_u
+        self._idx_v1 = L.idx_v[1:]
+        self._idx_s = L.idx_s
+        self._theta = np.zeros(L.n_theta)
+        self._check_steps = c.braking_steps
+        self.reset()
+        logger.debug("Planner built: solver=%s N=%d K=%d", solver, N, K)
+
+    def reset(self) -> None:
+        """Forget the previous plan (the next step cold-starts)."""
+        L = self.layout
+        self._prev_u: np.ndarray | None = None
+        self._prev_y: np.ndarray | None = None
+        self._prev_s = np.zeros(L.N)
+        self._cuts: np.ndarray | None = None  # (N, K, 3)
+
+    # ------------------------------------------------------------------ validation
+    def _validate(self, state, goal_world, field) -> np.ndarray:
+        if not isinstance(state, VehicleState):
+            raise PlannerInputError(f"state must be a VehicleState, got {type(state).__name__}")
+        goal = np.asarray(goal_world, dtype=float) if not isinstance(goal_world, str) else None
+        if goal is None or goal.shape != (3,):
+            raise PlannerInputError(f"goal_world must have shape (3,), got {np.shape(goal_world)}")
+        if not np.all(np.isfinite(goal)):
+            raise PlannerInputError(f"goal_world must be finite, got {goal}")
+        if not callable(getattr(field, "query", None)):
+            raise PlannerInputError(
+                f"field must implement DistanceField.query(points), got {type(field).__name__}"
+            )
+        return goal
+
+    # ------------------------------------------------------------------ step
+    def step(self, state: VehicleState, goal_world: np.ndarray, field: DistanceField) -> PlanResult:
+        """Plan from ``state`` toward ``goal_world`` in ``field``; always returns a command.
+
+        Parameters
+        ----------
+        state : VehicleState, measured state (world ENU)
+        goal_world : array (3,), metres, world ENU
+        field : DistanceField, signed distance and gradient (world ENU)
+
+        Raises
+        ------
+        PlannerInputError
+            Wrong types, shapes, or non-finite values in the inputs or in the field's answer.
+        """
+        t_start = time.perf_counter()
+        goal = self._validate(state, goal_world, field)
+        c, L = self.config, self.layout
+        N, K, dt = L.N, L.speed_cuts, c.dt_s
+        origin = state.p.copy()
+        x0 = np.empty(NX)
+        x0[0:3] = 0.0
+        x0[3:6] = state.v
+        x0[6] = state.yaw
+
+        # 2. linearization point (before the goal: one field query serves both)
+        cold = self._prev_u is None
+        if cold:
+            u_bar = np.zeros((N, NU))
+        else:
+            u_bar = np.empty((N, NU))
+            u_bar[:-1] = self._prev_u[1:]
+            u_bar[-1] = self._prev_u[-1]
+        X_bar = simulate(x0, u_bar, dt)
+        pts = np.empty((N + 2, 3))
+        pts[0] = goal
+        pts[1] = origin
+        pts[2:] = X_bar[1:, 0:3] + origin
+        d_all, g_all = _query(field, pts)
+        d0 = float(d_all[1])
+
+        # 1. goal
+        goal_clear = c.d_safe_m + c.goal_clearance_margin_m
+        goal_used, adjusted = adjust_goal(
+            goal, origin, field, goal_clear, c.goal_search_max_m, goal_query=(float(d_all[0]), g_all[0])
+        )
+        goal_local = goal_used - origin
+        horiz = float(np.hypot(goal_local[0], goal_local[1]))
+        if horiz > c.yaw_hold_radius_m:
+            psi_ref = float(unwrap_near(np.arctan2(goal_local[1], goal_local[0]), state.yaw))
+        else:
+            psi_ref = float(state.yaw)
+
+        # speed bound per knot (above v_max only while braking an initial overspeed)
+        speed0 = float(np.linalg.norm(state.v))
+        bound = np.maximum(c.v_max_mps, speed0 - c.a_max_mps2 * self._k_dt)
+
+        th = self._theta
+        th[L.th_x0] = x0
+        th[L.th_goal] = goal_local
+        th[L.th_psi_ref] = psi_ref
+        th[L.th_a_prev] = state.a
+        th[L.th_speed_bound] = bound
+
+        iterations = 0
+        solves = 0
+        status = SolveStatus.FAILED
+        plan = None
+        slack_max = 0.0
+        n_outer = max(1, c.cold_start_iterations) if cold else 1
+        y_warm = None
+        if not cold and self._prev_y is not None and self._qp is not None:
+            y_warm = self._prev_y[self._qp.shift_y]
+        s_warm = np.zeros(N) if cold else np.concatenate([self._prev_s[1:], self._prev_s[-1:]])
+        knots_query = (d_all[2:], g_all[2:])
+        for outer in range(n_outer):
+            if outer > 0:
+                X_bar = simulate(x0, u_bar, dt)
+                knots_query = None
+            cuts_mode = ("fresh" if outer == 0 else "keep") if cold else "shift"
+            self._linearize(X_bar, u_bar, origin, goal_local, field, cuts_mode, knots_query)
+            z_warm = self._assemble_z(X_bar, u_bar, s_warm)
+            sol = self._solve(th, z_warm, y_warm, field, origin)
+            iterations += sol[2]
+            solves += sol[3]
+            status, z, y = sol[0], sol[1], sol[4]
+            if status is not SolveStatus.SOLVED or z is None:
+                break
+            u_bar = np.clip(z[self._idx_u], -self._u_max, self._u_max)
+            s_warm = z[self._idx_s]
+            y_warm = y
+        if status is SolveStatus.SOLVED:
+            U = u_bar
+            X = simulate(x0, U, dt)
+            ok, dmin, d_knots = self._check(X, U, origin, field, d0, bound)
+            if ok:
+                plan = (X, U, d_knots)
+                slack_max = float(np.max(z[self._idx_s], initial=0.0))
+                self._prev_y = y
+                self._prev_s = np.maximum(z[self._idx_s], 0.0)
+            else:
+                status = SolveStatus.UNSAFE
+        fallback = Fallback.NONE
+        if plan is None and not cold:
+            U = np.empty((N, NU))
+            U[:-1] = self._prev_u[1:]
+            U[-1] = 0.0
+            X = simulate(x0, U, dt)
+            ok, _, d_knots = self._check(X, U, origin, field, d0, bound)
+            if ok:
+                plan, fallback = (X, U, d_knots), Fallback.SHIFTED
+        if plan is None:
+            U = self._braking_inputs(state.v)
+            X = simulate(x0, U, dt)
+            d_knots, _ = _query(field, X[1:, 0:3] + origin)
+            plan, fallback = (X, U, d_knots), Fallback.BRAKE
+        if fallback is not Fallback.NONE:
+            self._prev_y = None
+            self._prev_s = np.zeros(N)
+            logger.info("planner fallback %s (status %s)", fallback.value, status.value)
+        X, U, d_knots = plan
+        self._prev_u = U
+
+        P = X[:, 0:3] + origin
+        traj = Trajectory(
+            t0_s=state.t_s, dt_s=dt, p=P, v=X[:, 3:6], yaw=X[:, 6], a=U[:, 0:3], yaw_rate=U[:, 3]
+        )
+        command = ControlCommand(a=U[0, 0:3].copy(), yaw_rate=float(U[0, 3]))
+        return PlanResult(
+            trajectory=traj,
+            command=command,
+            status=status,
+            fallback=fallback,
+            iterations=iterations,
+            qp_solves=solves,
+            solve_time_ms=(time.perf_counter() - t_start) * 1e3,
+            slack_max_m=slack_max,
+            min_predicted_clearance_m=float(np.min(d_knots)),
+            goal_used=goal_used,
+            goal_adjusted=adjusted,
+        )
+
+    # ------------------------------------------------------------------ pieces
+    def _linearize(self, X_bar, u_bar, origin, goal_local, field, cuts_mode: str, knots_query=None) -> None:
+        """Fill the clearance, speed-direction and proximal parts of theta about ``X_bar``.
+
+        ``cuts_mode``: ``"fresh"`` (all K cuts of a knot at its direction), ``"shift"`` (cuts
+        of the previous step moved one knot on), ``"keep"`` (same step, cuts kept); slot 0 is
+        always the tangent at the linearization point's direction.
+        """
+        L, th = self.layout, self._theta
+        N, K = L.N, L.speed_cuts
+        P = X_bar[1:, 0:3]
+        d, g = _query(field, P + origin) if knots_query is None else knots_query
+        th[L.th_lin_grad] = g.ravel()
+        th[L.th_lin_offset] = d - np.einsum("ij,ij->i", g, P)
+        th[L.th_a_bar] = u_bar[:, 0:3].ravel()
+        V = X_bar[1:, 3:6]
+        speed = np.linalg.norm(V, axis=1)
+        default = goal_local.copy()
+        nd = np.linalg.norm(default)
+        default = default / nd if nd > 1e-6 else np.array([1.0, 0.0, 0.0])
+        moving = speed > 0.05 * self.config.v_max_mps
+        dirs = np.where(moving[:, None], V / np.where(moving, speed, 1.0)[:, None], default)
+        if cuts_mode == "fresh" or self._cuts is None:
+            cuts = np.repeat(dirs[:, None, :], K, axis=1)
+        elif cuts_mode == "shift":
+            cuts = np.empty((N, K, 3))
+            cuts[:-1] = self._cuts[1:]
+            cuts[-1] = self._cuts[-1]
+            cuts[:, 0, :] = dirs
+        else:
+            cuts = self._cuts
+            cuts[:, 0, :] = dirs
+        self._cuts = cuts
+        th[L.th_speed_dir] = cuts.ravel()
+
+    def _assemble_z(self, X, U, s) -> np.ndarray:
+        L = self.layout
+        z = np.empty(L.n_z)
+        z[: L.n_x] = X.ravel()
+        z[L.n_x : L.n_x + L.n_u] = U.ravel()
+        z[L.n_x + L.n_u :] = s
+        return z
+
+    def _solve(self, th, z_warm, y_warm, field, origin):
+        """Solve with speed refinement. Returns (status, z, iterations, solves, y)."""
+        c, L = self.config, self.layout
+        K = L.speed_cuts
+        iterations, solves = 0, 0
+        if self._nlp is not None:
+            sol = self._nlp.solve(th, _ShiftedField(field, origin), z_warm)
+            ok = sol.converged and np.all(np.isfinite(sol.z))
+            return (SolveStatus.SOLVED if ok else SolveStatus.NOT_CONVERGED), sol.z, sol.iterations, 1, None
+        bound = th[L.th_speed_bound]
+        limit = bound * (1.0 + c.speed_tolerance_rel)
+        for r in range(c.max_speed_refinements + 1):
+            sol = self._qp.solve(th, z_warm, y_warm)
+            iterations += sol.iterations
+            solves += 1
+            if not np.all(np.isfinite(sol.z)):
+                return SolveStatus.FAILED, None, iterations, solves, None
+            if "infeasible" in sol.status:
+                return SolveStatus.INFEASIBLE, None, iterations, solves, None
+            if not sol.converged:
+                return SolveStatus.NOT_CONVERGED, None, iterations, solves, None
+            V = sol.z[self._idx_v1]
+            speed = np.linalg.norm(V, axis=1)
+            bad = np.flatnonzero(speed > limit)
+            if bad.size == 0:
+                return SolveStatus.SOLVED, sol.z, iterations, solves, sol.y
+            # cutting plane at the violating directions (slot 0 stays the linearization)
+            slot = 1 + r % (K - 1) if K > 1 else 0
+            self._cuts[bad, slot, :] = V[bad] / speed[bad, None]
+            th[L.th_speed_dir] = self._cuts.ravel()
+            z_warm, y_warm = sol.z, sol.y
+        return SolveStatus.UNSAFE, None, iterations, solves, None
+
+    def _check(self, X, U, origin, field, d0, bound):
+        """Speed within tolerance everywhere; clearance over the braking horizon."""
+        c = self.config
+        speed = np.linalg.norm(X[1:, 3:6], axis=1)
+        d_knots, _ = _query(field, X[1:, 0:3] + origin)
+        if np.any(speed > bound * (1.0 + c.speed_tolerance_rel)):
+            return False, float(d_knots.min()), d_knots
+        floor = min(c.d_safe_m, d0) - c.safety_tolerance_m
+        ok = bool(np.all(d_knots[: self._check_steps] >= floor))
+        return ok, float(d_knots.min()), d_knots
+
+    def _braking_inputs(self, v0: np.ndarray) -> np.ndarray:
+        """Inputs (N, 4): decelerate at a_max along -v until at rest, zero yaw rate."""
+        c, L = self.config, self.layout
+        U = np.zeros((L.N, NU))
+        v = v0.copy()
+        for k in range(L.N):
+            s = float(np.linalg.norm(v))
+            if s < 1e-9:
+                break
+            dec = min(c.a_max_mps2, s / c.dt_s)
+            a = -dec * v / s
+            U[k, 0:3] = a
+            v = v + a * c.dt_s
+        return U

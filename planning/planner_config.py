@@ -1,0 +1,216 @@
+"""Every weight and limit of the receding-horizon MPC, in one frozen dataclass.
+
+Scripts change a :class:`PlannerConfig`, never the code. Units are in the field names. The
+paper states the dynamic limits (0.6 m/s, 0.6 m/s^2, 0.4 rad/s); every other default is our
+documented choice:
+
+- ``d_safe_m = 0.45``: a 0.25 m body radius (a 250-350 mm class quadrotor with props) plus the
+  paper's 0.2 m clearance dilation ``r``. The planner keeps the body *centre* at least this far
+  from every obstacle surface.
+- ``horizon_steps = 40`` at ``dt_s = 0.1``: a 4 s horizon, longer than the 1 s stopping time
+  at the default limits (0.6 / 0.6), so every plan can brake inside its own horizon.
+- The acceleration limit is **per axis** (``|a_i| <= a_max_mps2``, the convention of
+  Fast-Planner's feasibility check); the speed limit is on the **norm** ``||v|| <= v_max_mps``
+  (exact in the NLP, linearized with re-linearization in the QP, see :mod:`planning.mpc_qp`).
+- Cost weights (dimensionless ratios; only their ratios matter): the stage progress weight pulls
+  every knot toward the goal, the terminal weights make the plan end at rest on the goal,
+  ``w_accel`` / ``w_jerk`` keep commands small and smooth, ``w_yaw`` is the paper's
+  ``lambda_psi``, and the slack weights (exact L1 penalty plus a small quadratic for
+  conditioning) are large enough that the clearance constraint only gives way when it is
+  infeasible.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+__all__ = ["PlannerConfig", "PlannerConfigError"]
+
+
+class PlannerConfigError(ValueError):
+    """A planner configuration field with an invalid value (the message names the field)."""
+
+
+@dataclass(frozen=True)
+class PlannerConfig:
+    """Frozen configuration of :class:`planning.planner.Planner`.
+
+    Attributes
+    ----------
+    horizon_steps : int, number of control intervals N (default 40)
+    dt_s : float, interval length in seconds (default 0.1; horizon 4 s)
+    v_max_mps : float, speed norm limit, m/s (paper: 0.6)
+    a_max_mps2 : float, per-axis acceleration limit, m/s^2 (paper: 0.6)
+    yaw_rate_max_rps : float, yaw rate limit, rad/s (paper: 0.4)
+    d_safe_m : float, minimum clearance of the body centre to obstacles, metres (0.25 m body
+        radius + 0.2 m dilation)
+    w_goal : stage weight on ``||p_k - g||^2``, 1/m^2
+    w_terminal_pos : terminal weight on ``||p_N - g||^2``
+    w_terminal_vel : terminal weight on ``||v_N||^2``
+    w_vel : stage weight on ``||v_k||^2`` (damping)
+    w_accel : stage weight on ``||a_k||^2``
+    w_jerk : weight on ``||a_k - a_{k-1}||^2`` (``a_{-1}`` = the last command)
+    w_yaw : the paper's ``lambda_psi`` on ``wrap(psi_k - psi_g)^2``
+    w_yaw_rate : weight on ``yaw_rate_k^2``
+    w_slack_l1 : exact-penalty weight on the clearance slack, per metre
+    w_slack_l2 : quadratic weight on the clearance slack, per m^2
+    w_prox_accel : QP-only proximal weight on ``||a_k - a_bar_k||^2`` toward the linearization
+        point; damps the sequential linearization, zero at a fixed point (not in the NLP)
+    goal_clearance_margin_m : a goal is moved until its clearance is ``d_safe_m`` plus this
+    goal_search_max_m : how far the goal may be moved by gradient ascent before the line
+        search back toward the vehicle takes over, metres
+    yaw_hold_radius_m : within this horizontal distance of the goal the bearing is undefined
+        and the yaw reference is the current yaw (hold heading)
+    safety_tolerance_m : a plan (or the shifted previous plan) is accepted if its predicted
+        clearance over the braking horizon stays above ``min(d_safe_m, d(p_0)) -`` this
+    speed_tolerance_rel : relative tolerance on the speed norm after the QP (0.01 = 1 %)
+    max_speed_refinements : extra QP solves when the true speed norm of a plan exceeds the
+        limit by more than ``speed_tolerance_rel`` (each adds a cut at the violating knots)
+    speed_cuts_per_knot : K half-spaces ``n . v_k <= bound_k`` per knot in the QP: the tangent
+        at the previous plan's direction plus K - 1 cutting planes added on violation
+    cold_start_iterations : QP solves (sequential linearization) on the first step after
+        construction or :meth:`Planner.reset`, when there is no previous plan to linearize about
+    qp_eps_abs, qp_eps_rel : OSQP tolerances (the problem is posed in a frame centred on the
+        vehicle, so absolute tolerances do not depend on where in the world it flies)
+    qp_max_iter : OSQP iteration cap; hitting it counts as a non-converged solve
+    qp_rho : OSQP initial ADMM step
+    qp_adaptive_rho_interval : OSQP iterations between rho updates (0 = OSQP's automatic)
+    qp_check_termination : OSQP iterations between termination checks
+    qp_polish : OSQP solution polishing
+    nlp_tol : ipopt tolerance of the reference NLP
+    nlp_max_iter : ipopt iteration cap
+    """
+
+    horizon_steps: int = 40
+    dt_s: float = 0.1
+    v_max_mps: float = 0.6
+    a_max_mps2: float = 0.6
+    yaw_rate_max_rps: float = 0.4
+    d_safe_m: float = 0.45
+    w_goal: float = 1.0
+    w_terminal_pos: float = 20.0
+    w_terminal_vel: float = 20.0
+    w_vel: float = 0.1
+    w_accel: float = 0.5
+    w_jerk: float = 2.0
+    w_yaw: float = 2.0
+    w_yaw_rate: float = 0.5
+    w_slack_l1: float = 2000.0
+    w_slack_l2: float = 10.0
+    w_prox_accel: float = 1.0
+    goal_clearance_margin_m: float = 0.05
+    goal_search_max_m: float = 3.0
+    yaw_hold_radius_m: float = 0.3
+    safety_tolerance_m: float = 0.05
+    speed_tolerance_rel: float = 0.01
+    max_speed_refinements: int = 3
+    speed_cuts_per_knot: int = 3
+    cold_start_iterations: int = 3
+    qp_eps_abs: float = 1e-3
+    qp_eps_rel: float = 1e-3
+    qp_max_iter: int = 1000
+    qp_rho: float = 1.0
+    qp_adaptive_rho_interval: int = 25
+    qp_check_termination: int = 5
+    qp_polish: bool = False
+    nlp_tol: float = 1e-8
+    nlp_max_iter: int = 1000
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.type in ("int", int):
+                if isinstance(value, bool) or not isinstance(value, int):
+                    raise PlannerConfigError(f"{f.name} must be an int, got {value!r}")
+            elif f.type in ("bool", bool):
+                if not isinstance(value, bool):
+                    raise PlannerConfigError(f"{f.name} must be a bool, got {value!r}")
+            else:
+                if isinstance(value, bool) or not isinstance(value, (int, float)):
+                    raise PlannerConfigError(f"{f.name} must be a number, got {value!r}")
+                if not math.isfinite(value):
+                    raise PlannerConfigError(f"{f.name} must be finite, got {value!r}")
+                object.__setattr__(self, f.name, float(value))
+        positive = (
+            "dt_s", "v_max_mps", "a_max_mps2", "yaw_rate_max_rps", "d_safe_m", "w_goal",
+            "w_slack_l1", "w_slack_l2", "speed_tolerance_rel", "qp_eps_abs", "qp_eps_rel",
+            "qp_rho", "nlp_tol",
+        )
+        for name in positive:
+            if getattr(self, name) <= 0:
+                raise PlannerConfigError(f"{name} must be > 0, got {getattr(self, name)}")
+        non_negative = (
+            "w_terminal_pos", "w_terminal_vel", "w_vel", "w_accel", "w_jerk", "w_yaw",
+            "w_yaw_rate", "w_prox_accel", "goal_clearance_margin_m", "goal_search_max_m", "yaw_hold_radius_m",
+            "safety_tolerance_m", "max_speed_refinements", "qp_adaptive_rho_interval",
+        )
+        for name in non_negative:
+            if getattr(self, name) < 0:
+                raise PlannerConfigError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.horizon_steps < 2:
+            raise PlannerConfigError(f"horizon_steps must be >= 2, got {self.horizon_steps}")
+        for name in (
+            "qp_max_iter", "qp_check_termination", "nlp_max_iter", "speed_cuts_per_knot",
+            "cold_start_iterations",
+        ):
+            if getattr(self, name) < 1:
+                raise PlannerConfigError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.speed_tolerance_rel > 0.1:
+            raise PlannerConfigError(
+                f"speed_tolerance_rel must be <= 0.1, got {self.speed_tolerance_rel}"
+            )
+
+    @property
+    def horizon_s(self) -> float:
+        """Horizon length in seconds, ``horizon_steps * dt_s``."""
+        return self.horizon_steps * self.dt_s
+
+    @property
+    def braking_steps(self) -> int:
+        """Intervals needed to stop from ``v_max_mps`` at ``a_max_mps2`` (at most N)."""
+        return min(self.horizon_steps, int(math.ceil(self.v_max_mps / self.a_max_mps2 / self.dt_s)) + 1)
+
+    def to_dict(self) -> dict:
+        """Plain dict of every field (TOML/JSON-serializable), for writing next to results."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "PlannerConfig":
+        """Build from a dict; unknown keys raise :class:`PlannerConfigError` listing valid ones."""
+        valid = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - valid)
+        if unknown:
+            raise PlannerConfigError(
+                f"unknown planner config field(s) {unknown}; valid fields: {sorted(valid)}"
+            )
+        return cls(**data)
+
+    @classmethod
+    def from_toml(cls, path: str | Path, table: str | None = "planner") -> "PlannerConfig":
+        """Load from a TOML file.
+
+        Parameters
+        ----------
+        path : the TOML file
+        table : name of the table holding the fields (default ``[planner]``); ``None`` reads
+            the top level. A file without that table but with top-level fields is read as is.
+        """
+        path = Path(path)
+        try:
+            with path.open("rb") as fh:
+                data = tomllib.load(fh)
+        except (OSError, tomllib.TOMLDecodeError) as exc:
+            raise PlannerConfigError(f"cannot read planner config {path}: {exc}") from exc
+        if table is not None and table in data:
+            data = data[table]
+            if not isinstance(data, dict):
+                raise PlannerConfigError(f"{path}: [{table}] must be a table")
+        elif table is not None:
+            data = {k: v for k, v in data.items() if not isinstance(v, dict)}
+        try:
+            return cls.from_dict(data)
+        except PlannerConfigError as exc:
+            raise PlannerConfigError(f"{path}: {exc}") from exc
