@@ -1,0 +1,151 @@
+"""Task decomposition: the fallback splitter on real human instructions, and the VLM path."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+from vlm.decompose import (
+    CONNECTIVE_WORDS,
+    DecompositionError,
+    decompose,
+    decompose_detailed,
+    split_instruction,
+)
+from vlm.prompts import parse_prompt
+from vlm.sim import SimulatedVlm
+from vlm.types import CallStatus, Usage, VlmConnectionError, VlmResponse
+
+R2R = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "instructions" / "R2R_val_unseen.json"
+
+
+def _content_words(text: str) -> list[str]:
+    return [w for w in re.findall(r"\w+", text.lower()) if w not in CONNECTIVE_WORDS]
+
+
+def _r2r_instructions() -> list[str]:
+    paths = json.loads(R2R.read_text())
+    return [ins for path in paths for ins in path["instructions"]]
+
+
+def test_fallback_on_every_r2r_instruction_is_ordered_nonempty_and_covers_the_text():
+    instructions = _r2r_instructions()
+    assert len(instructions) == 2349
+    n_multi = 0
+    for ins in instructions:
+        parts = split_instruction(ins)
+        assert parts, ins
+        assert all(p == p.strip() and re.search(r"\w", p) for p in parts), parts
+        # together, in order, the subtasks hold exactly the instruction's words (connectives aside)
+        assert [w for p in parts for w in _content_words(p)] == _content_words(ins), ins
+        # each subtask is a contiguous piece of the instruction, in order
+        pos = 0
+        flat = " ".join(ins.split())
+        for p in parts:
+            found = flat.find(p, pos)
+            assert found >= pos, (p, ins)
+            pos = found + len(p)
+        n_multi += len(parts) > 1
+    assert n_multi > 0.9 * len(instructions)
+
+
+@pytest.mark.parametrize(
+    "instruction,expected",
+    [
+        ("Fly through the gate, then stop next to the red van.", ["Fly through the gate", "stop next to the red van"]),
+        ("Walk to the stairs, turn right and go down. Stop by the mirror.", ["Walk to the stairs", "turn right and go down", "Stop by the mirror"]),
+        ("Go up 2.5 m; after that fly to the tree", ["Go up 2.5 m", "fly to the tree"]),
+        ("Once you reach the top, turn left. Wait.", ["Once you reach the top, turn left", "Wait"]),
+        ("At the landing, turn right, and go down the stairs.", ["At the landing, turn right", "go down the stairs"]),
+        ("Walk down the hallway.Go into the room", ["Walk down the hallway", "Go into the room"]),
+        ("fly to the van and then land", ["fly to the van", "land"]),
+        ("Then stop.", ["stop"]),
+        ("hover", ["hover"]),
+    ],
+)
+def test_fallback_examples(instruction, expected):
+    assert split_instruction(instruction) == expected
+
+
+@pytest.mark.parametrize("bad", ["", "   ", "...", " ; , ", "_"])
+def test_instruction_without_words_is_an_error(bad):
+    with pytest.raises(DecompositionError, match="no words"):
+        split_instruction(bad)
+    with pytest.raises(DecompositionError, match="no words"):
+        decompose(bad)
+
+
+def test_non_string_instruction_is_an_error():
+    with pytest.raises(DecompositionError, match="must be a str"):
+        decompose(42)  # type: ignore[arg-type]
+
+
+class _FakeBackend:
+    """A backend answering every call with a fixed response; records the calls."""
+
+    name = "fake"
+
+    def __init__(self, response: VlmResponse | Exception) -> None:
+        self.response = response
+        self.calls: list[dict] = []
+
+    def complete(self, messages, images=(), **kw):
+        self.calls.append({"messages": messages, "images": images, **kw})
+        if isinstance(self.response, Exception):
+            raise self.response
+        return self.response
+
+    def features(self, image):
+        return None
+
+    def close(self):
+        pass
+
+
+def test_vlm_answer_is_used_when_it_parses():
+    fake = _FakeBackend(VlmResponse(CallStatus.OK, text='```json\n["take off", "fly to the red van", "land"]\n```', usage=Usage(10, 5)))
+    result = decompose_detailed("Take off and fly to the red van, then land.", fake, deadline_s=5.0)
+    assert result.source == "vlm" and result.subtasks == ("take off", "fly to the red van", "land")
+    call = fake.calls[0]
+    assert parse_prompt(call["messages"]).instruction == "Take off and fly to the red van, then land."
+    assert call["deadline_s"] == 5.0 and call["json_schema"]["type"] == "array" and call["images"] == []
+
+
+@pytest.mark.parametrize(
+    "response,reason",
+    [
+        (VlmResponse(CallStatus.TIMEOUT, error="deadline"), "timeout"),
+        (VlmResponse(CallStatus.ERROR, error="HTTP 500"), "error: HTTP 500"),
+        (VlmResponse(CallStatus.OK, text="Sure! Here are the subtasks:"), "parse: no JSON list"),
+        (VlmResponse(CallStatus.OK, text="[]"), "parse: empty"),
+        (VlmConnectionError("refused"), "backend raised: refused"),
+    ],
+)
+def test_failed_calls_fall_back_to_the_splitter(response, reason):
+    instruction = "Fly through the gate, then stop next to the red van."
+    result = decompose_detailed(instruction, _FakeBackend(response))
+    assert result.source == "fallback" and reason in result.reason
+    assert list(result.subtasks) == split_instruction(instruction)
+
+
+def test_no_backend_uses_the_splitter():
+    assert decompose("Fly up; land") == ["Fly up", "land"]
+    assert decompose_detailed("Fly up; land").reason == "no backend"
+
+
+def test_with_the_perfect_simulated_vlm():
+    with SimulatedVlm("perfect", seed=1) as sim:
+        result = decompose_detailed("Fly through the gate, then stop next to the red van.", sim)
+    assert result.source == "vlm"
+    assert result.subtasks == ("Fly through the gate", "stop next to the red van")
+    assert result.response.latency_s == pytest.approx(3.0)
+
+
+def test_truncated_simulated_answer_falls_back():
+    with SimulatedVlm("perfect") as sim:
+        result = decompose_detailed("Fly through the gate, then stop next to the red van.", sim, max_new_tokens=3)
+    assert result.source == "fallback" and result.reason.startswith("parse:")
+    assert list(result.subtasks) == ["Fly through the gate", "stop next to the red van"]
