@@ -1,0 +1,280 @@
+"""The simulated VLM's error model: the one place that says how, and how often, it errs.
+
+What the simulated VLM sees
+---------------------------
+Only what a camera frame shows: each image's :class:`vlm.types.FrameAnnotation` (per-pixel
+instance ids, z-depth, and name / label / aliases of the instances *present in the frame*) and
+the prompt text. Never a map, a pose or an object that is not in the frame. An annotation entry
+whose instance has no pixel in ``instance_ids`` is treated as not visible.
+
+Grounding (which visible object the subtask names)
+--------------------------------------------------
+Rule in :mod:`vlm.sim.grounding`: an object is named when its name, one of its aliases or its
+label occurs as contiguous words in the subtask (lower case, naive singular), and every
+attribute word (colour, size, material: :data:`vlm.sim.grounding.ATTRIBUTE_WORDS`) right
+before that occurrence belongs to the object's own words. ``red van`` thus names the object
+``red van`` (label ``van``) but not ``blue van``; ``the van`` names both. Among named objects
+the earliest mention in the subtask wins, then the longer match, then the larger visible area,
+then the lower instance id.
+
+Per call, with ``sigma_px = W * (pixel_noise_frac + pixel_noise_frac_per_m * d)`` where ``W`` is
+the image width and ``d`` the median z-depth of the pointed object's pixels:
+
+Decision (``{"point_2d": [x, y]}``)
+    1. *Miss*: the named target is not perceived with probability ``miss_prob_small`` if its
+       visible area is below ``small_target_frac`` of the image, and independently with
+       ``miss_prob_far`` if ``d > far_target_m``.
+    2. *Confusion*: if perceived and a look-alike is visible (same label, another name, not
+       itself named by the subtask), the answer points at a uniformly chosen look-alike with
+       probability ``confusion_prob``.
+    3. *Point*: the pixel of the pointed object's region nearest to the region's centroid (on
+       the object even for non-convex shapes), plus isotropic Gaussian noise ``sigma_px``,
+       rounded and kept inside the image.
+    4. Target not perceived: the history point from the prompt plus noise ``sigma_px`` at
+       ``d = 0``; without a history point, an *exploration point*: the deepest open column
+       block on the horizon band (rows 35-65 % of the height; no depth reading counts as
+       open), at the middle row, plus the same noise. Ties go to the block nearest the centre.
+
+Monitoring (``CONTINUE`` / ``STOP`` / ``LOST``, images ``[first, *keyframes, latest]``)
+    The named target is perceived per frame with the miss rule above (each frame's miss draw is
+    keyed on the seed, the frame id and the instance, so one frame is perceived the same way in
+    every call). Then:
+
+    - STOP if perceived in the latest frame with ``d < stop_distance_m + stop_offset_m + e``,
+      ``e ~ N(0, stop_jitter_m)`` per call (``stop_offset_m > 0``: early STOP; ``< 0``: late);
+    - LOST if not perceived in the last ``lost_window_frames`` frames but perceived in an
+      earlier frame of the memory;
+    - CONTINUE otherwise (including subtasks that name no visible object at all).
+
+    With probability ``status_error_prob`` the answer is replaced by one of the two other
+    statuses, uniformly.
+
+Decomposition (JSON array of strings)
+    The deterministic splitter :func:`vlm.decompose.split_instruction`, then each boundary
+    between adjacent subtasks is merged (joined with ``" then "``) with probability
+    ``merge_prob``.
+
+Every call
+    With probability ``malformed_prob`` the answer is replaced by a realistic malformed one
+    (prose without coordinates, truncated JSON, wrong key, a point outside the image, an
+    ambiguous or missing status, an empty list); every such text fails the strict parsers.
+    With ``json_schema`` set (structured output) malformed answers are limited to what a
+    schema allows: a point outside the image; statuses and subtask lists are then always
+    well-formed. Otherwise, with probability ``format_variety_prob`` a well-formed answer comes
+    in another real-model shape (code fence, prose around the JSON, a labelled list, markdown
+    around the status).
+
+Randomness
+----------
+Each call draws from ``numpy.random.default_rng`` seeded by the simulator's ``seed`` and a hash
+of the call's content (prompt kind, frame ids, subtask, history point): the same input gives the
+same answer, like greedy decoding, independently of call order or threads. Runs reproduce from
+the seed.
+
+Latency (:class:`LatencyModel`, defaults from the paper's Jetson Orin NX table)
+----------------------------------------------------------------------------------
+Decision 0.81 s. Monitoring: ``monitor_full_s - (monitor_full_s - monitor_reused_s) * f`` with
+``f = min(k, n - 1) / (n - 1)`` (``f = min(k, 1)`` for ``n = 1``), where ``n`` is the number of
+images and ``k`` the number of images inside the prompt prefix shared with the previous
+successful monitoring call on the same ``cache_key`` (no ``cache_key``: ``k = 0``). The hybrid
+memory in steady state (only the latest frame new) gives 1.15 s; a sliding window (first
+image changes) gives 1.98 s. Decomposition 3.0 s is our assumption (the paper gives none).
+Token usage is estimated: text ``ceil(chars / chars_per_token)``, each image
+``ceil(w / image_token_px) * ceil(h / image_token_px) + 2`` tokens (Qwen2.5/3-VL merge 2x2
+14-px patches into one 28-px token); ``cached_tokens`` counts the shared prefix. A call whose
+modelled latency exceeds ``deadline_s`` returns TIMEOUT after ``deadline_s``. An answer longer
+than ``max_new_tokens`` is cut there, as a real server would.
+
+Presets
+-------
+Fixed before any method is compared; never tuned toward one. ``nominal``, ``weak`` and
+``strong`` are *stand-ins* (not fits) for Qwen3-VL-4B, -2B and -30B-A3B, the backbones of the
+paper's ablation; ``perfect`` errs never; ``noisy`` is a stress test. Every benchmark result
+names its preset.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from types import MappingProxyType
+from typing import Mapping
+
+__all__ = ["ErrorModel", "ErrorModelError", "LatencyModel", "PRESETS", "get_preset"]
+
+
+class ErrorModelError(ValueError):
+    """An error-model or latency-model field is out of range, or a preset name is unknown."""
+
+
+_PROBABILITIES = (
+    "confusion_prob",
+    "miss_prob_small",
+    "miss_prob_far",
+    "status_error_prob",
+    "malformed_prob",
+    "format_variety_prob",
+    "merge_prob",
+)
+_NON_NEGATIVE = ("pixel_noise_frac", "pixel_noise_frac_per_m", "small_target_frac", "stop_jitter_m")
+_POSITIVE = ("far_target_m", "stop_distance_m")
+
+
+@dataclass(frozen=True)
+class ErrorModel:
+    """How the simulated VLM errs (semantics in the module docstring).
+
+    Attributes
+    ----------
+    name : str, preset name
+    stand_in_for : str, what the preset imitates (documentation only)
+    pixel_noise_frac : float, pointing noise std at 0 m, fraction of the image width
+    pixel_noise_frac_per_m : float, growth of that std per metre of target depth, 1/m
+    confusion_prob : float, chance to point at a visible look-alike instead of the target
+    small_target_frac : float, visible area below this fraction of the image is "small"
+    miss_prob_small : float, chance to miss a small target
+    far_target_m : float, targets with median z-depth beyond this are "far", metres
+    miss_prob_far : float, chance to miss a far target
+    stop_distance_m : float, STOP when the target's median z-depth is below this, metres
+    stop_offset_m : float, added to the stop distance (> 0 early STOP, < 0 late), metres
+    stop_jitter_m : float, std of per-call Gaussian jitter of the stop distance, metres
+    lost_window_frames : int, LOST when the target is absent from this many latest frames
+    status_error_prob : float, chance to answer one of the two other statuses
+    malformed_prob : float, chance of a malformed answer
+    format_variety_prob : float, chance a well-formed answer comes in another shape
+    merge_prob : float, chance to merge two adjacent subtasks in a decomposition
+    """
+
+    name: str
+    stand_in_for: str
+    pixel_noise_frac: float
+    pixel_noise_frac_per_m: float
+    confusion_prob: float
+    small_target_frac: float
+    miss_prob_small: float
+    far_target_m: float
+    miss_prob_far: float
+    stop_distance_m: float
+    stop_offset_m: float
+    stop_jitter_m: float
+    lost_window_frames: int
+    status_error_prob: float
+    malformed_prob: float
+    format_variety_prob: float
+    merge_prob: float
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.type in ("float", float) and (isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value)):
+                raise ErrorModelError(f"ErrorModel.{f.name} must be a finite number, got {value!r}")
+        for name in _PROBABILITIES:
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ErrorModelError(f"ErrorModel.{name} must be in [0, 1], got {getattr(self, name)}")
+        for name in _NON_NEGATIVE:
+            if getattr(self, name) < 0.0:
+                raise ErrorModelError(f"ErrorModel.{name} must be >= 0, got {getattr(self, name)}")
+        for name in _POSITIVE:
+            if getattr(self, name) <= 0.0:
+                raise ErrorModelError(f"ErrorModel.{name} must be > 0, got {getattr(self, name)}")
+        if self.small_target_frac >= 1.0:
+            raise ErrorModelError(f"ErrorModel.small_target_frac must be < 1, got {self.small_target_frac}")
+        if isinstance(self.lost_window_frames, bool) or not isinstance(self.lost_window_frames, int) or self.lost_window_frames < 1:
+            raise ErrorModelError(f"ErrorModel.lost_window_frames must be an int >= 1, got {self.lost_window_frames!r}")
+
+    def pixel_sigma_px(self, image_width_px: int, depth_m: float) -> float:
+        """Pointing noise std in pixels for a target at ``depth_m`` (non-finite depth -> 0 m)."""
+        d = depth_m if math.isfinite(depth_m) and depth_m > 0.0 else 0.0
+        return image_width_px * (self.pixel_noise_frac + self.pixel_noise_frac_per_m * d)
+
+
+@dataclass(frozen=True)
+class LatencyModel:
+    """Modelled latency and token accounting of the simulated VLM (see the module docstring).
+
+    Attributes
+    ----------
+    decision_s, monitor_reused_s, monitor_full_s, decompose_s : float, seconds
+    chars_per_token : float, text characters per token
+    image_token_px : int, side of the image area one vision token covers, pixels
+    """
+
+    decision_s: float = 0.81
+    monitor_reused_s: float = 1.15
+    monitor_full_s: float = 1.98
+    decompose_s: float = 3.0
+    chars_per_token: float = 4.0
+    image_token_px: int = 28
+
+    def __post_init__(self) -> None:
+        for name in ("decision_s", "monitor_reused_s", "monitor_full_s", "decompose_s", "chars_per_token"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
+                raise ErrorModelError(f"LatencyModel.{name} must be a finite number > 0, got {value!r}")
+        if self.monitor_reused_s > self.monitor_full_s:
+            raise ErrorModelError(
+                f"LatencyModel.monitor_reused_s ({self.monitor_reused_s}) must not exceed monitor_full_s ({self.monitor_full_s})"
+            )
+        if isinstance(self.image_token_px, bool) or not isinstance(self.image_token_px, int) or self.image_token_px < 1:
+            raise ErrorModelError(f"LatencyModel.image_token_px must be an int >= 1, got {self.image_token_px!r}")
+
+    def monitor_s(self, n_images: int, n_cached_images: int) -> float:
+        """Monitoring latency for ``n_images`` of which the first ``n_cached_images`` were reused."""
+        if n_images <= 1:
+            frac = float(min(n_cached_images, 1))
+        else:
+            frac = min(n_cached_images, n_images - 1) / (n_images - 1)
+        return self.monitor_full_s - (self.monitor_full_s - self.monitor_reused_s) * frac
+
+
+def _preset(**kw) -> ErrorModel:
+    return ErrorModel(**kw)
+
+
+PRESETS: Mapping[str, ErrorModel] = MappingProxyType(
+    {
+        "perfect": _preset(
+            name="perfect", stand_in_for="an oracle that never errs",
+            pixel_noise_frac=0.0, pixel_noise_frac_per_m=0.0, confusion_prob=0.0,
+            small_target_frac=0.0005, miss_prob_small=0.0, far_target_m=30.0, miss_prob_far=0.0,
+            stop_distance_m=3.0, stop_offset_m=0.0, stop_jitter_m=0.0, lost_window_frames=2,
+            status_error_prob=0.0, malformed_prob=0.0, format_variety_prob=0.0, merge_prob=0.0,
+        ),
+        "strong": _preset(
+            name="strong", stand_in_for="a larger model (stand-in for Qwen3-VL-30B-A3B, not a fit)",
+            pixel_noise_frac=0.004, pixel_noise_frac_per_m=0.001, confusion_prob=0.04,
+            small_target_frac=0.0003, miss_prob_small=0.3, far_target_m=35.0, miss_prob_far=0.15,
+            stop_distance_m=3.0, stop_offset_m=0.0, stop_jitter_m=0.3, lost_window_frames=2,
+            status_error_prob=0.02, malformed_prob=0.01, format_variety_prob=0.2, merge_prob=0.05,
+        ),
+        "nominal": _preset(
+            name="nominal", stand_in_for="the paper's backbone (stand-in for Qwen3-VL-4B, not a fit)",
+            pixel_noise_frac=0.006, pixel_noise_frac_per_m=0.0015, confusion_prob=0.08,
+            small_target_frac=0.0005, miss_prob_small=0.4, far_target_m=30.0, miss_prob_far=0.25,
+            stop_distance_m=3.0, stop_offset_m=0.0, stop_jitter_m=0.5, lost_window_frames=2,
+            status_error_prob=0.04, malformed_prob=0.03, format_variety_prob=0.2, merge_prob=0.1,
+        ),
+        "weak": _preset(
+            name="weak", stand_in_for="a smaller model (stand-in for Qwen3-VL-2B, not a fit)",
+            pixel_noise_frac=0.010, pixel_noise_frac_per_m=0.0025, confusion_prob=0.18,
+            small_target_frac=0.0008, miss_prob_small=0.6, far_target_m=25.0, miss_prob_far=0.4,
+            stop_distance_m=3.0, stop_offset_m=0.8, stop_jitter_m=1.0, lost_window_frames=2,
+            status_error_prob=0.10, malformed_prob=0.08, format_variety_prob=0.3, merge_prob=0.2,
+        ),
+        "noisy": _preset(
+            name="noisy", stand_in_for="a stress test, no particular model",
+            pixel_noise_frac=0.015, pixel_noise_frac_per_m=0.004, confusion_prob=0.25,
+            small_target_frac=0.001, miss_prob_small=0.7, far_target_m=20.0, miss_prob_far=0.5,
+            stop_distance_m=3.0, stop_offset_m=-0.5, stop_jitter_m=1.5, lost_window_frames=2,
+            status_error_prob=0.15, malformed_prob=0.12, format_variety_prob=0.4, merge_prob=0.3,
+        ),
+    }
+)  # fmt: skip
+
+
+def get_preset(name: str) -> ErrorModel:
+    """The named preset; an unknown name raises :class:`ErrorModelError` listing the valid ones."""
+    try:
+        return PRESETS[name]
+    except (KeyError, TypeError):
+        raise ErrorModelError(f"unknown simulated-VLM preset {name!r}; valid: {sorted(PRESETS)}") from None
