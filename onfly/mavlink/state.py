@@ -307,6 +307,11 @@ class StateReader:
         with self._lock:
             return self._status
 
+    def clock_resets(self) -> dict[str, int]:
+        """How many vehicle-clock resets (reboots) each stream has seen."""
+        with self._lock:
+            return {name: sync.resets for name, sync in self._sync.items()}
+
     def odometry_age_s(self, now_s: float | None = None) -> float:
         """Seconds since the newest position sample was taken (inf before the first)."""
         now = self.clock() if now_s is None else now_s
