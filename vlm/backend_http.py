@@ -20,7 +20,8 @@ Behaviour a pilot can rely on:
   naming ``response_format`` / ``json_schema`` as unsupported, after which the same call is
   sent once without it and later calls skip it.
 - **Clear errors.** A refused connection, an HTTP error status (code and the start of the
-  body) and a malformed body each give ``CallStatus.ERROR`` with ``error`` saying which.
+  body) and a malformed body each give ``CallStatus.ERROR`` with ``error`` saying which;
+  HTTP 504 (a server or gateway that gave up within the deadline) is a TIMEOUT.
   :meth:`HttpBackend.complete_or_raise` raises the matching named error instead.
 - **Prefix caching.** ``usage.prompt_tokens_details.cached_tokens`` (vLLM, SGLang, ours) or
   llama.cpp's ``timings.cache_n`` become :attr:`Usage.cached_tokens`. ``cache_key`` is sent as
@@ -388,6 +389,8 @@ class HttpBackend:
         finally:
             conn.close()
         text = raw.decode("utf-8", errors="replace")
+        if response.status == 504:  # the server (ours, or a gateway) gave up within the deadline
+            raise VlmTimeoutError(f"HTTP 504 from {where}{path}: {_snippet(text)}")
         if response.status >= 400:
             raise VlmHttpError(f"HTTP {response.status} {response.reason} from {where}{path}: {_snippet(text)}",
                                status=response.status, body=text)

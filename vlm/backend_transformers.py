@@ -40,7 +40,7 @@ import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 from transformers import StoppingCriteria
@@ -128,16 +128,18 @@ class TransformersBackendConfig:
 
 
 class DeadlineCriteria(StoppingCriteria):
-    """Stop generation once ``time.monotonic()`` passes ``deadline_mono`` (None = never).
+    """Stop generation once ``clock()`` passes ``deadline_mono`` (None = never).
 
     Usable in ``model.generate(stopping_criteria=[...])`` as well as in this backend's loop.
+    ``clock`` is ``time.monotonic`` unless a test drives time itself.
     """
 
-    def __init__(self, deadline_mono: float | None) -> None:
+    def __init__(self, deadline_mono: float | None, clock: Callable[[], float] = time.monotonic) -> None:
         self.deadline_mono = deadline_mono
+        self.clock = clock
 
     def expired(self) -> bool:
-        return self.deadline_mono is not None and time.monotonic() >= self.deadline_mono
+        return self.deadline_mono is not None and self.clock() >= self.deadline_mono
 
     def __call__(self, input_ids, scores, **kwargs):
         import torch
@@ -178,16 +180,18 @@ class TransformersBackend:
     """A Qwen-VL model loaded in this process (see the module docstring).
 
     Thread-safe: calls are serialized by a lock; a call that cannot get the lock before its
-    deadline returns TIMEOUT.
+    deadline returns TIMEOUT. ``clock`` (seconds, monotonic) measures deadlines and latency;
+    tests may pass a clock they drive.
     """
 
     name = "transformers"
 
-    def __init__(self, config: TransformersBackendConfig) -> None:
+    def __init__(self, config: TransformersBackendConfig, *, clock: Callable[[], float] = time.monotonic) -> None:
         import torch
         from transformers import AutoImageProcessor, AutoModelForImageTextToText, AutoTokenizer
 
         self.config = config
+        self._clock = clock
         path = config.model_path
         if config.device.startswith("cuda") and not torch.cuda.is_available():
             raise TransformersBackendError(f"device {config.device!r} requested but CUDA is not available")
@@ -241,7 +245,7 @@ class TransformersBackend:
         Raises ValueError for caller mistakes (placeholder count, max_new_tokens < 1); a
         timeout or a model failure is returned as TIMEOUT / ERROR.
         """
-        t0 = time.monotonic()
+        t0 = self._clock()
         parts = split_image_placeholders(messages, len(images))
         if max_new_tokens < 1:
             raise ValueError(f"max_new_tokens must be >= 1, got {max_new_tokens}")
@@ -249,9 +253,9 @@ class TransformersBackend:
             raise ValueError(f"deadline_s must be > 0 or None, got {deadline_s}")
         if self._closed:
             return VlmResponse(CallStatus.ERROR, error="backend is closed")
-        deadline = DeadlineCriteria(None if deadline_s is None else t0 + deadline_s)
+        deadline = DeadlineCriteria(None if deadline_s is None else t0 + deadline_s, self._clock)
         if not self._lock.acquire(timeout=-1 if deadline_s is None else deadline_s):
-            return VlmResponse(CallStatus.TIMEOUT, latency_s=time.monotonic() - t0,
+            return VlmResponse(CallStatus.TIMEOUT, latency_s=self._clock() - t0,
                                error=f"backend busy past the {deadline_s:.3f} s deadline")
         try:
             return self._complete_locked(parts, images, deadline, max_new_tokens, cache_key, t0)
@@ -259,7 +263,7 @@ class TransformersBackend:
             log.exception("transformers backend call failed")
             if cache_key is not None:
                 self._streams.pop(cache_key, None)  # its cache may be half-updated
-            return VlmResponse(CallStatus.ERROR, latency_s=time.monotonic() - t0,
+            return VlmResponse(CallStatus.ERROR, latency_s=self._clock() - t0,
                                error=f"{type(exc).__name__}: {exc}")
         finally:
             self._lock.release()
@@ -391,14 +395,14 @@ class TransformersBackend:
             text_ids = [t for t in generated if t not in self._eos_ids]
             text = self._tokenizer.decode(text_ids, skip_special_tokens=True)
             usage = Usage(prompt_tokens=n_prompt, completion_tokens=len(generated), cached_tokens=reused)
-            return VlmResponse(CallStatus.OK, text=text, usage=usage, latency_s=time.monotonic() - t0)
+            return VlmResponse(CallStatus.OK, text=text, usage=usage, latency_s=self._clock() - t0)
 
     def _timeout(self, t0, deadline, where, n_prompt, n_generated, reused) -> VlmResponse:
         budget = deadline.deadline_mono - t0 if deadline.deadline_mono is not None else float("nan")
         return VlmResponse(
             CallStatus.TIMEOUT,
             usage=Usage(prompt_tokens=n_prompt, completion_tokens=n_generated, cached_tokens=reused),
-            latency_s=time.monotonic() - t0,
+            latency_s=self._clock() - t0,
             error=f"deadline of {budget:.3f} s passed {where}",
         )
 
@@ -508,16 +512,13 @@ class TransformersBackend:
         return _FALLBACK_CHATML
 
     def _eos_token_ids(self) -> frozenset[int]:
+        """End-of-turn ids as the checkpoint's generation config and tokenizer declare them."""
         ids: set[int] = set()
         for source in (self._model.generation_config.eos_token_id, self._model.config.get_text_config().eos_token_id,
                        self._tokenizer.eos_token_id):
             if source is None:
                 continue
             ids.update([source] if isinstance(source, int) else source)
-        for token in ("<|im_end|>", "<|endoftext|>"):
-            tid = self._tokenizer.convert_tokens_to_ids(token)
-            if isinstance(tid, int) and tid != self._tokenizer.unk_token_id:
-                ids.add(tid)
         return frozenset(ids)
 
 

@@ -266,7 +266,11 @@ def build_tiny_vlm(out_dir: str | Path, spec: TinyVlmSpec | None = None, *, fami
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(base.seed)
         model = model_class(config).eval()
+    # Like the real Qwen-VL checkpoints: a turn ends at <|im_end|> or <|endoftext|>.
     model.generation_config.do_sample = False
+    model.generation_config.eos_token_id = [config.get_text_config().eos_token_id,
+                                            config.get_text_config().bos_token_id]
+    model.generation_config.pad_token_id = config.get_text_config().pad_token_id
     model.save_pretrained(out)
     tokenizer.save_pretrained(out)
     _image_processor(base).save_pretrained(out)
