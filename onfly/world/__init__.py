@@ -1,0 +1,39 @@
+"""The embedded world: scenes as data, CPU ray-cast RGB-D + semantics, vehicle, collisions, clock.
+
+See ``docs/scene_format.md`` for the scene files and ``DESIGN.md`` ("The embedded world").
+"""
+
+from onfly.world.clock import DECISION, MONITORING, LatencyModel, PendingCall, SimClock
+from onfly.world.collision import Collision, CollisionChecker
+from onfly.world.geometry import SceneGeometry
+from onfly.world.render import DepthNoise, RenderConfig, Renderer, RenderResult, default_camera
+from onfly.world.scene import Scene, SceneFormatError, SceneObject, list_scenes, load_scene, resolve_scene
+from onfly.world.vehicle import SimVehicle, VehicleConfig
+from onfly.world.world import EpisodeEndedError, World, WorldStep
+
+__all__ = [
+    "DECISION",
+    "MONITORING",
+    "Collision",
+    "CollisionChecker",
+    "DepthNoise",
+    "EpisodeEndedError",
+    "LatencyModel",
+    "PendingCall",
+    "RenderConfig",
+    "RenderResult",
+    "Renderer",
+    "Scene",
+    "SceneFormatError",
+    "SceneGeometry",
+    "SceneObject",
+    "SimClock",
+    "SimVehicle",
+    "VehicleConfig",
+    "World",
+    "WorldStep",
+    "default_camera",
+    "list_scenes",
+    "load_scene",
+    "resolve_scene",
+]

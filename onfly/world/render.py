@@ -1,0 +1,221 @@
+"""RGB, z-depth, semantic and instance images of a scene by CPU ray casting (Open3D Embree).
+
+Shading model (per pixel, vectorized):
+
+``rgb = 255 * colour * texture * (ambient + (1 - ambient) * max(0, n . l))``
+
+``colour`` is the hit triangle's object (or part) colour, ``n`` the triangle normal flipped to
+face the camera, ``l`` the scene's light direction (towards the light) and ``texture`` the
+object's procedural pattern evaluated at the world hit point (``1 - contrast * value`` with
+``value`` in [0, 1]). Rays that hit nothing get the scene's sky colour, depth 0 (no reading)
+and ids 0.
+
+Depth sensor-noise model (:class:`DepthNoise`, off by default), applied to depth only:
+axial Gaussian noise with ``sigma(z) = sigma_base_m + sigma_quadratic_per_m * z**2`` (the
+quadratic growth of stereo / structured-light RMS error), independent per-pixel dropout with
+probability ``dropout_prob``, and readings outside ``[min_range_m, max_range_m]`` set to 0
+(no reading). Each frame draws from ``default_rng([seed, noise_key])`` so a frame's noise
+depends only on the seed and the caller's frame key, never on render order.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from onfly.world.geometry import SceneGeometry
+from planning.camera import PinholeCamera
+from planning.frames import check_transform
+from vlm.types import FrameAnnotation, VisibleObject
+
+__all__ = ["RenderConfig", "DepthNoise", "RenderResult", "Renderer", "default_camera"]
+
+
+def default_camera() -> PinholeCamera:
+    """The benchmark camera: 640 x 427, 90 x 60 deg field of view."""
+    return PinholeCamera.from_fov(640, 427, 90.0, 60.0)
+
+
+@dataclass(frozen=True)
+class DepthNoise:
+    """Seeded depth sensor-noise model (see the module docstring). ``enabled=False`` = exact."""
+
+    enabled: bool = False
+    seed: int = 0
+    sigma_base_m: float = 0.002
+    sigma_quadratic_per_m: float = 0.0025
+    dropout_prob: float = 0.01
+    min_range_m: float = 0.1
+    max_range_m: float = 10.0
+
+    def __post_init__(self) -> None:
+        for name in ("sigma_base_m", "sigma_quadratic_per_m", "min_range_m"):
+            if not (getattr(self, name) >= 0.0 and np.isfinite(getattr(self, name))):
+                raise ValueError(f"DepthNoise.{name} must be finite and >= 0, got {getattr(self, name)}")
+        if not (0.0 <= self.dropout_prob < 1.0):
+            raise ValueError(f"DepthNoise.dropout_prob must be in [0, 1), got {self.dropout_prob}")
+        if not (self.max_range_m > self.min_range_m):
+            raise ValueError(f"DepthNoise.max_range_m must exceed min_range_m, got {self.max_range_m} <= {self.min_range_m}")
+
+    def apply(self, depth_m: np.ndarray, noise_key: int) -> np.ndarray:
+        """Noisy copy of a float32 (H, W) z-depth image (0 = no reading stays 0)."""
+        rng = np.random.default_rng([self.seed, int(noise_key)])
+        z = depth_m.astype(np.float32, copy=True)
+        valid = z > 0
+        sigma = self.sigma_base_m + self.sigma_quadratic_per_m * z * z
+        z = z + (rng.standard_normal(z.shape).astype(np.float32) * sigma)
+        drop = rng.random(z.shape) < self.dropout_prob
+        z[~valid | drop | (z < self.min_range_m) | (z > self.max_range_m)] = 0.0
+        return z
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """Renderer settings.
+
+    threads : Embree threads for ray casting (1 = one core, as the benchmark budgets; 0 = all)
+    depth_noise : DepthNoise model (off by default)
+    """
+
+    threads: int = 1
+    depth_noise: DepthNoise = DepthNoise()
+
+    def __post_init__(self) -> None:
+        if int(self.threads) < 0:
+            raise ValueError(f"RenderConfig.threads must be >= 0, got {self.threads}")
+
+
+@dataclass(frozen=True, eq=False)
+class RenderResult:
+    """One rendered frame.
+
+    rgb : uint8 (H, W, 3)
+    depth_m : float32 (H, W), z-depth in metres along the optical axis; 0 = no reading
+    instance_ids : int32 (H, W), 0 = background (sky)
+    semantic_ids : int32 (H, W), ``scene.label_ids`` values, 0 = background
+    T_world_cam : (4, 4), camera optical frame -> world ENU
+    """
+
+    rgb: np.ndarray
+    depth_m: np.ndarray
+    instance_ids: np.ndarray
+    semantic_ids: np.ndarray
+    T_world_cam: np.ndarray
+
+
+def _hash_unit(cells: np.ndarray, seed: np.ndarray) -> np.ndarray:
+    """Deterministic pseudo-random value in [0, 1) per integer cell (n, 3) and seed (n,)."""
+    c = cells.astype(np.uint64)
+    h = (c[:, 0] * np.uint64(73856093)) ^ (c[:, 1] * np.uint64(19349663)) ^ (c[:, 2] * np.uint64(83492791))
+    h ^= seed.astype(np.uint64) * np.uint64(2654435761)
+    # splitmix64 finalizer for good mixing
+    h ^= h >> np.uint64(30)
+    h *= np.uint64(0xBF58476D1CE4E5B9)
+    h ^= h >> np.uint64(27)
+    h *= np.uint64(0x94D049BB133111EB)
+    h ^= h >> np.uint64(31)
+    return (h >> np.uint64(40)).astype(np.float32) / np.float32(2**24)
+
+
+class Renderer:
+    """Renders a scene from a pinhole camera.
+
+    Build once per scene (the ray-casting structure and the camera rays are precomputed);
+    :meth:`render` only rotates the rays, casts them and shades the hits.
+
+    Parameters
+    ----------
+    geometry : SceneGeometry (shared with the collision checker)
+    camera : PinholeCamera, default :func:`default_camera`
+    config : RenderConfig
+    """
+
+    def __init__(self, geometry: SceneGeometry, camera: PinholeCamera | None = None, config: RenderConfig | None = None) -> None:
+        self.geometry = geometry
+        self.camera = camera if camera is not None else default_camera()
+        self.config = config if config is not None else RenderConfig()
+        rays = self.camera.rays(normalize=True).reshape(-1, 3)
+        self._rays_cam = rays.astype(np.float32)  # (HW, 3) unit rays, optical frame
+        self._ray_z = rays[:, 2].astype(np.float32)  # z-depth = ray length * ray_z
+        self._buf = np.empty((rays.shape[0], 6), dtype=np.float32)
+        scene = geometry.scene
+        self._light = scene.light.direction.astype(np.float32)
+        self._ambient = np.float32(scene.light.ambient)
+        self._sky = scene.sky_color.astype(np.uint8)
+        # per-triangle tables with one extra "sky" row at index triangle_count
+        self._tri_instance = np.append(geometry.tri_instance, 0).astype(np.int32)
+        self._tri_label = np.append(geometry.tri_label, 0).astype(np.int32)
+        self._tri_color = np.vstack([geometry.tri_color, np.zeros((1, 3), np.float32)])
+        self._tri_texture = np.append(geometry.tri_texture, 0).astype(np.int8)
+        self._objects = {o.instance_id: VisibleObject(o.instance_id, o.name, o.label, o.aliases) for o in scene.objects}
+
+    def render(self, T_world_cam, *, noise_key: int = 0) -> RenderResult:
+        """Render RGB, z-depth and id images.
+
+        Parameters
+        ----------
+        T_world_cam : (4, 4), camera optical frame -> world ENU
+        noise_key : int, frame key for the depth-noise draw (ignored when noise is off)
+        """
+        T = check_transform(T_world_cam, "T_world_cam")
+        H, W = self.camera.height, self.camera.width
+        R = T[:3, :3].astype(np.float32)
+        buf = self._buf
+        buf[:, :3] = T[:3, 3].astype(np.float32)
+        np.matmul(self._rays_cam, R.T, out=buf[:, 3:])
+        hits = self.geometry.cast(buf, threads=self.config.threads)
+        g = self.geometry
+        # Misses carry primitive id 2^32 - 1: clamp them onto the sky row of the lookup tables
+        # so every per-pixel lookup is one gather, without boolean masks.
+        tri = np.minimum(hits["primitive_ids"], g.triangle_count).astype(np.intp)
+        hit = tri < g.triangle_count
+        t_hit = hits["t_hit"]
+        depth = t_hit * self._ray_z
+        depth[~hit] = 0.0
+        inst = np.take(self._tri_instance, tri)
+        sem = np.take(self._tri_label, tri)
+
+        dirs = buf[:, 3:]
+        n = hits["primitive_normals"]  # (HW, 3), zero on misses
+        # normals towards the camera (meshes may be single-sided)
+        sign = -np.sign(np.einsum("ij,ij->i", n, dirs))
+        lam = self._ambient + (1.0 - self._ambient) * np.maximum(sign * (n @ self._light), 0.0)
+        color = np.take(self._tri_color, tri, axis=0)
+        color *= lam[:, None]
+        textured = np.flatnonzero(self._tri_texture[tri])
+        if len(textured):
+            ti = tri[textured]
+            P = buf[textured, :3] + dirs[textured] * t_hit[textured, None] - 1e-3 * sign[textured, None] * n[textured]
+            color[textured] *= self._texture(self._tri_texture[ti], ti, P)[:, None]
+        rgb = (color * 255.0 + 0.5).astype(np.uint8)
+        rgb[~hit] = self._sky
+
+        depth = depth.reshape(H, W)
+        if self.config.depth_noise.enabled:
+            depth = self.config.depth_noise.apply(depth, noise_key)
+        return RenderResult(rgb.reshape(H, W, 3), depth, inst.reshape(H, W), sem.reshape(H, W), T)
+
+    def _texture(self, code: np.ndarray, tri: np.ndarray, P: np.ndarray) -> np.ndarray:
+        """Brightness factor in [1 - contrast, 1] per hit (n,); P (n, 3) hit points just
+        inside the surface (so faces on a cell boundary do not flicker)."""
+        prm = np.take(self.geometry.tri_tex_params, tri, axis=0)
+        inv_period = 1.0 / prm[:, 0]
+        val = np.empty(len(code), dtype=np.float32)
+        for c in np.unique(code):
+            sel = slice(None) if code[0] == c and code[-1] == c and np.all(code == c) else np.flatnonzero(code == c)
+            Q = P[sel] * inv_period[sel, None]
+            if c == 1:  # stripes across the axis
+                val[sel] = np.floor(np.einsum("ij,ij->i", Q, prm[sel, 2:5])) % 2.0
+            elif c == 2:  # 3D checker
+                val[sel] = np.floor(Q).sum(axis=1) % 2.0
+            else:  # value noise per cell
+                val[sel] = _hash_unit(np.floor(Q).astype(np.int64), prm[sel, 5].astype(np.int64))
+        return 1.0 - prm[:, 1] * val
+
+    def annotate(self, result: RenderResult) -> FrameAnnotation:
+        """Ground truth for the simulated VLM: ids, depth and the instances present in the image."""
+        ids = result.instance_ids
+        present = np.flatnonzero(np.bincount(ids.ravel()))
+        objects = {int(i): self._objects[int(i)] for i in present if i != 0}
+        return FrameAnnotation(instance_ids=ids, depth_m=result.depth_m, objects=objects, semantic_ids=result.semantic_ids)
