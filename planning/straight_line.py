@@ -30,11 +30,13 @@ def straight_line_plan(
     yaw_first: bool = False,
     yaw_tolerance_rad: float = 0.15,
     bearing_min_dist_m: float = 0.3,
+    yaw_ref: float | None = None,
 ) -> Trajectory:
     """A ``steps``-interval plan from ``state`` straight at ``goal`` (3,), world ENU metres.
 
     Every interval's acceleration has norm <= ``a_max_mps2``; velocities stay within
-    ``v_max_mps`` when the start does; yaw rate within ``yaw_rate_max_rps``.
+    ``v_max_mps`` when the start does; yaw rate within ``yaw_rate_max_rps``. ``yaw_ref``
+    (radians) overrides the goal bearing as the heading to turn to.
     """
     goal = np.asarray(goal, float).reshape(3)
     if not np.all(np.isfinite(goal)):
@@ -47,7 +49,7 @@ def straight_line_plan(
     p[0], v[0], yaw[0] = state.p, state.v, state.yaw
     d0 = goal[:2] - state.p[:2]
     bearing = float(np.arctan2(d0[1], d0[0])) if np.linalg.norm(d0) > bearing_min_dist_m else state.yaw
-    psi_ref = float(unwrap_near(bearing, state.yaw))
+    psi_ref = float(unwrap_near(bearing if yaw_ref is None else yaw_ref, state.yaw))
     for k in range(steps):
         # yaw: rate-limited step toward the bearing
         err = psi_ref - yaw[k]
