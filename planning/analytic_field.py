@@ -30,6 +30,9 @@ __all__ = [
     "VerticalCylinder",
     "HalfSpace",
     "AnalyticFieldError",
+    "ObstacleScene",
+    "SCENE_KINDS",
+    "obstacle_scene",
 ]
 
 
@@ -258,3 +261,128 @@ class AnalyticField:
     def distance(self, points: np.ndarray) -> np.ndarray:
         """Signed distance only, shape (n,)."""
         return self.query(points)[0]
+
+
+# ---------------------------------------------------------------------------- seeded scenes
+#: Kinds of seeded obstacle scenes :func:`obstacle_scene` builds.
+SCENE_KINDS = ("wall", "pillars", "gap", "overhang")
+
+
+@dataclass(frozen=True, eq=False)
+class ObstacleScene:
+    """A seeded planning problem over exact geometry.
+
+    Attributes
+    ----------
+    kind : one of :data:`SCENE_KINDS`
+    seed : the seed it was built from
+    field : AnalyticField, the obstacles (always including the ground ``z = 0``)
+    start : array (3,), start position, metres, world ENU (at rest)
+    start_yaw : float, radians
+    goal : array (3,), goal position, metres, world ENU
+    """
+
+    kind: str
+    seed: int
+    field: AnalyticField
+    start: np.ndarray
+    start_yaw: float
+    goal: np.ndarray
+
+
+_GROUND = HalfSpace(point=np.zeros(3), normal=np.array([0.0, 0.0, 1.0]))
+
+
+def obstacle_scene(kind: str, seed: int, clearance_m: float = 0.45) -> ObstacleScene:
+    """Build a seeded scene of one kind. Every scene has a path with clearance
+    ``clearance_m + 0.15`` from start to goal that a local planner can find (no dead ends):
+
+    - ``wall``: a (yawed) wall across the straight line, ending 0.3-1.5 m past it; go around.
+    - ``pillars``: 4-12 vertical cylinders between start and goal, surfaces at least
+      ``2 clearance_m + 0.3`` apart, none within ``clearance_m + 0.3`` of start or goal.
+    - ``gap``: a wall across the line with a gap 1.3-2.0 m wide whose centre is offset from
+      the line by up to 0.4 m; fly through.
+    - ``overhang``: a wide slab whose underside is below the straight line; fly under it.
+
+    Parameters
+    ----------
+    kind : one of :data:`SCENE_KINDS`
+    seed : int, the only source of randomness
+    clearance_m : the planner's safety distance the scene is designed for
+    """
+    if kind not in SCENE_KINDS:
+        raise AnalyticFieldError(f"scene kind must be one of {SCENE_KINDS}, got {kind!r}")
+    rng = np.random.default_rng([seed, SCENE_KINDS.index(kind)])
+    length = rng.uniform(5.0, 8.0)
+    heading = rng.uniform(-np.pi, np.pi)
+    R = np.array([[np.cos(heading), -np.sin(heading)], [np.sin(heading), np.cos(heading)]])
+    z0 = rng.uniform(1.0, 1.6)
+    origin_xy = rng.uniform(-20.0, 20.0, size=2)
+    start_l = np.array([0.0, 0.0])
+    goal_l = np.array([length, rng.uniform(-0.5, 0.5)])
+    boxes: list[Box] = []
+    cylinders: list[VerticalCylinder] = []
+    z_start, z_goal = z0, z0 + rng.uniform(-0.2, 0.2)
+
+    def world_xy(pl: np.ndarray) -> np.ndarray:
+        return origin_xy + R @ pl
+
+    if kind == "wall":
+        x_w = rng.uniform(0.35, 0.65) * length
+        side = rng.choice([-1.0, 1.0])
+        overlap = rng.uniform(0.3, 1.5)  # how far the wall reaches past the straight line
+        extent = rng.uniform(2.0, 4.0)
+        y_lo, y_hi = (-extent, overlap) if side > 0 else (-overlap, extent)
+        tilt = rng.uniform(-0.3, 0.3)
+        centre = world_xy(np.array([x_w, 0.5 * (y_lo + y_hi)]))
+        boxes.append(
+            Box(np.array([*centre, 1.5]), np.array([0.1, 0.5 * (y_hi - y_lo), 1.5]), heading + tilt)
+        )
+    elif kind == "pillars":
+        count = int(rng.integers(4, 13))
+        placed: list[tuple[np.ndarray, float]] = []
+        min_gap = 2.0 * clearance_m + 0.3
+        for _ in range(400):
+            if len(placed) >= count:
+                break
+            c = np.array([rng.uniform(1.0, length - 1.0), rng.uniform(-1.5, 1.5)])
+            r = rng.uniform(0.1, 0.35)
+            if np.linalg.norm(c - start_l) < r + clearance_m + 0.3 or np.linalg.norm(c - goal_l) < r + clearance_m + 0.3:
+                continue
+            if any(np.linalg.norm(c - q) - r - rq < min_gap for q, rq in placed):
+                continue
+            placed.append((c, r))
+        for c, r in placed:
+            cylinders.append(VerticalCylinder(world_xy(c), r, 0.0, 4.0))
+    elif kind == "gap":
+        x_w = rng.uniform(0.35, 0.65) * length
+        width = rng.uniform(1.3, 2.0)
+        offset = rng.uniform(-0.4, 0.4)
+        tilt = rng.uniform(-0.25, 0.25)
+        for sgn in (-1.0, 1.0):
+            inner = offset + sgn * 0.5 * width
+            outer = offset + sgn * (0.5 * width + 4.0)
+            centre_l = np.array([x_w, 0.5 * (inner + outer)])
+            # rotate the wall about the gap centre by the tilt
+            Rt = np.array([[np.cos(tilt), -np.sin(tilt)], [np.sin(tilt), np.cos(tilt)]])
+            c_gap = np.array([x_w, offset])
+            centre_l = c_gap + Rt @ (centre_l - c_gap)
+            boxes.append(Box(np.array([*world_xy(centre_l), 2.0]), np.array([0.1, 2.0, 2.0]), heading + tilt))
+    else:  # overhang
+        z_start = rng.uniform(1.5, 1.9)
+        z_goal = rng.uniform(0.8, 1.0)
+        x0, x1 = rng.uniform(0.3, 0.45) * length, rng.uniform(0.6, 0.75) * length
+        under = rng.uniform(1.55, 1.8)  # slab underside, metres above ground
+        centre = world_xy(np.array([0.5 * (x0 + x1), 0.0]))
+        boxes.append(Box(np.array([*centre, under + 1.0]), np.array([0.5 * (x1 - x0), 6.0, 1.0]), heading))
+    field = AnalyticField(boxes=tuple(boxes), cylinders=tuple(cylinders), half_spaces=(_GROUND,))
+    start = np.array([*world_xy(start_l), z_start])
+    goal = np.array([*world_xy(goal_l), z_goal])
+    return ObstacleScene(
+        kind=kind,
+        seed=int(seed),
+        field=field,
+        start=start,
+        start_yaw=float(rng.uniform(-np.pi, np.pi)),
+        goal=goal,
+    )

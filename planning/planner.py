@@ -48,7 +48,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from planning.field import DistanceField
-from planning.frames import unwrap_near
+from planning.frames import unwrap_near, wrap_angle
+from planning.guide_path import carrot_on_path, search_guide_path, segment_clear, segment_points
 from planning.mpc_model import NU, NX, MpcFormulation, simulate
 from planning.planner_config import PlannerConfig
 from planning.trajectory import Trajectory, VehicleState
@@ -61,6 +62,8 @@ __all__ = [
     "Fallback",
     "PlannerInputError",
     "adjust_goal",
+    "ClosedLoopLog",
+    "run_closed_loop",
 ]
 
 logger = logging.getLogger(__name__)
@@ -131,6 +134,9 @@ class PlanResult:
         returned trajectory, metres
     goal_used : array (3,), the goal the plan aims for (after adjustment), world ENU
     goal_adjusted : bool, the requested goal was moved to a point with clearance
+    attractor : array (3,), the point the progress terms pulled toward this step: the goal
+        used, or a point on the front-end's guide path when the straight segment to the goal
+        lacks clearance (world ENU)
     """
 
     trajectory: Trajectory
@@ -144,6 +150,7 @@ class PlanResult:
     min_predicted_clearance_m: float
     goal_used: np.ndarray
     goal_adjusted: bool
+    attractor: np.ndarray
 
     @property
     def ok(self) -> bool:
@@ -289,6 +296,9 @@ class Planner:
         self._prev_y: np.ndarray | None = None
         self._prev_s = np.zeros(L.N)
         self._cuts: np.ndarray | None = None  # (N, K, 3)
+        self._guide: np.ndarray | None = None  # (n, 3) world ENU
+        self._guide_goal: np.ndarray | None = None
+        self._guide_attempt_t: float | None = None
 
     # ------------------------------------------------------------------ validation
     def _validate(self, state, goal_world, field) -> np.ndarray:
@@ -351,10 +361,12 @@ class Planner:
         goal_used, adjusted = adjust_goal(
             goal, origin, field, goal_clear, c.goal_search_max_m, goal_query=(float(d_all[0]), g_all[0])
         )
-        goal_local = goal_used - origin
-        horiz = float(np.hypot(goal_local[0], goal_local[1]))
+        attractor = self._attractor(state.t_s, origin, d0, goal_used, field)
+        goal_local = attractor - origin
+        to_goal = goal_used - origin
+        horiz = float(np.hypot(to_goal[0], to_goal[1]))
         if horiz > c.yaw_hold_radius_m:
-            psi_ref = float(unwrap_near(np.arctan2(goal_local[1], goal_local[0]), state.yaw))
+            psi_ref = float(unwrap_near(np.arctan2(to_goal[1], to_goal[0]), state.yaw))
         else:
             psi_ref = float(state.yaw)
 
@@ -445,9 +457,55 @@ class Planner:
             min_predicted_clearance_m=float(np.min(d_knots)),
             goal_used=goal_used,
             goal_adjusted=adjusted,
+            attractor=attractor,
         )
 
     # ------------------------------------------------------------------ pieces
+    def _attractor(self, t_s: float, origin: np.ndarray, d0: float, goal: np.ndarray, field) -> np.ndarray:
+        """The point the progress terms pull toward: the goal when the straight segment to it
+        keeps ``d_safe``, else a point ``guide_lookahead_m`` ahead on the guide path."""
+        c = self.config
+        if not c.guide_enable:
+            return goal
+        seg = segment_points(origin, goal, 0.1)
+        skip = 0.3 + max(0.0, c.d_safe_m - d0)
+        seg = seg[np.linalg.norm(seg - origin, axis=1) > skip]
+        path = self._guide
+        n_seg = seg.shape[0]
+        pts = seg if path is None else np.concatenate([seg, path])
+        if pts.shape[0] == 0:
+            return goal
+        d, _ = _query(field, pts)
+        if segment_clear(d[:n_seg], c.d_safe_m):
+            self._guide = None
+            return goal
+        if path is not None:
+            nearest = int(np.argmin(np.sum((path - origin) ** 2, axis=1)))
+            still_valid = np.linalg.norm(self._guide_goal - goal) < 0.25 and np.all(
+                d[n_seg + nearest + 1 :] >= c.d_safe_m
+            )
+            if not still_valid:
+                path = self._guide = None
+        if path is None:
+            due = self._guide_attempt_t is None or t_s - self._guide_attempt_t >= c.guide_replan_period_s
+            goal_moved = self._guide_goal is None or np.linalg.norm(self._guide_goal - goal) >= 0.25
+            if due or goal_moved:
+                self._guide_attempt_t = t_s
+                self._guide_goal = goal.copy()
+                path = self._guide = search_guide_path(
+                    field,
+                    origin,
+                    goal,
+                    clearance_m=c.d_safe_m + c.guide_clearance_margin_m,
+                    preferred_clearance_m=c.guide_preferred_clearance_m,
+                    resolution_m=c.guide_resolution_m,
+                )
+        if path is None:
+            return goal
+        carrot, _ = carrot_on_path(path, origin, c.guide_lookahead_m)
+        return carrot
+
+    # ------------------------------------------------------------------ pieces (solver)
     def _linearize(self, X_bar, u_bar, origin, goal_local, field, cuts_mode: str, knots_query=None) -> None:
         """Fill the clearance, speed-direction and proximal parts of theta about ``X_bar``.
 
@@ -548,3 +606,94 @@ class Planner:
             U[k, 0:3] = a
             v = v + a * c.dt_s
         return U
+
+
+@dataclass(frozen=True, eq=False)
+class ClosedLoopLog:
+    """An idealized closed loop: the exact double integrator driven by each step's command.
+
+    Attributes
+    ----------
+    t_s : array (T+1,), times, seconds
+    p : array (T+1, 3), positions, metres, world ENU
+    v : array (T+1, 3), velocities, m/s
+    yaw : array (T+1,), radians, wrapped
+    a : array (T, 3), executed accelerations, m/s^2
+    yaw_rate : array (T,), executed yaw rates, rad/s
+    results : tuple of PlanResult, one per step
+    reached : bool, the vehicle came within the tolerance of the goal used and slowed down
+    """
+
+    t_s: np.ndarray
+    p: np.ndarray
+    v: np.ndarray
+    yaw: np.ndarray
+    a: np.ndarray
+    yaw_rate: np.ndarray
+    results: tuple
+    reached: bool
+
+    def sampled_path(self, samples_per_step: int = 4) -> np.ndarray:
+        """Exact positions between knots (constant acceleration), shape (T s + 1, 3), metres."""
+        T = self.a.shape[0]
+        dt = float(self.t_s[1] - self.t_s[0]) if T else 0.0
+        h = np.arange(samples_per_step) / samples_per_step * dt
+        seg = (
+            self.p[:-1, None, :]
+            + self.v[:-1, None, :] * h[None, :, None]
+            + 0.5 * self.a[:, None, :] * (h * h)[None, :, None]
+        )
+        return np.concatenate([seg.reshape(-1, 3), self.p[-1:]], axis=0)
+
+
+def run_closed_loop(
+    planner: Planner,
+    start: VehicleState,
+    goal_world: np.ndarray,
+    field: DistanceField,
+    max_steps: int,
+    goal_tolerance_m: float = 0.15,
+    stop_speed_mps: float = 0.05,
+    stop_when_reached: bool = True,
+) -> ClosedLoopLog:
+    """Fly ``planner`` in ``field`` with perfect tracking: each period the first command is
+    integrated exactly (``p += v dt + a dt^2 / 2``, ``v += a dt``, ``yaw += yaw_rate dt``).
+
+    ``reached`` becomes true once the vehicle is within ``goal_tolerance_m`` of the goal the
+    planner used and slower than ``stop_speed_mps``; the loop then ends if
+    ``stop_when_reached``.
+    """
+    dt = planner.config.dt_s
+    p, v, yaw, a = start.p.copy(), start.v.copy(), float(start.yaw), start.a.copy()
+    t = float(start.t_s)
+    ps, vs, yaws, ts, acc, rates, results = [p], [v], [yaw], [t], [], [], []
+    reached = False
+    for _ in range(max_steps):
+        res = planner.step(VehicleState(t, p, v, yaw, 0.0, a), goal_world, field)
+        a = res.command.a
+        r = res.command.yaw_rate
+        p = p + v * dt + 0.5 * a * dt * dt
+        v = v + a * dt
+        yaw = float(wrap_angle(yaw + r * dt))
+        t += dt
+        ps.append(p)
+        vs.append(v)
+        yaws.append(yaw)
+        ts.append(t)
+        acc.append(a)
+        rates.append(r)
+        results.append(res)
+        if np.linalg.norm(p - res.goal_used) < goal_tolerance_m and np.linalg.norm(v) < stop_speed_mps:
+            reached = True
+            if stop_when_reached:
+                break
+    return ClosedLoopLog(
+        t_s=np.array(ts),
+        p=np.array(ps),
+        v=np.array(vs),
+        yaw=np.array(yaws),
+        a=np.array(acc).reshape(-1, 3),
+        yaw_rate=np.array(rates),
+        results=tuple(results),
+        reached=reached,
+    )

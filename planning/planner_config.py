@@ -73,6 +73,13 @@ class PlannerConfig:
         at the previous plan's direction plus K - 1 cutting planes added on violation
     cold_start_iterations : QP solves (sequential linearization) on the first step after
         construction or :meth:`Planner.reset`, when there is no previous plan to linearize about
+    guide_enable : run the grid-search front-end (:mod:`planning.guide_path`) when the straight
+        segment to the goal lacks clearance; the MPC is then pulled toward a point on that path
+    guide_resolution_m : front-end grid spacing, metres
+    guide_clearance_margin_m : grid cells need clearance ``d_safe_m`` plus this, metres
+    guide_preferred_clearance_m : edges through cells with less clearance cost more, metres
+    guide_lookahead_m : arc length from the vehicle's nearest path point to the attractor
+    guide_replan_period_s : least time between two searches while no valid path exists
     qp_eps_abs, qp_eps_rel : OSQP tolerances (the problem is posed in a frame centred on the
         vehicle, so absolute tolerances do not depend on where in the world it flies)
     qp_max_iter : OSQP iteration cap; hitting it counts as a non-converged solve
@@ -109,6 +116,12 @@ class PlannerConfig:
     max_speed_refinements: int = 3
     speed_cuts_per_knot: int = 3
     cold_start_iterations: int = 3
+    guide_enable: bool = True
+    guide_resolution_m: float = 0.25
+    guide_clearance_margin_m: float = 0.1
+    guide_preferred_clearance_m: float = 1.0
+    guide_lookahead_m: float = 3.0
+    guide_replan_period_s: float = 1.0
     qp_eps_abs: float = 1e-3
     qp_eps_rel: float = 1e-3
     qp_max_iter: int = 1000
@@ -137,7 +150,7 @@ class PlannerConfig:
         positive = (
             "dt_s", "v_max_mps", "a_max_mps2", "yaw_rate_max_rps", "d_safe_m", "w_goal",
             "w_slack_l1", "w_slack_l2", "speed_tolerance_rel", "qp_eps_abs", "qp_eps_rel",
-            "qp_rho", "nlp_tol",
+            "qp_rho", "nlp_tol", "guide_resolution_m", "guide_lookahead_m",
         )
         for name in positive:
             if getattr(self, name) <= 0:
@@ -146,6 +159,7 @@ class PlannerConfig:
             "w_terminal_pos", "w_terminal_vel", "w_vel", "w_accel", "w_jerk", "w_yaw",
             "w_yaw_rate", "w_prox_accel", "goal_clearance_margin_m", "goal_search_max_m", "yaw_hold_radius_m",
             "safety_tolerance_m", "max_speed_refinements", "qp_adaptive_rho_interval",
+            "guide_clearance_margin_m", "guide_preferred_clearance_m", "guide_replan_period_s",
         )
         for name in non_negative:
             if getattr(self, name) < 0:
