@@ -78,7 +78,10 @@ def _make_sim(spec: str, preset: str, seed: int, options: dict) -> VlmBackend:
         raise ValueError(f"the simulated VLM (vlm.sim) is not available: {exc}") from exc
     if preset not in PRESETS:
         raise _bad_spec(spec, f"unknown simulated-VLM preset {preset!r} (presets: {', '.join(sorted(PRESETS))})")
-    return SimulatedVlm(preset=preset, seed=seed, **options)
+    try:
+        return SimulatedVlm(preset=preset, seed=seed, **options)
+    except TypeError as exc:  # an option SimulatedVlm does not take
+        raise ValueError(f"bad option for the simulated VLM: {exc}") from exc
 
 
 def _make_http(spec: str, kind: str, rest: str, options: dict) -> VlmBackend:
@@ -87,6 +90,8 @@ def _make_http(spec: str, kind: str, rest: str, options: dict) -> VlmBackend:
     url, _, model = rest.partition("#")
     if kind == "https" or url.startswith("//"):  # a plain "http://..." / "https://..." spec
         url = f"{kind}:{url}"
+    elif "://" in url and not url.startswith(("http://", "https://")):
+        raise _bad_spec(spec, "only http and https servers (base_url must be http(s)://host:port)")
     elif not url.startswith(("http://", "https://")):
         url = "http://" + url
     if not url.split("://", 1)[1].strip("/"):

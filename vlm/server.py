@@ -203,7 +203,7 @@ class VlmServer:
 
     def serve_forever(self) -> None:
         """Serve in this thread until :meth:`close` is called from another one."""
-        self._httpd.serve_forever(poll_interval=0.2)
+        self._httpd.serve_forever(poll_interval=0.05)
 
     def start(self) -> "VlmServer":
         """Serve in a background daemon thread; returns self."""
@@ -292,6 +292,13 @@ def _parse_fault(value: str) -> tuple[str, str]:
     return name.strip().lower(), arg.strip()
 
 
+def _fault_number(arg: str) -> float | None:
+    try:
+        return float(arg)
+    except ValueError:
+        return None
+
+
 def _make_handler(server: VlmServer):
     class Handler(BaseHTTPRequestHandler):
         protocol_version = "HTTP/1.1"
@@ -345,10 +352,11 @@ def _make_handler(server: VlmServer):
                 return
             if fault:
                 name, arg = _parse_fault(fault)
-                if name == "delay":
-                    threading.Event().wait(float(arg))  # test fault: a server that is slow to answer
-                elif name == "status":
-                    self._send(int(arg), _error_json(f"injected fault: HTTP {arg}", "server_error"))
+                number = _fault_number(arg)
+                if name == "delay" and number is not None:
+                    threading.Event().wait(number)  # test fault: a server that is slow to answer
+                elif name == "status" and number is not None and 400 <= number < 600:
+                    self._send(int(number), _error_json(f"injected fault: HTTP {int(number)}", "server_error"))
                     return
                 elif name == "malformed" and arg == "text":
                     self._send(200, b"<html>this is not JSON {", "text/html")
