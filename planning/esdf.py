@@ -290,17 +290,15 @@ class EsdfMap:
                 sites = np.pad(sites, pad, mode="constant", constant_values=True)
             else:
                 pad = None
-        if not sites.any():
-            d2 = np.full(sites.shape, k * k + 1, dtype=np.uint16)
-        elif sites.all():
-            d2 = np.zeros(sites.shape, dtype=np.uint8)
-        else:
-            d2 = truncated_squared_edt(sites, k)
-        if pad is not None:
-            d2 = d2[tuple(slice(p0, d2.shape[i] - p1) for i, (p0, p1) in enumerate(pad))]
         off_lo = w_lo - b_lo
+        if pad is not None:
+            off_lo = off_lo + np.array([p[0] for p in pad])
         off_hi = off_lo + (w_hi - w_lo)
-        return d2[tuple(slice(int(a), int(b)) for a, b in zip(off_lo, off_hi))]
+        if not sites.any():
+            return np.full(tuple(w_hi - w_lo), k * k + 1, dtype=np.uint16)
+        if sites.all():
+            return np.zeros(tuple(w_hi - w_lo), dtype=np.uint8)
+        return truncated_squared_edt(sites, k, region=(off_lo, off_hi))
 
     # -- queries ----------------------------------------------------------------------------
     def query(self, points) -> tuple[np.ndarray, np.ndarray]:

@@ -16,7 +16,8 @@ One frame does, in order (the docstring of :meth:`RollingOccupancy.integrate` ha
    field (the obstacle voxels, plus the unknown ones when unknown counts as occupied) inside the
    frustum's bounding box is projected into the full-resolution image (numpy, vectorized); it is
    passed through when its z-depth is ``clear_margin_m`` shorter than the pixel's reading
-   (readings beyond ``max_range_m`` clear up to ``max_range_m``). A hit in the same frame wins.
+   (finite readings beyond ``max_range_m`` clear up to ``max_range_m``; 0 / NaN / inf /
+   negative pixels clear nothing). A hit in the same frame wins.
 3. **Log-odds update** on the touched voxels only, and the list of voxels whose obstacle state
    (the mask the distance transform sees) flipped.
 """
@@ -212,11 +213,21 @@ class RollingOccupancy:
         )
         return pcd.point.positions.numpy()
 
-    def _flat_in_grid(self, idx_global: np.ndarray) -> np.ndarray:
-        """Flat local indices (k,) of global voxel indices (n, 3) that fall inside the window."""
-        local = idx_global - self.origin_index
-        inside = np.all((local >= 0) & (local < np.asarray(self.shape)), axis=1)
-        return local[inside] @ self._strides
+    def _flat_in_grid(self, points: np.ndarray) -> np.ndarray:
+        """Flat local indices (k,) of the voxels holding ``points`` (n, 3) world metres.
+
+        Points outside the window are dropped. Column-wise int32 arithmetic: the unsigned view
+        folds the ``>= 0`` test into the ``< n`` test.
+        """
+        inv_v = np.float32(1.0 / self.voxel_m)
+        nx, ny, nz = self.shape
+        ix = np.floor(points[:, 0] * inv_v).astype(np.int32) - np.int32(self.origin_index[0])
+        iy = np.floor(points[:, 1] * inv_v).astype(np.int32) - np.int32(self.origin_index[1])
+        iz = np.floor(points[:, 2] * inv_v).astype(np.int32) - np.int32(self.origin_index[2])
+        inside = (
+            (ix.view(np.uint32) < nx) & (iy.view(np.uint32) < ny) & (iz.view(np.uint32) < nz)
+        )
+        return (ix[inside].astype(np.int64) * ny + iy[inside]) * nz + iz[inside]
 
     def _hit_voxels(self, points: np.ndarray, cam_pos: np.ndarray, flags: np.ndarray) -> np.ndarray:
         """Distinct flat indices hit by ``points`` (n, 3) world, plus the surface-thickness band.
@@ -224,9 +235,7 @@ class RollingOccupancy:
         Leaves ``flags`` set at the returned indices (the caller clears them).
         """
         cfg = self.config
-        inv_v = 1.0 / cfg.voxel_m
-        g = np.floor(points * np.float32(inv_v)).astype(np.int64)
-        flags[self._flat_in_grid(g)] = True
+        flags[self._flat_in_grid(points)] = True
         surface = np.flatnonzero(flags)
         n_band = int(round(cfg.surface_thickness_m / cfg.voxel_m))
         if n_band > 0 and surface.size:
@@ -235,7 +244,7 @@ class RollingOccupancy:
             ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-9)
             steps = np.arange(1, n_band + 1, dtype=float) * cfg.voxel_m
             behind = (c[:, None, :] + ray[:, None, :] * steps[None, :, None]).reshape(-1, 3)
-            flags[self._flat_in_grid(np.floor(behind * inv_v).astype(np.int64))] = True
+            flags[self._flat_in_grid(behind.astype(np.float32))] = True
             return np.flatnonzero(flags)
         return surface
 
@@ -300,7 +309,7 @@ class RollingOccupancy:
         flat, zc = flat[inside], zc[inside]
         d = depth_m[vv[inside], u[inside]]
         with np.errstate(invalid="ignore"):
-            valid = d >= np.float32(cfg.min_range_m)  # False for NaN, negative, -inf
+            valid = (d >= np.float32(cfg.min_range_m)) & (d < np.inf)  # no NaN, inf, <= 0
             reach = np.minimum(d, np.float32(cfg.max_range_m)) - np.float32(cfg.clear_margin_m)
             miss = valid & (zc < reach)
         return flat[miss]

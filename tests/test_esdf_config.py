@@ -1,0 +1,67 @@
+"""EsdfConfig: defaults, derived sizes and validation naming the field."""
+
+import dataclasses
+
+import pytest
+
+from planning.esdf_config import EsdfConfig, EsdfConfigError
+
+
+def test_defaults_follow_the_issue_and_the_paper():
+    cfg = EsdfConfig()
+    assert cfg.voxel_m == 0.1
+    assert cfg.size_m == (10.0, 10.0, 4.0)
+    assert cfg.grid_shape == (100, 100, 40)
+    assert cfg.max_range_m == 7.0
+    assert cfg.unknown_policy == "free"
+    assert cfg.max_distance_voxels == 10
+    # inside depth is (d_in - 1) voxels, so the transform needs one voxel more than 0.5 m
+    assert cfg.max_inside_voxels == 6
+
+
+def test_derived_sizes_round_sensibly():
+    cfg = EsdfConfig(voxel_m=0.15, size_m=(3.0, 2.0, 1.0), max_distance_m=0.5)
+    assert cfg.grid_shape == (20, 13, 7)
+    assert cfg.max_distance_voxels == 4  # ceil(0.5 / 0.15): every distance <= 0.5 m is exact
+
+
+def test_frozen():
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        EsdfConfig().voxel_m = 0.2
+
+
+@pytest.mark.parametrize(
+    "field, value, message",
+    [
+        ("voxel_m", 0.0, "voxel_m must be a positive"),
+        ("voxel_m", float("nan"), "voxel_m must be a positive"),
+        ("max_range_m", -1.0, "max_range_m must be a positive"),
+        ("max_distance_m", 0.0, "max_distance_m must be a positive"),
+        ("max_distance_m", 50.0, "max_distance_m must be at most 180 voxels"),
+        ("max_inside_distance_m", -0.1, "max_inside_distance_m must be a positive"),
+        ("min_range_m", -0.1, "min_range_m must be a finite number >= 0"),
+        ("min_range_m", 8.0, "min_range_m .* must be smaller than max_range_m"),
+        ("clear_margin_m", float("inf"), "clear_margin_m must be a finite"),
+        ("surface_thickness_m", -0.2, "surface_thickness_m must be"),
+        ("size_m", (1.0, 2.0), "size_m must be three"),
+        ("size_m", (1.0, 2.0, 0.1), "size_m must be at least two voxels"),
+        ("stride_px", 0, "stride_px must be an integer >= 1"),
+        ("stride_px", 1.5, "stride_px must be an integer >= 1"),
+        ("miss_logodds", 0.3, "miss_logodds must be negative"),
+        ("hit_logodds", -1.0, "hit_logodds must be a positive"),
+        ("occupied_logodds", 3.0, "min_logodds < occupied_logodds < max_logodds"),
+        ("unknown_policy", "maybe", "unknown_policy must be one of"),
+    ],
+)
+def test_invalid_fields_raise_naming_the_field(field, value, message):
+    with pytest.raises(EsdfConfigError, match=message):
+        EsdfConfig(**{field: value})
+
+
+def test_first_hit_must_be_able_to_occupy():
+    with pytest.raises(EsdfConfigError, match="hit_logodds .* must exceed occupied_logodds"):
+        EsdfConfig(hit_logodds=0.3, occupied_logodds=0.5)
+
+
+def test_config_error_is_a_value_error():
+    assert issubclass(EsdfConfigError, ValueError)
