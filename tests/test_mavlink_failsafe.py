@@ -92,13 +92,13 @@ def flight():
     bridge = MavlinkBridge(bridge_link, BridgeConfig(failsafe=FailsafeConfig(odometry_max_age_s=0.3, link_timeout_s=0.3, vlm_hold_after_s=0.6))).start()
     bridge.wait_for_vehicle(3.0)
     Px4Offboard(bridge, OffboardConfig(prestream_s=0.4)).engage()
-    n, dt = 10, 0.1
+    n, dt = 5, 0.1
     p = np.zeros((n + 1, 3))
     p[:, 2] = np.linspace(0.0, 1.0, n + 1)
     v = np.zeros((n + 1, 3))
-    v[:, 2] = 1.0
+    v[:, 2] = 2.0
     bridge.set_trajectory(Trajectory(bridge.clock(), dt, p, v, np.zeros(n + 1), np.zeros((n, 3)), np.zeros(n)))
-    time.sleep(1.5)
+    time.sleep(1.0)
     assert vehicle.mode_name == "offboard" and vehicle.position_enu()[2] > 0.8
     yield bridge, vehicle
     bridge.stop()

@@ -1,0 +1,295 @@
+"""SimMavlinkVehicle: PX4 and ArduCopter rules, telemetry rates and clocks, the point-mass
+model's limits, the loopback camera channel, and the `onfly sim-vehicle` command."""
+
+import socket
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from onfly.cli import main as onfly_main
+from onfly.mavlink import frames
+from onfly.mavlink.autopilot import ARDUCOPTER_MODE, PX4_MAIN, px4_main_mode
+from onfly.mavlink.camera_channel import FrameChannelError, FrameClient, FrameServer, decode_observation, encode_observation, parse_tcp_url
+from onfly.mavlink.link import memory_link_pair, mavlink2
+from onfly.mavlink.sim_vehicle import PointMassModel, SimMavlinkVehicle, SimVehicleConfig, _Target
+from onfly.mavlink.state import StateReader
+from onfly.observation import Observation
+from planning.camera import PinholeCamera
+from planning.frames import body_transform, cam_transform_from_body
+from vlm.types import FrameAnnotation, VisibleObject
+
+M = mavlink2
+
+
+class Companion:
+    """Raw companion end: records every message, answers nothing, sends what the test says."""
+
+    def __init__(self, link):
+        self.link = link
+        self.received = []
+        self._stop = threading.Event()
+        link.connect()
+        self._t = threading.Thread(target=self._run, daemon=True)
+        self._t.start()
+
+    def _run(self):
+        while not self._stop.is_set():
+            m = self.link.recv(0.01)
+            if m is not None:
+                self.received.append((time.monotonic(), m))
+
+    def stop(self):
+        self._stop.set()
+        self._t.join(1)
+
+    def of_type(self, mtype):
+        return [(t, m) for t, m in list(self.received) if m.get_type() == mtype]
+
+    def command(self, cmd, *params, timeout_s=1.0):
+        n0 = len(self.of_type("COMMAND_ACK"))
+        p = list(params) + [0.0] * (7 - len(params))
+        self.link.send(self.link.mav.command_long_encode(1, 1, cmd, 0, *p))
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            acks = self.of_type("COMMAND_ACK")[n0:]
+            for _, a in acks:
+                if a.command == cmd:
+                    return a.result
+            time.sleep(0.005)
+        raise AssertionError(f"no ACK for {cmd}")
+
+    def setpoint(self, p_enu, yaw_enu=0.0, mask=0x09F8, target_system=1):
+        ned = frames.ned_from_enu(np.asarray(p_enu, float))
+        self.link.send(self.link.mav.set_position_target_local_ned_encode(
+            0, target_system, 1, M.MAV_FRAME_LOCAL_NED, mask, *ned, 0, 0, 0, 0, 0, 0, frames.yaw_ned_from_enu(yaw_enu), 0))
+
+    def stream(self, p_enu, duration_s, rate_hz=20.0):
+        end = time.monotonic() + duration_s
+        while time.monotonic() < end:
+            self.setpoint(p_enu)
+            time.sleep(1.0 / rate_hz)
+
+
+def rig(**kw):
+    a, b = memory_link_pair(1, 191, 1, 1)
+    # Stiff gains: these tests are about the rules, not the dynamics (kept short in wall time).
+    cfg = dict(heartbeat_period_s=0.2, offboard_prestream_s=0.3, offboard_loss_timeout_s=0.3, guided_timeout_s=0.5,
+               takeoff_speed_mps=3.0, k_pos=4.0, k_vel=8.0, a_max_mps2=8.0)
+    cfg.update(kw)
+    vehicle = SimMavlinkVehicle(b, SimVehicleConfig(**cfg)).start()
+    return Companion(a), vehicle
+
+
+@pytest.fixture
+def px4():
+    c, v = rig(autopilot="px4")
+    yield c, v
+    c.stop()
+    v.stop()
+
+
+@pytest.fixture
+def ardu():
+    c, v = rig(autopilot="ardupilot")
+    yield c, v
+    c.stop()
+    v.stop()
+
+
+def test_point_mass_tracks_within_limits():
+    cfg = SimVehicleConfig(v_max_mps=2.0, a_max_mps2=3.0, yaw_rate_max_radps=0.5)
+    model = PointMassModel(cfg)
+    target = _Target(p=np.array([10.0, -5.0, 3.0]), yaw=2.0)
+    speeds, accs, rates = [], [], []
+    for _ in range(3000):
+        model.step(0.01, target, armed=True)
+        speeds.append(np.linalg.norm(model.v))
+        accs.append(np.linalg.norm(model.a))
+        rates.append(abs(model.yaw_rate))
+    np.testing.assert_allclose(model.p, target.p, atol=0.01)
+    assert model.yaw == pytest.approx(2.0, abs=1e-3)
+    assert max(speeds) <= 2.0 + 1e-9 and max(accs) <= 3.0 + 1e-9 and max(rates) <= 0.5 + 1e-9
+    R = model.R_enu_flu()
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-9)
+    # Disarmed on the ground: nothing moves whatever the target
+    grounded = PointMassModel(cfg)
+    for _ in range(100):
+        grounded.step(0.01, target, armed=False)
+    np.testing.assert_array_equal(grounded.p, [0.0, 0.0, 0.0])
+
+
+def test_config_validation():
+    with pytest.raises(ValueError, match="autopilot must be 'px4' or 'ardupilot'"):
+        SimVehicleConfig(autopilot="inav")
+    with pytest.raises(ValueError, match="offboard_loss_timeout_s must be positive"):
+        SimVehicleConfig(offboard_loss_timeout_s=0)
+    with pytest.raises(ValueError, match="initial_position_m"):
+        SimVehicleConfig(initial_position_m=(0, 0, -1))
+
+
+def test_heartbeat_and_telemetry_rates_and_ids(px4):
+    c, v = px4
+    time.sleep(0.6)
+    hbs, pos, att = c.of_type("HEARTBEAT"), c.of_type("LOCAL_POSITION_NED"), c.of_type("ATTITUDE_QUATERNION")
+    assert 3 <= len(hbs) <= 5  # 0.2 s period
+    assert 24 <= len(pos) <= 34 and 24 <= len(att) <= 34  # 50 Hz
+    hb = hbs[-1][1]
+    assert (hb.get_srcSystem(), hb.get_srcComponent()) == (1, 1)
+    assert hb.autopilot == M.MAV_AUTOPILOT_PX4 and hb.type == M.MAV_TYPE_QUADROTOR
+    assert px4_main_mode(hb.custom_mode) == PX4_MAIN["auto"] and not hb.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED
+    tb = np.array([m.time_boot_ms for _, m in pos])
+    assert np.all(np.diff(tb) > 0)
+    # SET_MESSAGE_INTERVAL: position at 10 Hz
+    assert c.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, M.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 100000) == M.MAV_RESULT_ACCEPTED
+    n0 = len(c.of_type("LOCAL_POSITION_NED"))
+    time.sleep(0.6)
+    assert 4 <= len(c.of_type("LOCAL_POSITION_NED")) - n0 <= 8
+    assert c.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, 9999, 100000) == M.MAV_RESULT_DENIED
+    assert c.command(M.MAV_CMD_DO_MOTOR_TEST) == M.MAV_RESULT_UNSUPPORTED
+
+
+def test_px4_offboard_rules(px4):
+    c, v = px4
+    assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+    assert c.command(M.MAV_CMD_DO_SET_MODE, 1, 6) == M.MAV_RESULT_TEMPORARILY_REJECTED
+    c.stream([0, 0, 1.0], 0.15)  # too short a stream
+    assert c.command(M.MAV_CMD_DO_SET_MODE, 1, 6) == M.MAV_RESULT_TEMPORARILY_REJECTED
+    c.stream([0, 0, 1.0], 0.4)
+    assert c.command(M.MAV_CMD_DO_SET_MODE, 1, 6) == M.MAV_RESULT_ACCEPTED
+    c.stream([0, 0, 1.0], 1.0)
+    assert v.mode_name == "offboard" and v.position_enu()[2] == pytest.approx(1.0, abs=0.1)
+    # in the air: disarm refused unless forced
+    assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 0) == M.MAV_RESULT_DENIED
+    # stream stops -> AUTO.LOITER after the loss timeout, holding position
+    t_stop = time.monotonic()
+    time.sleep(0.6)
+    t_lost = v.first_event("mode auto.loiter: offboard lost")
+    assert t_lost is not None and 0.3 - 0.06 <= t_lost - t_stop <= 0.3 + 0.1
+    assert v.position_enu()[2] == pytest.approx(1.0, abs=0.15)
+    last_hb = c.of_type("HEARTBEAT")[-1][1]
+    assert px4_main_mode(last_hb.custom_mode) == PX4_MAIN["auto"] and last_hb.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED
+    # setpoints for another system are not followed
+    c.stream([5.0, 0, 1.0], 0.2)
+    n = v.foreign_setpoints
+    for _ in range(5):
+        c.setpoint([9.0, 9.0, 9.0], target_system=7)
+    time.sleep(0.05)
+    assert v.foreign_setpoints == n + 5
+    assert c.command(M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 2.0) == M.MAV_RESULT_UNSUPPORTED
+
+
+def test_ardupilot_guided_rules(ardu):
+    c, v = ardu
+    hb = c.of_type("HEARTBEAT") or [(0, None)]
+    assert c.command(M.MAV_CMD_DO_SET_MODE, 1, ARDUCOPTER_MODE["guided"]) == M.MAV_RESULT_ACCEPTED
+    assert c.command(M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 2.0) == M.MAV_RESULT_FAILED  # disarmed
+    assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+    c.stream([3.0, 0, 2.0], 0.1)  # ignored before takeoff
+    assert c.command(M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 1.0) == M.MAV_RESULT_ACCEPTED
+    time.sleep(0.9)
+    assert v.first_event("takeoff complete") is not None
+    np.testing.assert_allclose(v.position_enu(), [0.0, 0.0, 1.0], atol=0.15)
+    c.stream([1.0, 0, 1.0], 1.0)
+    assert v.position_enu()[0] == pytest.approx(1.0, abs=0.15)
+    # guided timeout (0.5 s here, 3 s on ArduCopter): the vehicle stops and stays in GUIDED
+    t_stop = time.monotonic()
+    time.sleep(0.8)
+    t_to = v.first_event("guided timeout")
+    assert t_to is not None and 0.5 - 0.06 <= t_to - t_stop <= 0.5 + 0.1
+    assert v.mode_name == "guided"
+    atts = c.of_type("ATTITUDE")
+    assert len(atts) > 50 and hb is not None and c.of_type("HEARTBEAT")[-1][1].autopilot == M.MAV_AUTOPILOT_ARDUPILOTMEGA
+
+
+def test_time_boot_wraps_and_the_reader_stays_monotonic():
+    a, b = memory_link_pair(1, 191, 1, 1)
+    v = SimMavlinkVehicle(b, SimVehicleConfig(boot_time_ms=2**32 - 300)).start()
+    a.connect()
+    reader = StateReader()
+    raw, times = [], []
+    end = time.monotonic() + 0.8
+    while time.monotonic() < end:
+        m = a.recv(0.05)
+        if m is None:
+            continue
+        if reader.handle(m) and m.get_type() == "LOCAL_POSITION_NED":
+            raw.append(m.time_boot_ms)
+            times.append(reader.state().t_s if reader.state() else reader.odometry_age_s())
+    v.stop()
+    raw = np.array(raw)
+    assert raw.max() > 2**32 - 300 and raw.min() < 400  # it did wrap
+    t_pos = np.array([t for t in times])
+    assert np.all(np.diff(t_pos[1:]) > 0)
+
+
+# -- camera channel ----------------------------------------------------------------------------
+def make_observation(i, rng):
+    cam = PinholeCamera.from_fov(32, 24, 90, 60)
+    ids = rng.integers(0, 3, size=(24, 32))
+    depth = rng.uniform(0.5, 7.0, size=(24, 32)).astype(np.float32)
+    ann = FrameAnnotation(ids, depth, {1: VisibleObject(1, "red van", "van", ("vehicle",)), 2: VisibleObject(2, "gate", "gate")}, ids * 10)
+    T = cam_transform_from_body(body_transform([i, 2.0, 1.0], 0.3 * i))
+    return Observation(float(i), rng.integers(0, 255, size=(24, 32, 3), dtype=np.uint8), depth, T, cam, f"f{i}", annotation=ann)
+
+
+def test_frame_channel_round_trip_over_tcp():
+    rng = np.random.default_rng(0)
+    frames_out = [make_observation(i, rng) for i in range(5)]
+    it = iter(frames_out)
+    with FrameServer(lambda: next(it, None), rate_hz=50.0) as server:
+        with FrameClient(server.url, timeout_s=2.0) as client:
+            got = [client.read() for _ in range(5)]
+    for a, b in zip(frames_out, got):
+        assert b.frame_id == a.frame_id and b.t_s == a.t_s
+        np.testing.assert_array_equal(b.rgb, a.rgb)
+        np.testing.assert_array_equal(b.depth_m, a.depth_m)
+        np.testing.assert_allclose(b.T_world_cam, a.T_world_cam)
+        assert b.camera == a.camera
+        np.testing.assert_array_equal(b.annotation.instance_ids, a.annotation.instance_ids)
+        np.testing.assert_array_equal(b.annotation.semantic_ids, a.annotation.semantic_ids)
+        assert b.annotation.objects[1].name == "red van" and b.annotation.objects[1].aliases == ("vehicle",)
+
+
+def test_frame_channel_rejects_bad_input():
+    rng = np.random.default_rng(1)
+    payload = encode_observation(make_observation(0, rng))[8:]
+    with pytest.raises(FrameChannelError, match="not a valid npz"):
+        decode_observation(b"garbage" * 10)
+    with pytest.raises(FrameChannelError, match="tcp://127.0.0.1:PORT"):
+        parse_tcp_url("udp://127.0.0.1:5")
+    with pytest.raises(FrameChannelError, match="loopback only"):
+        FrameServer(lambda: None, host="0.0.0.0")
+    with FrameServer(lambda: make_observation(0, rng), rate_hz=20.0) as server:
+        with FrameClient(server.url, max_frame_bytes=1000) as client:
+            with pytest.raises(FrameChannelError, match="exceeds max_frame_bytes=1000"):
+                client.read()
+    assert len(payload) > 1000
+
+
+# -- CLI -------------------------------------------------------------------------------------------
+def test_cli_sim_vehicle_serves_heartbeats(capsys):
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.settimeout(2.0)
+    port = sock.getsockname()[1]
+    rc = onfly_main(["sim-vehicle", "--mavlink", f"udpout:127.0.0.1:{port}", "--autopilot", "ardupilot", "--duration-s", "0.4"])
+    assert rc == 0
+    parser = M.MAVLink(None)
+    parser.robust_parsing = True
+    heartbeats = []
+    sock.setblocking(False)
+    while True:
+        try:
+            data = sock.recv(4096)
+        except BlockingIOError:
+            break
+        for m in parser.parse_buffer(data) or []:
+            if m.get_type() == "HEARTBEAT":
+                heartbeats.append(m)
+    sock.close()
+    assert heartbeats and heartbeats[0].autopilot == M.MAV_AUTOPILOT_ARDUPILOTMEGA
+    assert "ardupilot vehicle (system 1)" in capsys.readouterr().out
+    assert onfly_main(["sim-vehicle", "--mavlink", "bogus:1"]) == 2
+    assert "unsupported link URL 'bogus:1'" in capsys.readouterr().err
