@@ -18,7 +18,8 @@ syntaxes, in priority order (the first syntax that yields a candidate wins):
    ``[x, y]`` or a list of bare pairs. Numeric strings (``"320"``) are accepted.
 2. XML: Molmo ``<points x1=".." y1=".." x2=".." ...>`` / ``<point x=".." y="..">`` and
    ``<point>x, y</point>`` (two numbers inside the element).
-3. Qwen2-VL box tokens ``<|box_start|>(x1,y1),(x2,y2)<|box_end|>`` (centre of the box).
+3. Qwen2-VL box tokens ``<|box_start|>(x1,y1),(x2,y2)<|box_end|>`` (centre of the box; these
+   are always x first).
 4. Prose: ``x = 320, y = 240`` / ``x: 320, y: 240``, then ``(x, y)`` tuples.
 
 Several points: **the first one is taken** (models list the most salient target first); all

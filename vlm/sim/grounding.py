@@ -167,8 +167,8 @@ def exploration_point(depth_m: np.ndarray, n_blocks: int = 16, band: tuple[float
 
     Returns
     -------
-    (u, v) : block centre column, middle row ``(H - 1) // 2``. Ties go to the block nearest
-    the image centre.
+    (u, v) : block centre column (rounded down), middle row ``(H - 1) // 2``. Ties go to the
+    block nearest the image centre.
     """
     depth = np.asarray(depth_m, dtype=np.float64)
     h, w = depth.shape
@@ -182,4 +182,4 @@ def exploration_point(depth_m: np.ndarray, n_blocks: int = 16, band: tuple[float
     centres = (edges[:-1] + edges[1:] - 1) / 2.0
     best = scores == scores.max()
     b = int(np.flatnonzero(best)[np.argmin(np.abs(centres[best] - (w - 1) / 2.0))])
-    return int(round(centres[b])), (h - 1) // 2
+    return int(centres[b]), (h - 1) // 2

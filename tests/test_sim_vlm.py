@@ -1,0 +1,468 @@
+"""Simulated VLM: sees only the frame, points on the named target, errs at its documented rates."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from vlm.parsing import MonitorStatus, parse_point, parse_status, parse_subtasks
+from vlm.prompts import (
+    build_decision_prompt,
+    build_decompose_prompt,
+    build_monitor_prompt,
+    decision_schema,
+    status_schema,
+)
+from vlm.sim import PRESETS, ErrorModel, ErrorModelError, LatencyModel, SimulatedVlm, get_preset
+from vlm.sim.grounding import exploration_point, ground, words
+from vlm.types import CallStatus, ChatMessage, FrameAnnotation, VisibleObject, VlmBackend, VlmImage
+
+W, H = 160, 120
+
+
+@dataclass(frozen=True)
+class Obj:
+    iid: int
+    name: str
+    label: str
+    depth_m: float
+    rect: tuple[int, int, int, int] | None = None  # u0, v0, u1, v1 (exclusive)
+    disc: tuple[float, float, float] | None = None  # cu, cv, radius
+    aliases: tuple[str, ...] = ()
+
+
+def frame(frame_id: str, objs=(), size=(W, H), bg_depth=30.0, open_cols: tuple[int, int] | None = None, rgb_value=0) -> VlmImage:
+    """An annotated frame: background at ``bg_depth``, objects painted in order (later on top).
+
+    ``open_cols`` marks a column range with no depth reading (open sky / far street).
+    """
+    w, h = size
+    ids = np.zeros((h, w), np.int32)
+    depth = np.full((h, w), bg_depth, np.float32)
+    if open_cols is not None:
+        depth[:, open_cols[0] : open_cols[1]] = np.inf
+    vv, uu = np.mgrid[0:h, 0:w]
+    for o in objs:
+        if o.rect is not None:
+            m = (uu >= o.rect[0]) & (uu < o.rect[2]) & (vv >= o.rect[1]) & (vv < o.rect[3])
+        else:
+            m = (uu - o.disc[0]) ** 2 + (vv - o.disc[1]) ** 2 <= o.disc[2] ** 2
+        ids[m] = o.iid
+        depth[m] = o.depth_m
+    present = set(np.unique(ids).tolist())
+    objects = {o.iid: VisibleObject(o.iid, o.name, o.label, o.aliases) for o in objs if o.iid in present}
+    ann = FrameAnnotation(ids, depth, objects)
+    return VlmImage(np.full((h, w, 3), rgb_value, np.uint8), frame_id, ann)
+
+
+def renamed(img: VlmImage, frame_id: str) -> VlmImage:
+    """The same picture as a new camera frame (fresh randomness, no repainting)."""
+    return VlmImage(img.rgb, frame_id, img.annotation)
+
+
+def decide(sim, subtask, img, history=None, **kw):
+    return sim.complete(*build_decision_prompt(subtask, img, history), **kw)
+
+
+def monitor(sim, subtask, frames, **kw):
+    return sim.complete(*build_monitor_prompt(subtask, frames[0], frames[1:-1], frames[-1]), **kw)
+
+
+def binomial_ok(k: int, n: int, p: float, z: float = 4.5) -> bool:
+    """k successes in n trials are consistent with rate p (normal bound, z sigmas)."""
+    return abs(k / n - p) <= z * math.sqrt(max(p * (1 - p), 1e-12) / n) + 1e-12
+
+
+VAN = Obj(7, "red van", "van", 6.0, rect=(100, 50, 140, 90), aliases=("delivery van",))
+BLUE_VAN = Obj(8, "blue van", "van", 6.0, rect=(20, 50, 60, 90))
+TREE = Obj(9, "oak tree", "tree", 12.0, disc=(80, 40, 15))
+
+
+# ---------------------------------------------------------------------------------------------
+# protocol, presets, configuration
+
+
+def test_is_a_backend_and_a_context_manager():
+    with SimulatedVlm("nominal", seed=3) as sim:
+        assert isinstance(sim, VlmBackend)
+        assert sim.name == "sim:nominal"
+
+
+def test_presets_exist_and_are_pinned():
+    assert {"perfect", "nominal", "noisy", "weak", "strong"} <= set(PRESETS)
+    # Presets are fixed before methods are compared: changing one must be a visible decision.
+    digest = hashlib.sha256(
+        json.dumps({k: dataclasses.asdict(v) for k, v in sorted(PRESETS.items())}, sort_keys=True).encode()
+    ).hexdigest()
+    assert digest == PINNED_PRESETS_SHA256
+    perfect = PRESETS["perfect"]
+    assert perfect.confusion_prob == perfect.malformed_prob == perfect.pixel_noise_frac == 0.0
+    assert PRESETS["weak"].confusion_prob > PRESETS["nominal"].confusion_prob > PRESETS["strong"].confusion_prob
+
+
+PINNED_PRESETS_SHA256 = "fe73aa6d118c101a1be0127ad3a7cc23135ec55a96dfbf7f58b5c4febf94fb96"
+
+
+def test_bad_configuration_errors_name_the_field():
+    with pytest.raises(ErrorModelError, match="unknown simulated-VLM preset 'great'.*nominal"):
+        SimulatedVlm("great")
+    with pytest.raises(ErrorModelError, match="confusion_prob must be in"):
+        dataclasses.replace(PRESETS["nominal"], confusion_prob=1.5)
+    with pytest.raises(ErrorModelError, match="stop_distance_m must be > 0"):
+        dataclasses.replace(PRESETS["nominal"], stop_distance_m=0.0)
+    with pytest.raises(ErrorModelError, match="lost_window_frames"):
+        dataclasses.replace(PRESETS["nominal"], lost_window_frames=0)
+    with pytest.raises(ErrorModelError, match="pixel_noise_frac must be a finite"):
+        dataclasses.replace(PRESETS["nominal"], pixel_noise_frac=float("nan"))
+    with pytest.raises(ErrorModelError, match="monitor_reused_s"):
+        LatencyModel(monitor_reused_s=3.0)
+    with pytest.raises(ErrorModelError, match="seed must be an int"):
+        SimulatedVlm("nominal", seed=1.5)  # type: ignore[arg-type]
+
+
+def test_unrecognised_prompts_and_bad_images_are_error_responses():
+    sim = SimulatedVlm("perfect")
+    r = sim.complete([ChatMessage("user", "Where is the van? <image>")], [frame("a", [VAN])])
+    assert r.status is CallStatus.ERROR and "unrecognised prompt" in r.error
+    plain = VlmImage(np.zeros((H, W, 3), np.uint8), "raw")
+    r = decide(sim, "fly to the red van", plain)
+    assert r.status is CallStatus.ERROR and "no FrameAnnotation" in r.error
+    img = frame("b", [VAN])
+    bad = VlmImage(np.zeros((H + 1, W, 3), np.uint8), "b", img.annotation)
+    r = decide(sim, "fly to the red van", bad)
+    assert r.status is CallStatus.ERROR and "differ from rgb" in r.error
+    messages, images = build_decision_prompt("fly to the red van", img)
+    r = sim.complete(messages, images + images)
+    assert r.status is CallStatus.ERROR and "placeholders" in r.error
+
+
+# ---------------------------------------------------------------------------------------------
+# grounding
+
+
+def test_grounding_rule():
+    areas = {7: 1600, 8: 1600, 9: 700}
+    objs = {7: VisibleObject(7, "red van", "van", ("delivery van",)), 8: VisibleObject(8, "blue van", "van"), 9: VisibleObject(9, "oak tree", "tree")}
+    best = lambda s: [m.instance_id for m in ground(s, objs, areas)]  # noqa: E731
+    assert best("stop next to the red van") == [7]
+    assert best("stop next to the blue van") == [8]
+    assert best("approach the Delivery Van")[0] == 7  # "delivery" is no attribute word: the blue van also matches, later
+    assert best("fly to the green van") == []  # an attribute the objects lack
+    assert best("fly to the vans")[:2] == [7, 8]  # label match, tie -> area, then id
+    assert best("fly to the tree next to the red van") == [9, 7]  # earliest mention first
+    assert best("land on the roof") == []
+    assert best("fly to the red van") == best("fly to the red van") and words("Benches, trees") == ["bench", "tree"]
+    assert ground("the red van", objs, {7: 0, 8: 5}) == []  # annotated but no pixel: not visible
+
+
+def test_exploration_point_prefers_the_deepest_open_block_near_the_centre():
+    depth = np.full((H, W), 5.0, np.float32)
+    depth[:, 20:30] = 50.0
+    assert exploration_point(depth) == (24, (H - 1) // 2)  # block cols 20..29, centre 24.5 rounded down
+    depth[:, 120:140] = np.nan  # no reading: open
+    u, v = exploration_point(depth)
+    assert 120 <= u < 140
+    assert exploration_point(np.zeros((H, W), np.float32)) in {(74, 59), (85, 59)}  # all open: a centre block
+
+
+# ---------------------------------------------------------------------------------------------
+# the perfect preset
+
+
+def test_perfect_points_on_the_named_target_whenever_visible():
+    rng = np.random.default_rng(0)
+    sim = SimulatedVlm("perfect", seed=0)
+    names = [("red van", "van"), ("blue van", "van"), ("oak tree", "tree"), ("wooden gate", "gate"), ("white car", "car")]
+    phrasings = ["fly to the {}", "stop next to the {}", "approach {}", "go through the {} then stop"]
+    for trial in range(150):
+        objs = []
+        for k, (name, label) in enumerate(names):
+            if rng.random() < 0.7:
+                iid = 10 + k
+                if rng.random() < 0.5:
+                    u0, v0 = rng.integers(0, W - 4), rng.integers(0, H - 4)
+                    rect = (int(u0), int(v0), int(u0 + rng.integers(1, 50)), int(v0 + rng.integers(1, 40)))
+                    objs.append(Obj(iid, name, label, float(rng.uniform(1, 60)), rect=rect))
+                else:
+                    disc = (float(rng.uniform(0, W)), float(rng.uniform(0, H)), float(rng.uniform(0.6, 25)))
+                    objs.append(Obj(iid, name, label, float(rng.uniform(1, 60)), disc=disc))
+        img = frame(f"p{trial}", objs)
+        visible = img.annotation.objects
+        for iid, obj in visible.items():
+            subtask = phrasings[trial % len(phrasings)].format(obj.name)
+            r = decide(sim, subtask, img)
+            res = parse_point(r.text, img.size)
+            assert res.ok, r.text
+            u, v = (int(round(c)) for c in res.uv)
+            assert img.annotation.instance_ids[v, u] == iid, (subtask, r.text)
+
+
+def test_hidden_target_is_never_seen():
+    sim = SimulatedVlm("perfect", seed=0)
+    # the red van is behind the tree: not in the annotation at all
+    hidden = frame("h1", [TREE, BLUE_VAN], open_cols=(0, 10))
+    r = decide(sim, "fly to the red van", hidden)
+    assert json.loads(r.text)["point_2d"] == list(exploration_point(hidden.annotation.depth_m))
+    assert json.loads(r.text)["point_2d"][0] < 10
+    r = decide(sim, "fly to the red van", hidden, history=(130.2, 70.7))
+    assert json.loads(r.text)["point_2d"] == [130, 71]
+    # an annotation entry without pixels is not seen either
+    stale = frame("h2", [TREE])
+    ann = stale.annotation
+    ghost = VlmImage(stale.rgb, "h2", FrameAnnotation(ann.instance_ids, ann.depth_m, {**ann.objects, 7: VisibleObject(7, "red van", "van")}))
+    assert decide(sim, "fly to the red van", ghost).text == decide(sim, "fly to the red van", frame("h2b", [TREE])).text
+    # monitoring: close everywhere but never seen -> never STOP and never LOST
+    near = frame("h3", [TREE], bg_depth=0.5)
+    assert monitor(sim, "stop next to the red van", [near, near, near]).text == "CONTINUE"
+    assert not sim.perceive("fly to the red van", hidden).perceived
+
+
+def test_perfect_monitoring_stop_lost_continue():
+    sim = SimulatedVlm("perfect", seed=0)
+    far = frame("m1", [dataclasses.replace(VAN, depth_m=10.0)])
+    near = frame("m2", [dataclasses.replace(VAN, depth_m=2.9)])
+    edge = frame("m2b", [dataclasses.replace(VAN, depth_m=3.1)])
+    gone1, gone2 = frame("m3", [TREE]), frame("m4", [TREE])
+    s = lambda frames: parse_status(monitor(sim, "stop next to the red van", frames).text).status  # noqa: E731
+    assert s([far, far]) is MonitorStatus.CONTINUE
+    assert s([far, near]) is MonitorStatus.STOP
+    assert s([far, edge]) is MonitorStatus.CONTINUE  # stop distance 3.0 m
+    assert s([far, gone1, gone2]) is MonitorStatus.LOST  # seen, then absent from the last 2 frames
+    assert s([far, far, gone2]) is MonitorStatus.CONTINUE  # absent from the latest frame only
+    assert s([gone1, gone1, gone2]) is MonitorStatus.CONTINUE  # never seen: not lost
+
+
+def test_answers_depend_only_on_the_annotation_not_the_pixels():
+    sim = SimulatedVlm("noisy", seed=5)
+    a = decide(sim, "fly to the red van", frame("same", [VAN, TREE], rgb_value=0))
+    b = decide(sim, "fly to the red van", frame("same", [VAN, TREE], rgb_value=200))
+    assert a.text == b.text
+
+
+# ---------------------------------------------------------------------------------------------
+# determinism
+
+
+def test_identical_seeds_give_identical_answers_in_any_call_order():
+    frames = [frame(f"d{k}", [VAN, BLUE_VAN, TREE]) for k in range(40)]
+    calls = [("fly to the red van", f) for f in frames] + [("fly to the oak tree", f) for f in frames]
+    a = [decide(SimulatedVlm("noisy", seed=11), s, f).text for s, f in calls]
+    sim = SimulatedVlm("noisy", seed=11)
+    b = [decide(sim, s, f).text for s, f in reversed(calls)][::-1]
+    assert a == b
+    c = [decide(SimulatedVlm("noisy", seed=12), s, f).text for s, f in calls]
+    assert a != c
+
+
+# ---------------------------------------------------------------------------------------------
+# error rates match the documented parameters
+
+
+N = 1000
+
+
+def test_confusion_rate_matches_preset():
+    model = PRESETS["noisy"]
+    sim = SimulatedVlm(dataclasses.replace(model, malformed_prob=0.0), seed=2)
+    hits = {7: 0, 8: 0}
+    base = frame("c", [dataclasses.replace(VAN, depth_m=2.0), dataclasses.replace(BLUE_VAN, depth_m=2.0)])
+    for k in range(N):
+        img = renamed(base, f"c{k}")
+        res = parse_point(decide(sim, "fly to the red van", img).text, img.size)
+        assert res.ok
+        iid = int(img.annotation.instance_ids[int(round(res.uv[1])), int(round(res.uv[0]))])
+        hits[iid] = hits.get(iid, 0) + 1
+    assert hits[7] + hits[8] >= N - 30  # noise rarely leaves the 40x40 boxes at 2 m
+    assert binomial_ok(hits[8], hits[7] + hits[8], model.confusion_prob)
+
+
+@pytest.mark.parametrize("preset", ["nominal", "noisy"])
+def test_miss_rates_match_preset(preset):
+    model = PRESETS[preset]
+    sim = SimulatedVlm(preset, seed=4)
+    small = Obj(7, "red van", "van", 5.0, rect=(100, 50, 102, 52))  # 4 px
+    far = Obj(7, "red van", "van", model.far_target_m + 5.0, rect=(100, 50, 140, 90))
+    both = Obj(7, "red van", "van", model.far_target_m + 5.0, rect=(100, 50, 102, 52))
+    big_near = Obj(7, "red van", "van", 5.0, rect=(100, 50, 140, 90))
+    counts = {}
+    for tag, obj in (("small", small), ("far", far), ("both", both), ("big_near", big_near)):
+        base = frame(tag, [obj])
+        counts[tag] = sum(not sim.perceive("fly to the red van", renamed(base, f"{tag}{k}")).perceived for k in range(N))
+    assert binomial_ok(counts["small"], N, model.miss_prob_small)
+    assert binomial_ok(counts["far"], N, model.miss_prob_far)
+    assert binomial_ok(counts["both"], N, 1 - (1 - model.miss_prob_small) * (1 - model.miss_prob_far))
+    assert counts["big_near"] == 0
+
+
+def test_missed_target_answer_is_the_exploration_point():
+    model = dataclasses.replace(PRESETS["perfect"], miss_prob_small=1.0)
+    sim = SimulatedVlm(model)
+    img = frame("x", [Obj(7, "red van", "van", 5.0, rect=(100, 50, 102, 52))], open_cols=(10, 20))
+    assert json.loads(decide(sim, "fly to the red van", img).text)["point_2d"] == list(exploration_point(img.annotation.depth_m))
+
+
+@pytest.mark.parametrize("preset", ["nominal", "noisy", "weak"])
+def test_malformed_rates_match_preset_and_always_fail_to_parse(preset):
+    model = PRESETS[preset]
+    sim = SimulatedVlm(preset, seed=6)
+    bad_points = bad_status = 0
+    base = frame("q", [VAN, TREE])
+    for k in range(N):
+        img = renamed(base, f"q{k}")
+        bad_points += not parse_point(decide(sim, "fly to the red van", img).text, img.size).ok
+        bad_status += not parse_status(monitor(sim, "fly to the red van", [img, img]).text).ok
+    # every malformed answer fails, every other answer parses (noise never leaves the image)
+    assert binomial_ok(bad_points, N, model.malformed_prob)
+    assert binomial_ok(bad_status, N, model.malformed_prob)
+
+
+def test_status_error_rate_matches_preset():
+    model = dataclasses.replace(PRESETS["noisy"], malformed_prob=0.0)
+    sim = SimulatedVlm(model, seed=8)
+    wrong = 0
+    base = frame("s", [dataclasses.replace(VAN, depth_m=15.0)])  # clearly CONTINUE
+    for k in range(N):
+        img = renamed(base, f"s{k}")
+        wrong += parse_status(monitor(sim, "fly to the red van", [img, img]).text).status is not MonitorStatus.CONTINUE
+    assert binomial_ok(wrong, N, model.status_error_prob)
+
+
+def test_early_stop_follows_offset_and_jitter():
+    model = dataclasses.replace(PRESETS["weak"], status_error_prob=0.0, malformed_prob=0.0)
+    sim = SimulatedVlm(model, seed=9)
+    d = 3.5
+    base = frame("e", [dataclasses.replace(VAN, depth_m=d)])
+    stops = sum(
+        parse_status(monitor(sim, "fly to the red van", [renamed(base, f"e{k}")] * 2).text).status
+        is MonitorStatus.STOP
+        for k in range(N)
+    )
+    p = 0.5 * (1 + math.erf((model.stop_distance_m + model.stop_offset_m - d) / (model.stop_jitter_m * math.sqrt(2))))
+    assert p > 0.5  # the weak preset stops early: STOP is likely 0.5 m before the stop distance
+    assert binomial_ok(stops, N, p)
+
+
+def test_pixel_noise_grows_with_distance_as_documented():
+    model = dataclasses.replace(PRESETS["noisy"], malformed_prob=0.0, confusion_prob=0.0, format_variety_prob=0.0)
+    sim = SimulatedVlm(model, seed=10)
+    stds = []
+    for d in (2.0, 15.0):
+        target = Obj(7, "red van", "van", d, rect=(40, 20, 121, 101))  # anchor at (80, 60)
+        base = frame("n", [target])
+        us = np.array([json.loads(decide(sim, "fly to the red van", renamed(base, f"n{d}-{k}")).text)["point_2d"][0] for k in range(N)])
+        sigma = model.pixel_sigma_px(W, d)
+        assert 80 / sigma > 6  # clipping at the image edge is negligible
+        assert abs(us.mean() - 80) < 4.5 * sigma / math.sqrt(N) + 0.5
+        assert us.std() == pytest.approx(math.sqrt(sigma**2 + 1 / 12), rel=0.1)
+        stds.append(us.std())
+    assert stds[1] > 2 * stds[0]
+
+
+def test_decomposition_merge_rate_matches_preset():
+    model = dataclasses.replace(PRESETS["noisy"], malformed_prob=0.0)
+    sim = SimulatedVlm(model, seed=12)
+    boundaries = merged = 0
+    for k in range(200):
+        parts = [f"fly to marker {k}-{j}" for j in range(8)]
+        res = parse_subtasks(sim.complete(*build_decompose_prompt("; ".join(parts))).text)
+        assert res.ok
+        assert " then ".join(res.subtasks) .replace(" then ", "; ") == "; ".join(parts)
+        boundaries += 7
+        merged += 7 - (len(res.subtasks) - 1)
+    assert binomial_ok(merged, boundaries, model.merge_prob)
+
+
+def test_structured_output_is_bare_json_and_only_schema_valid_errors():
+    model = dataclasses.replace(PRESETS["noisy"], malformed_prob=0.5)
+    sim = SimulatedVlm(model, seed=13)
+    outside = 0
+    base = frame("j", [VAN])
+    for k in range(200):
+        img = renamed(base, f"j{k}")
+        text = decide(sim, "fly to the red van", img, json_schema=decision_schema()).text
+        point = json.loads(text)["point_2d"]  # always bare JSON
+        outside += not parse_point(text, img.size).ok
+        assert all(isinstance(c, int) and c >= 0 for c in point)
+        status = json.loads(monitor(sim, "fly to the red van", [img, img], json_schema=status_schema()).text)
+        assert status["status"] in ("CONTINUE", "STOP", "LOST")
+    assert binomial_ok(outside, 200, 0.5)
+
+
+# ---------------------------------------------------------------------------------------------
+# latency, usage, deadline
+
+
+def test_decision_latency_and_usage():
+    sim = SimulatedVlm("perfect")
+    r = decide(sim, "fly to the red van", frame("l1", [VAN]), cache_key="decision")
+    assert r.latency_s == pytest.approx(0.81)
+    image_tokens = math.ceil(W / 28) * math.ceil(H / 28) + 2
+    assert r.usage.prompt_tokens > image_tokens and r.usage.cached_tokens == 0
+    r2 = decide(sim, "fly to the red van", frame("l2", [VAN]), cache_key="decision")
+    assert 0 < r2.usage.cached_tokens < r2.usage.prompt_tokens  # system text and subtask reused
+    assert r2.usage.completion_tokens == math.ceil(len(r2.text) / 4)
+
+
+def test_monitoring_latency_reflects_prefix_reuse():
+    sim = SimulatedVlm("perfect")
+    o1, k = frame("o1", [VAN]), [frame(f"k{i}", [VAN]) for i in range(5)]
+    t = [frame(f"t{i}", [VAN]) for i in range(6)]
+    hybrid = lambda keys, latest: monitor(sim, "fly to the red van", [o1, *keys, latest], cache_key="monitor")  # noqa: E731
+    first = hybrid(k[:4], t[0])
+    assert first.latency_s == pytest.approx(1.98) and first.usage.cached_tokens == 0
+    steady = hybrid(k[:4], t[1])  # hybrid memory: only the latest frame is new
+    assert steady.latency_s == pytest.approx(1.15)
+    assert 0 < steady.usage.cached_tokens < steady.usage.prompt_tokens
+    changed = hybrid([k[0], k[1], k[2], k[4]], t[2])  # the 4th keyframe replaced: 4 of 6 images reused
+    assert changed.latency_s == pytest.approx(1.98 - 0.83 * 4 / 5)
+    sliding = monitor(sim, "fly to the red van", [t[1], t[2], t[3]], cache_key="window")
+    sliding2 = monitor(sim, "fly to the red van", [t[2], t[3], t[4]], cache_key="window")
+    assert sliding2.latency_s == pytest.approx(1.98)  # first image changed: no image reused
+    image_tokens = math.ceil(W / 28) * math.ceil(H / 28) + 2
+    assert 0 < sliding2.usage.cached_tokens <= sliding2.usage.prompt_tokens - 3 * image_tokens  # text only
+    assert monitor(sim, "fly to the red van", [o1, *k[:4], t[5]]).latency_s == pytest.approx(1.98)  # no cache_key
+
+
+def test_deadline_gives_timeout_and_does_not_touch_the_cache():
+    sim = SimulatedVlm("perfect")
+    img = frame("dl", [VAN])
+    r = monitor(sim, "fly to the red van", [img, img], deadline_s=1.0, cache_key="m")
+    assert r.status is CallStatus.TIMEOUT and r.text == "" and r.latency_s == 1.0 and "deadline" in r.error
+    r = monitor(sim, "fly to the red van", [img, frame("dl2", [VAN])], cache_key="m")
+    assert r.ok and r.latency_s == pytest.approx(1.98)
+    assert decide(sim, "fly to the red van", img, deadline_s=1.0).ok
+
+
+def test_max_new_tokens_truncates_like_a_server():
+    sim = SimulatedVlm("perfect")
+    r = decide(sim, "fly to the red van", frame("tr", [VAN]), max_new_tokens=2)
+    assert len(r.text) == 8 and r.usage.completion_tokens == 2
+    assert not parse_point(r.text, (W, H)).ok
+
+
+# ---------------------------------------------------------------------------------------------
+# features
+
+
+def test_features_similar_within_objects_and_dissimilar_across_labels():
+    sim = SimulatedVlm("nominal", seed=1)
+    img = frame("feat", [Obj(7, "red van", "van", 5.0, rect=(0, 0, 64, 64)), Obj(8, "blue van", "van", 5.0, rect=(64, 0, 128, 64)), Obj(9, "oak tree", "tree", 5.0, rect=(0, 64, 64, 120))], size=(150, 120))
+    f = sim.features(img)
+    assert f.grid.shape == (8, 10, 64) and f.grid.dtype == np.float32
+    assert f.patch_px == 16 and f.image_size == (150, 120) and f.source == "sim:labels"
+    assert np.allclose(np.linalg.norm(f.grid, axis=2), 1.0, atol=1e-5)
+    cos = lambda a, b: float(f.grid[a] @ f.grid[b])  # noqa: E731
+    assert cos((0, 0), (3, 3)) > 0.9  # one object
+    assert 0.45 < cos((0, 0), (0, 5)) < 0.85  # two vans: same label, other instance (~0.64)
+    assert abs(cos((0, 0), (5, 1))) < 0.5  # van vs tree
+    assert f.patch_of(20.0, 70.0) == (4, 1)
+    again = SimulatedVlm("noisy", seed=1).features(img)
+    assert np.array_equal(again.grid, f.grid)  # features depend on the seed and frame, not the preset
+    assert not np.array_equal(SimulatedVlm("nominal", seed=2).features(img).grid, f.grid)
+    assert sim.features(VlmImage(np.zeros((4, 4, 3), np.uint8), "raw")) is None
