@@ -1,0 +1,708 @@
+"""Semantic-geometric verifier: from a VLM target pixel to a safe, instruction-consistent goal.
+
+Paper Sec. "Semantic-Geometric Verified Local Planning". Input is a :class:`CandidateGoal`
+``G_c = [p_x, p_y, depth_t, f_t, pose_t]``; output is a :class:`VerifiedGoal` with the goal in
+the world frame (or an explicit rejection) and a :class:`VerificationRecord` of what was done.
+
+1. **Semantic-guided refinement.** ``d = depth(p)``. If ``d > D_max`` or ``p`` has no reading,
+   refinement is skipped (the record says which) and ``p' = p``. Otherwise the cosine
+   similarity of the patch features against the feature at ``p`` is thresholded at ``tau``
+   inside a square ROI around ``p``, the 4-connected component containing ``p`` is kept, and
+   ``p'`` is the pixel of that component nearest to ``p`` that passes the clearance check.
+   Without features (geometric-only mode, flagged in the record) the component is the whole
+   ROI: a depth-connected region around a pixel that fell on an obstacle would be that obstacle
+   itself, so the purely geometric correction searches the ROI, as the paper's "purely geometric
+   correction" would. ``d' = min(depth(p'), D_max)`` (``D_max`` when refinement was skipped).
+2. **Bearing-aware range gating.** ``theta = atan((p'_x - c_x) / f_x)``, ``theta_max`` is half
+   the horizontal FOV, ``d_f = d' exp(-0.5 (theta / (sigma_theta theta_max))^2)``,
+   ``X_cam = d_f K^-1 [p'_x, p'_y, 1]^T`` and ``X_world = T_world_cam X_cam``.
+
+Clearance, exactly
+------------------
+The obstacle rule and its defaults are documented in :mod:`planning.verifier_config`. A pixel is
+*feasible* when its viewing ray passes at least ``r`` from every obstacle point ``Y_j`` (the
+back-projection of obstacle pixel ``j``, through the pixel centre). That holds iff the angle
+between the rays exceeds ``beta_j = asin(r / |Y_j|)``; every ray within ``beta_j`` of obstacle
+``j`` meets the image inside the disc of radius :func:`cone_radius_px` around ``j`` (about
+``fx * r / z_j``, larger off-axis), so "outside every obstacle's disc" is a sufficient pixel test.
+It is evaluated with one distance transform per group of obstacles of similar radius (each group
+dilated by its largest radius, coarser grids for large radii with their worst-case rounding
+subtracted), and the chosen pixel is re-checked exactly against every obstacle disc. Because the
+whole ray clears every obstacle, the returned goal -- wherever the gating puts it on the ray --
+and the straight path to it from the camera are at least ``r`` from every obstacle surface
+point visible in the depth image. A refined pixel must also have a depth reading.
+Skipped refinement still checks ``p``: if its ray is not clear the candidate is rejected.
+
+Conventions: pixels ``(u, v)`` with integer values at pixel centres (see
+:mod:`planning.camera`); the depth and patch value at a continuous pixel are those of the pixel
+that contains it (``round half up``). Patch ``(i, j)`` covers rows ``[i * patch_px, (i + 1) *
+patch_px)`` and the same columns, in pixels of the depth image.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from planning.camera import PinholeCamera
+from planning.frames import FrameError, check_transform, transform_points
+from planning.verifier_config import VerifierConfig, VerifierConfigError
+
+__all__ = [
+    "CandidateGoal",
+    "RefinementNote",
+    "RejectionReason",
+    "VerificationRecord",
+    "VerifiedGoal",
+    "Verifier",
+    "VerifierConfig",
+    "VerifierConfigError",
+    "VerifierInputError",
+    "bearing_gate",
+    "cone_radius_px",
+]
+
+logger = logging.getLogger(__name__)
+
+_TINY_DEPTH = float(np.finfo(np.float32).tiny)
+_MAX_DEPTH = float(np.finfo(np.float32).max)
+#: A pixel is feasible when its clearance slack exceeds this, pixels (absorbs float32 rounding).
+_SLACK_EPS_PX = 1e-3
+#: Exact re-checks of refined candidates before giving up (a failure would be a bug; logged).
+_MAX_EXACT_RECHECKS = 8
+#: Ratio between the depth edges of the bands in which obstacles are collected.
+_BAND_RATIO = 1.5
+
+
+class VerifierInputError(ValueError):
+    """A :class:`CandidateGoal` whose arrays do not fit together (message names the field)."""
+
+
+class RefinementNote(str, enum.Enum):
+    """Whether step 1 ran, in which mode, and why not."""
+
+    SEMANTIC = "semantic"  #: ran with the similarity mask
+    NO_FEATURES = "no_features"  #: ran geometric-only: the candidate carries no features
+    DEGENERATE_FEATURE = "degenerate_feature"  #: ran geometric-only: feature at p zero or non-finite
+    BEYOND_D_MAX = "beyond_d_max"  #: skipped: depth(p) > D_max
+    NO_DEPTH_READING = "no_depth_reading"  #: skipped: p has no reading (0, NaN, inf)
+    NOT_ATTEMPTED = "not_attempted"  #: the candidate was rejected before step 1
+
+
+class RejectionReason(str, enum.Enum):
+    """Why no goal was returned."""
+
+    PIXEL_OUTSIDE_IMAGE = "pixel_outside_image"  #: p non-finite or outside the image
+    INVALID_DEPTH_EVERYWHERE = "invalid_depth_everywhere"  #: no valid reading in the whole image
+    NO_DEPTH_AT_TARGET = "no_depth_at_target"  #: p has no reading and reject_no_reading is set
+    NO_FEASIBLE_PIXEL = "no_feasible_pixel"  #: refinement found no feasible pixel in the component
+    UNREFINED_TARGET_UNSAFE = "unrefined_target_unsafe"  #: refinement skipped and p's ray is not clear
+
+
+_NAN = float("nan")
+
+
+@dataclass(frozen=True)
+class CandidateGoal:
+    """``G_c = [p_x, p_y, depth_t, f_t, pose_t]``: one VLM target with the frame it points into.
+
+    Attributes
+    ----------
+    pixel_uv : (float, float)
+        Target pixel ``(u, v)`` in the depth image, pixels (may be anywhere; outside the image
+        gives a rejection, not an error).
+    depth_m : array, shape (H, W), float32
+        Z-depth in metres, camera optical frame; 0, NaN, inf mean no reading. Coerced to a
+        C-contiguous float32 array on construction.
+    features : array, shape (Hp, Wp, C), or None
+        Per-patch vision features (any real dtype); None selects the geometric-only mode.
+    patch_px : float
+        Patch side in pixels of the depth image; the grid must cover the image:
+        ``Hp == ceil(H / patch_px)`` and ``Wp == ceil(W / patch_px)``.
+    T_world_cam : array, shape (4, 4)
+        Camera optical frame to world (ENU) at the frame's time.
+    camera : PinholeCamera
+        Intrinsics of the depth image.
+
+    Raises
+    ------
+    VerifierInputError
+        On any shape, type or value mismatch (the message names the field).
+    """
+
+    pixel_uv: tuple[float, float]
+    depth_m: np.ndarray
+    features: np.ndarray | None
+    patch_px: float
+    T_world_cam: np.ndarray
+    camera: PinholeCamera
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.camera, PinholeCamera):
+            raise VerifierInputError(f"camera must be a PinholeCamera, got {type(self.camera).__name__}")
+        try:
+            uv = tuple(float(x) for x in self.pixel_uv)
+        except (TypeError, ValueError):
+            raise VerifierInputError(f"pixel_uv must be two numbers (u, v), got {self.pixel_uv!r}") from None
+        if len(uv) != 2:
+            raise VerifierInputError(f"pixel_uv must be two numbers (u, v), got {len(uv)} values")
+        object.__setattr__(self, "pixel_uv", uv)
+
+        depth = np.asarray(self.depth_m)
+        if depth.ndim != 2 or depth.shape != self.camera.shape:
+            raise VerifierInputError(f"depth_m must have shape {self.camera.shape} (camera.shape), got {depth.shape}")
+        if not (np.issubdtype(depth.dtype, np.floating) or np.issubdtype(depth.dtype, np.integer)):
+            raise VerifierInputError(f"depth_m must be a real array, got dtype {depth.dtype}")
+        object.__setattr__(self, "depth_m", np.ascontiguousarray(depth, dtype=np.float32))
+
+        try:
+            patch_px = float(self.patch_px)
+        except (TypeError, ValueError):
+            raise VerifierInputError(f"patch_px must be a number, got {self.patch_px!r}") from None
+        if not (math.isfinite(patch_px) and patch_px > 0.0):
+            raise VerifierInputError(f"patch_px must be finite and > 0, got {self.patch_px}")
+        object.__setattr__(self, "patch_px", patch_px)
+
+        if self.features is not None:
+            feats = np.asarray(self.features)
+            if feats.ndim != 3 or feats.shape[2] < 1:
+                raise VerifierInputError(f"features must have shape (Hp, Wp, C) with C >= 1, got {feats.shape}")
+            if not (np.issubdtype(feats.dtype, np.floating) or np.issubdtype(feats.dtype, np.integer)):
+                raise VerifierInputError(f"features must be a real array, got dtype {feats.dtype}")
+            h, w = self.camera.shape
+            expected = (math.ceil(h / patch_px - 1e-9), math.ceil(w / patch_px - 1e-9))
+            if feats.shape[:2] != expected:
+                raise VerifierInputError(
+                    f"features grid must be {expected} patches for a {h} x {w} image with patch_px={patch_px:g}, "
+                    f"got {feats.shape[:2]}"
+                )
+            object.__setattr__(self, "features", feats)
+
+        try:
+            T = check_transform(self.T_world_cam, "T_world_cam")
+        except FrameError as exc:
+            raise VerifierInputError(str(exc)) from None
+        object.__setattr__(self, "T_world_cam", T)
+
+
+@dataclass(frozen=True)
+class VerificationRecord:
+    """What the verifier did with one candidate (all pixels ``(u, v)``, depths z in metres).
+
+    Attributes
+    ----------
+    pixel_uv : (float, float)
+        Original target pixel p.
+    refined_uv : (float, float) or None
+        Refined pixel p' (equal to p when it stayed put or refinement was skipped); None when
+        no pixel was selected.
+    pixel_shift_px : float
+        ``|p' - p|`` in pixels; NaN when no pixel was selected.
+    refinement_ran : bool
+        Whether step 1 (the search for p') ran.
+    refinement_note : RefinementNote
+        Mode it ran in, or why it did not run.
+    geometric_only : bool
+        True when the search ignored semantics (no features, or a degenerate feature at p).
+    component_size_px : int
+        Pixels in the semantic component of p inside the ROI (the whole ROI when geometric-only);
+        0 when refinement did not run.
+    target_depth_m : float
+        ``d = depth(p)``; NaN when p has no reading or lies outside the image.
+    obstacle_threshold_m : float
+        Depth below which valid readings counted as obstacles (see
+        :meth:`VerifierConfig.obstacle_threshold_m`); NaN when not reached.
+    clearance_slack_px : float
+        At p': pixel distance beyond the nearest obstacle disc (> 0 when clear, inf when no
+        obstacle is near); NaN when not computed.
+    refined_depth_m : float
+        ``d' = min(depth(p'), D_max)`` (D_max when refinement was skipped); NaN when rejected.
+    bearing_rad : float
+        ``theta = atan((p'_x - c_x) / f_x)``; NaN when rejected.
+    gating_factor : float
+        ``exp(-0.5 (theta / (sigma_theta theta_max))^2)``; NaN when rejected.
+    range_m : float
+        ``d_f = d' * gating_factor``, z-depth of the goal in the camera frame; NaN when rejected.
+    rejection : RejectionReason or None
+        Why the candidate was rejected; None when accepted.
+    """
+
+    pixel_uv: tuple[float, float]
+    refined_uv: tuple[float, float] | None
+    pixel_shift_px: float
+    refinement_ran: bool
+    refinement_note: RefinementNote
+    geometric_only: bool
+    component_size_px: int
+    target_depth_m: float
+    obstacle_threshold_m: float
+    clearance_slack_px: float
+    refined_depth_m: float
+    bearing_rad: float
+    gating_factor: float
+    range_m: float
+    rejection: RejectionReason | None
+
+
+@dataclass(frozen=True)
+class VerifiedGoal:
+    """The verifier's answer.
+
+    Attributes
+    ----------
+    goal_world : array, shape (3,), metres, world frame (ENU); None when rejected
+    accepted : bool
+    record : VerificationRecord
+    """
+
+    goal_world: np.ndarray | None
+    accepted: bool
+    record: VerificationRecord
+
+
+# -- pure geometry -------------------------------------------------------------------------------
+
+
+def bearing_gate(theta_rad, theta_max_rad: float, sigma_theta: float):
+    """Range gating factor ``exp(-0.5 * (theta / (sigma_theta * theta_max))^2)``.
+
+    Parameters
+    ----------
+    theta_rad : float or array, bearing of the target in radians (any value, beyond the FOV too)
+    theta_max_rad : float, half the horizontal FOV, radians, > 0
+    sigma_theta : float, relative width, > 0
+
+    Returns
+    -------
+    float or array in (0, 1], same shape as ``theta_rad``.
+    """
+    x = np.asarray(theta_rad, dtype=float) / (sigma_theta * theta_max_rad)
+    g = np.exp(-0.5 * x * x)
+    return float(g) if np.ndim(g) == 0 else g
+
+
+def cone_radius_px(tan_psi, range_m, clearance_m: float, focal_px: float):
+    """Pixel radius around an obstacle pixel containing every ray that passes within
+    ``clearance_m`` of its 3D point.
+
+    An obstacle point at range ``rho`` (distance from the camera centre) seen at off-axis angle
+    ``psi`` is within ``r`` of a ray iff the ray is within ``beta = asin(r / rho)`` of the
+    point's own ray. Those rays meet the normalized image plane inside an ellipse whose farthest
+    point from the obstacle's image lies on the outward radial line at distance
+    ``tan(psi + beta) - tan(psi) = tan(beta) (1 + tan^2 psi) / (1 - tan(psi) tan(beta))``, and a
+    normalized distance spans at most ``max(fx, fy)`` pixels per unit. On the optical axis this
+    is ``f r / sqrt(rho^2 - r^2)``, i.e. ``fx * r / depth`` to first order.
+
+    Parameters
+    ----------
+    tan_psi : float or array, tangent of the obstacle's off-axis angle, >= 0
+    range_m : float or array, distance of the obstacle point from the camera centre, metres
+    clearance_m : float, r, metres
+    focal_px : float, ``max(fx, fy)``, pixels
+
+    Returns
+    -------
+    float or array of radii in pixels; ``inf`` when the cone reaches 90 deg off-axis or the
+    camera itself is within ``r`` of the point.
+    """
+    t = np.asarray(tan_psi, dtype=float)
+    rng = np.asarray(range_m, dtype=float)
+    rad = focal_px * _rho_from_squares(t * t, rng * rng, clearance_m)
+    return float(rad) if np.ndim(rad) == 0 else rad
+
+
+def _rho_from_squares(tan2, range2, clearance_m: float):
+    """Normalized cone radius ``tan(psi + beta) - tan(psi)`` from ``tan(psi)^2`` and range^2."""
+    tan2 = np.asarray(tan2, dtype=float)
+    range2 = np.asarray(range2, dtype=float)
+    r = clearance_m
+    den = np.sqrt(np.maximum(range2 - r * r, 0.0)) - np.sqrt(tan2) * r
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(den > 0.0, r * (1.0 + tan2) / np.where(den > 0.0, den, 1.0), np.inf)
+
+
+@dataclass(frozen=True)
+class _Obstacles:
+    """Obstacle pixels whose clearance region can reach a pixel box.
+
+    Distances are measured in *column pixels*: ``fx`` times the distance on the normalized
+    image plane, i.e. ``hypot(du, dv * fx / fy)``. A ray through ``q`` clears obstacle ``j`` by
+    ``r`` when ``dist(q, j) > fx * rho_j``.
+    """
+
+    rows: np.ndarray  # (n,) int, image rows
+    cols: np.ndarray  # (n,) int, image columns
+    rho: np.ndarray  # (n,) float, normalized cone radius, may hold inf
+    fx: float
+    fy: float
+
+    @property
+    def empty(self) -> bool:
+        return self.rows.size == 0
+
+    def slack_at(self, u: float, v: float) -> float:
+        """``min_j (dist((u, v), j) - fx * rho_j)`` in column pixels; inf with no obstacle."""
+        if self.empty:
+            return math.inf
+        d = np.hypot(self.cols - u, (self.rows - v) * (self.fx / self.fy))
+        return float(np.min(d - self.fx * self.rho))
+
+
+def _tan2_max(camera: PinholeCamera, r0: int, r1: int, c0: int, c1: int) -> float:
+    """Largest ``tan(psi)^2`` over the pixel centres of rows [r0, r1) and columns [c0, c1)."""
+    x = max(abs(c0 - camera.cx), abs(c1 - 1 - camera.cx)) / camera.fx
+    y = max(abs(r0 - camera.cy), abs(r1 - 1 - camera.cy)) / camera.fy
+    return x * x + y * y
+
+
+def _rho_scalar(tan2: float, range2: float, clearance_m: float) -> float:
+    """Scalar :func:`_rho_from_squares` (no numpy overhead in the window loop)."""
+    r = clearance_m
+    den = math.sqrt(max(range2 - r * r, 0.0)) - math.sqrt(tan2) * r
+    return r * (1.0 + tan2) / den if den > 0.0 else math.inf
+
+
+def _gather_obstacles(
+    depth: np.ndarray, camera: PinholeCamera, box: tuple[int, int, int, int], threshold_m: float, clearance_m: float
+) -> _Obstacles:
+    """Obstacle pixels (valid depth < ``threshold_m``) whose clearance region reaches ``box``.
+
+    ``box = (r0, r1, c0, c1)`` is half-open in image rows and columns. Obstacles are collected
+    in depth bands. A band is searched only in the box grown by the largest cone radius its
+    depths can have inside the search window (the radius grows with the off-axis angle and
+    shrinks with range; the window is shrunk to a fixed point from the whole image, each step
+    valid because obstacles outside the previous window were already too far), so far bands are
+    searched in small windows and no obstacle outside a window can reach the box.
+    """
+    fx, fy = camera.fx, camera.fy
+    empty = _Obstacles(np.zeros(0, np.intp), np.zeros(0, np.intp), np.zeros(0), fx, fy)
+    # Largest float32 strictly below the threshold: inRange is inclusive, the rule is "< T".
+    upper = float(np.nextafter(np.float32(threshold_m), np.float32(0.0)))
+    if upper < _TINY_DEPTH:
+        return empty
+    h, w = depth.shape
+    obstacle_mask = cv2.inRange(depth, _TINY_DEPTH, upper)  # 0 / 255; NaN and inf are outside
+    if cv2.countNonZero(obstacle_mask) == 0:
+        return empty
+    z_min = cv2.minMaxLoc(depth, obstacle_mask)[0]
+    r0, r1, c0, c1 = box
+
+    rows_all, cols_all, rho_all = [], [], []
+    hi = upper
+    while True:
+        lo_edge = hi / _BAND_RATIO
+        last = lo_edge <= z_min
+        lo = _TINY_DEPTH if last else float(np.nextafter(np.float32(lo_edge), np.float32(np.inf)))
+        z_lo2 = max(lo, z_min) ** 2  # range >= z-depth >= this band's nearest depth
+        window = (0, h, 0, w)
+        for _ in range(4):
+            rho_max = _rho_scalar(_tan2_max(camera, *window), z_lo2, clearance_m)
+            if not math.isfinite(rho_max):
+                break
+            pr, pc = int(math.ceil(fy * rho_max)), int(math.ceil(fx * rho_max))
+            shrunk = (max(0, r0 - pr), min(h, r1 + pr), max(0, c0 - pc), min(w, c1 + pc))
+            if shrunk == window:
+                break
+            window = shrunk
+        wr0, wr1, wc0, wc1 = window
+        idx = np.flatnonzero(cv2.inRange(depth[wr0:wr1, wc0:wc1], lo, hi) != 0)
+        if idx.size:
+            rr, cc = np.divmod(idx, wc1 - wc0)
+            rows = rr + wr0
+            cols = cc + wc0
+            z = depth[rows, cols].astype(np.float64)
+            xn = (cols - camera.cx) / fx
+            yn = (rows - camera.cy) / fy
+            tan2 = xn * xn + yn * yn
+            rho = _rho_from_squares(tan2, z * z * (1.0 + tan2), clearance_m)
+            # The cone image lies within fx * rho columns and fy * rho rows of the obstacle.
+            d_row = np.maximum(np.maximum(r0 - rows, rows - (r1 - 1)), 0)
+            d_col = np.maximum(np.maximum(c0 - cols, cols - (c1 - 1)), 0)
+            keep = (d_row <= fy * rho) & (d_col <= fx * rho)
+            rows_all.append(rows[keep])
+            cols_all.append(cols[keep])
+            rho_all.append(rho[keep])
+        if last:
+            break
+        hi = float(np.nextafter(np.float32(lo), np.float32(0.0)))
+    if not rows_all:
+        return empty
+    return _Obstacles(np.concatenate(rows_all), np.concatenate(cols_all), np.concatenate(rho_all), fx, fy)
+
+
+def _slack_map(obstacles: _Obstacles, box: tuple[int, int, int, int], shape: tuple[int, int], bin_ratio: float) -> np.ndarray:
+    """Lower bound of ``min_j (dist(q, j) - fx rho_j)`` for every pixel ``q`` of ``box``.
+
+    Column-pixel units (see :class:`_Obstacles`). Obstacles are grouped so radii within a
+    group differ by at most ``bin_ratio``; each group is dilated by its largest radius through
+    one exact Euclidean distance transform on a grid whose rows are scaled by ``fx / fy``
+    (isotropic in the normalized image plane) with cells of ``s`` column pixels (1, 2 or 4 as
+    the radius grows); the worst-case cell rounding is subtracted.
+    """
+    r0, r1, c0, c1 = box
+    slack = np.full((r1 - r0, c1 - c0), np.inf, dtype=np.float32)
+    if obstacles.empty:
+        return slack
+    rho = obstacles.rho
+    if not np.all(np.isfinite(rho)):
+        slack[:] = -np.inf
+        return slack
+    h, w = shape
+    fx, fy = obstacles.fx, obstacles.fy
+    aspect = fx / fy
+    rho_lo = max(float(rho.min()), 1e-12)
+    group = np.floor(np.log(np.maximum(rho, rho_lo) / rho_lo) / math.log(bin_ratio)).astype(np.intp)
+    for g in np.unique(group):
+        sel = group == g
+        rho_g = float(rho[sel].max())
+        radius = fx * rho_g
+        s = 1 if radius < 16.0 else (2 if radius < 48.0 else 4)
+        # Cell offsets differ by at most s - 1 along columns (integer) and, with scaled rows,
+        # by less than s along rows (s - 1 when the scale is exactly 1).
+        row_off = s - 1.0 if aspect == 1.0 else float(s)
+        loss = math.hypot(s - 1.0, row_off)
+        pr, pc = int(math.ceil(fy * rho_g)), int(math.ceil(fx * rho_g))
+        sr0, sr1 = max(0, r0 - pr), min(h, r1 + pr)
+        sc0, sc1 = max(0, c0 - pc), min(w, c1 + pc)
+        n_rows = int(math.floor((sr1 - 1 - sr0) * aspect / s)) + 1
+        n_cols = (sc1 - 1 - sc0) // s + 1
+        grid = np.ones((n_rows, n_cols), dtype=np.uint8)
+        grid[
+            np.floor((obstacles.rows[sel] - sr0) * aspect / s).astype(np.intp), (obstacles.cols[sel] - sc0) // s
+        ] = 0
+        dt = cv2.distanceTransform(grid, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+        iy = np.floor((np.arange(r0, r1) - sr0) * aspect / s).astype(np.intp)
+        ix = (np.arange(c0, c1) - sc0) // s
+        group_slack = s * dt[np.ix_(iy, ix)] - (loss + radius)
+        np.minimum(slack, group_slack, out=slack)
+    return slack
+
+
+# -- the verifier --------------------------------------------------------------------------------
+
+
+class Verifier:
+    """Semantic-guided refinement plus bearing-aware gating (pure: no state across calls).
+
+    Parameters
+    ----------
+    config : VerifierConfig
+    """
+
+    def __init__(self, config: VerifierConfig | None = None) -> None:
+        if config is None:
+            config = VerifierConfig()
+        if not isinstance(config, VerifierConfig):
+            raise VerifierConfigError(f"config must be a VerifierConfig, got {type(config).__name__}")
+        self.config = config
+
+    def verify(self, candidate: CandidateGoal) -> VerifiedGoal:
+        """Refine, gate and lift one candidate goal; see the module docs for the algorithm.
+
+        Returns
+        -------
+        VerifiedGoal
+            ``goal_world`` (3,) in metres in the world frame when accepted, else None with
+            ``record.rejection`` set. Never raises for a well-formed :class:`CandidateGoal`.
+        """
+        if not isinstance(candidate, CandidateGoal):
+            raise VerifierInputError(f"candidate must be a CandidateGoal, got {type(candidate).__name__}")
+        cfg = self.config
+        cam = candidate.camera
+        depth = candidate.depth_m
+        u, v = candidate.pixel_uv
+        h, w = depth.shape
+        if not bool(cam.in_image((u, v))):
+            return self._reject(candidate, RejectionReason.PIXEL_OUTSIDE_IMAGE)
+        col, row = int(math.floor(u + 0.5)), int(math.floor(v + 0.5))
+        half = cfg.roi_px // 2
+        roi = (max(0, row - half), min(h, row - half + cfg.roi_px), max(0, col - half), min(w, col - half + cfg.roi_px))
+
+        d = float(depth[row, col])
+        has_reading = math.isfinite(d) and d > 0.0
+        if not has_reading:
+            r0, r1, c0, c1 = roi
+            roi_depth = depth[r0:r1, c0:c1]
+            if not _any_valid(roi_depth) and not _any_valid(depth):
+                return self._reject(candidate, RejectionReason.INVALID_DEPTH_EVERYWHERE)
+            if cfg.reject_no_reading:
+                return self._reject(candidate, RejectionReason.NO_DEPTH_AT_TARGET)
+            note = RefinementNote.NO_DEPTH_READING
+            reference = cfg.d_max_m
+        elif d > cfg.d_max_m:
+            note = RefinementNote.BEYOND_D_MAX
+            reference = cfg.d_max_m
+        else:
+            note = None  # refinement runs; mode decided below
+            reference = d
+        threshold = cfg.obstacle_threshold_m(reference)
+        target_depth = d if has_reading else _NAN
+
+        if note is not None:  # refinement skipped: p' = p, but its ray must still be clear
+            point_box = (row, row + 1, col, col + 1)
+            obstacles = _gather_obstacles(depth, cam, point_box, threshold, cfg.clearance_radius_m)
+            slack = obstacles.slack_at(u, v)
+            if not slack > _SLACK_EPS_PX:
+                return self._reject(
+                    candidate,
+                    RejectionReason.UNREFINED_TARGET_UNSAFE,
+                    note=note,
+                    target_depth_m=target_depth,
+                    threshold_m=threshold,
+                    slack_px=slack,
+                )
+            return self._accept(candidate, (u, v), cfg.d_max_m, note, False, 0, target_depth, threshold, slack)
+
+        # -- step 1: semantic-guided refinement ------------------------------------------------
+        comp, note = self._component(candidate, roi, row, col)
+        component_size = int(np.count_nonzero(comp))
+        geometric_only = note is not RefinementNote.SEMANTIC
+        obstacles = _gather_obstacles(depth, cam, roi, threshold, cfg.clearance_radius_m)
+
+        slack_p = obstacles.slack_at(u, v)
+        if slack_p > _SLACK_EPS_PX:  # already feasible: stays put
+            return self._accept(candidate, (u, v), min(d, cfg.d_max_m), note, geometric_only, component_size, d, threshold, slack_p)
+
+        r0, r1, c0, c1 = roi
+        slack_map = _slack_map(obstacles, roi, (h, w), cfg.radius_bin_ratio)
+        roi_depth = depth[r0:r1, c0:c1]
+        with np.errstate(invalid="ignore"):
+            feasible = comp & (roi_depth > 0.0) & np.isfinite(roi_depth) & (slack_map > _SLACK_EPS_PX)
+        rr, cc = np.nonzero(feasible)
+        if rr.size:
+            dist2 = (cc + c0 - u) ** 2 + (rr + r0 - v) ** 2
+            order = np.argsort(dist2, kind="stable")[:_MAX_EXACT_RECHECKS]
+            for k in order:
+                qr, qc = int(rr[k] + r0), int(cc[k] + c0)
+                slack_q = obstacles.slack_at(float(qc), float(qr))
+                if slack_q > _SLACK_EPS_PX:
+                    dq = min(float(depth[qr, qc]), cfg.d_max_m)
+                    return self._accept(
+                        candidate, (float(qc), float(qr)), dq, note, geometric_only, component_size, d, threshold, slack_q
+                    )
+                logger.error("verifier: slack map accepted pixel (%d, %d) that fails the exact check", qc, qr)
+        return self._reject(
+            candidate,
+            RejectionReason.NO_FEASIBLE_PIXEL,
+            note=note,
+            ran=True,
+            geometric_only=geometric_only,
+            component_size=component_size,
+            target_depth_m=d,
+            threshold_m=threshold,
+            slack_px=slack_p,
+        )
+
+    # -- helpers ---------------------------------------------------------------------------------
+    def _component(self, candidate: CandidateGoal, roi, row: int, col: int) -> tuple[np.ndarray, RefinementNote]:
+        """Boolean ROI mask of the semantic component containing (row, col), and the mode."""
+        r0, r1, c0, c1 = roi
+        shape = (r1 - r0, c1 - c0)
+        feats = candidate.features
+        if feats is None:
+            return np.ones(shape, dtype=bool), RefinementNote.NO_FEATURES
+        hp, wp = feats.shape[:2]
+        patch = candidate.patch_px
+        pi = np.minimum((np.arange(r0, r1) / patch).astype(np.intp), hp - 1)
+        pj = np.minimum((np.arange(c0, c1) / patch).astype(np.intp), wp - 1)
+        ip, jp = min(int(row / patch), hp - 1), min(int(col / patch), wp - 1)
+        f_p = np.asarray(feats[ip, jp], dtype=np.float64)
+        norm_p = float(np.linalg.norm(f_p))
+        if not (math.isfinite(norm_p) and norm_p > 0.0):
+            return np.ones(shape, dtype=bool), RefinementNote.DEGENERATE_FEATURE
+        i0, i1, j0, j1 = int(pi[0]), int(pi[-1]) + 1, int(pj[0]), int(pj[-1]) + 1
+        block = np.asarray(feats[i0:i1, j0:j1], dtype=np.float64)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            sim = (block @ f_p) / (np.linalg.norm(block, axis=-1) * norm_p)
+            patch_mask = sim >= self.config.tau  # NaN (zero or non-finite features) -> False
+        patch_mask[ip - i0, jp - j0] = True  # p is always similar to itself
+        pix_mask = patch_mask[np.ix_(pi - i0, pj - j0)].astype(np.uint8)
+        _, labels = cv2.connectedComponents(pix_mask, connectivity=self.config.connectivity)
+        return labels == labels[row - r0, col - c0], RefinementNote.SEMANTIC
+
+    def _accept(
+        self,
+        candidate: CandidateGoal,
+        uv_refined: tuple[float, float],
+        d_prime: float,
+        note: RefinementNote,
+        geometric_only: bool,
+        component_size: int,
+        target_depth_m: float,
+        threshold_m: float,
+        slack_px: float,
+    ) -> VerifiedGoal:
+        cfg = self.config
+        cam = candidate.camera
+        u2, v2 = uv_refined
+        theta = math.atan((u2 - cam.cx) / cam.fx)
+        gate = bearing_gate(theta, 0.5 * cam.hfov_rad, cfg.sigma_theta)
+        d_f = d_prime * gate
+        X_cam = cam.back_project(np.array([u2, v2]), d_f)
+        X_world = transform_points(candidate.T_world_cam, X_cam)
+        u, v = candidate.pixel_uv
+        ran = note in (RefinementNote.SEMANTIC, RefinementNote.NO_FEATURES, RefinementNote.DEGENERATE_FEATURE)
+        record = VerificationRecord(
+            pixel_uv=(u, v),
+            refined_uv=(u2, v2),
+            pixel_shift_px=float(math.hypot(u2 - u, v2 - v)),
+            refinement_ran=ran,
+            refinement_note=note,
+            geometric_only=geometric_only,
+            component_size_px=component_size,
+            target_depth_m=float(target_depth_m),
+            obstacle_threshold_m=float(threshold_m),
+            clearance_slack_px=float(slack_px),
+            refined_depth_m=float(d_prime),
+            bearing_rad=float(theta),
+            gating_factor=float(gate),
+            range_m=float(d_f),
+            rejection=None,
+        )
+        return VerifiedGoal(goal_world=X_world, accepted=True, record=record)
+
+    def _reject(
+        self,
+        candidate: CandidateGoal,
+        reason: RejectionReason,
+        *,
+        note: RefinementNote = RefinementNote.NOT_ATTEMPTED,
+        ran: bool = False,
+        geometric_only: bool = False,
+        component_size: int = 0,
+        target_depth_m: float = _NAN,
+        threshold_m: float = _NAN,
+        slack_px: float = _NAN,
+    ) -> VerifiedGoal:
+        u, v = candidate.pixel_uv
+        logger.debug("verifier: rejected pixel (%.1f, %.1f): %s", u, v, reason.value)
+        record = VerificationRecord(
+            pixel_uv=(u, v),
+            refined_uv=None,
+            pixel_shift_px=_NAN,
+            refinement_ran=ran,
+            refinement_note=note,
+            geometric_only=geometric_only,
+            component_size_px=component_size,
+            target_depth_m=float(target_depth_m),
+            obstacle_threshold_m=float(threshold_m),
+            clearance_slack_px=float(slack_px),
+            refined_depth_m=_NAN,
+            bearing_rad=_NAN,
+            gating_factor=_NAN,
+            range_m=_NAN,
+            rejection=reason,
+        )
+        return VerifiedGoal(goal_world=None, accepted=False, record=record)
+
+
+def _any_valid(depth: np.ndarray) -> bool:
+    """True when some pixel has a reading (finite, > 0)."""
+    if depth.size == 0:
+        return False
+    return cv2.countNonZero(cv2.inRange(np.ascontiguousarray(depth), _TINY_DEPTH, _MAX_DEPTH)) > 0

@@ -1,0 +1,158 @@
+"""Configuration of the semantic-geometric verifier (paper Sec. "Semantic-Geometric Verified
+Local Planning"); the algorithm lives in :mod:`planning.verifier`.
+
+Defaults are the paper's where it states them (tau 0.5, r 0.2 m, D_max 7 m); every other
+default is our documented choice, argued next to its field below.
+
+Obstacle rule
+-------------
+A depth pixel ``j`` is an *obstacle* when it has a valid reading (finite, > 0) closer than the
+threshold
+
+    T = max(obstacle_depth_m, d_ref - foreground_margin_m),
+
+where ``d_ref = min(depth(p), d_max_m)`` is the reference depth of the target pixel ``p`` (or
+``d_max_m`` when ``p`` has no reading). So two kinds of surfaces are obstacles:
+
+* everything in the **near field** (closer than ``obstacle_depth_m``, default 2 m): at
+  0.6 m/s the vehicle covers about 1.8 m during one monitoring period (2 s) plus one VLM call,
+  so a goal placed on a surface that close would be reached before anything could stop it;
+  a target pixel that falls on such a surface is moved off it (or rejected);
+* everything standing **in front of the target** by more than ``foreground_margin_m``
+  (default 1 m): occluders and silhouettes the straight flight path toward the target could
+  graze. Surfaces within the margin of the target depth are the target itself (a facade seen
+  at an angle, the ground around an object's base) and are not obstacles: the paper places the
+  goal *at* the target depth ``d'``, and keeping the last metre to the target free of
+  obstacles is the job of the planner's ESDF standoff, not of this image-space check. The
+  margin of 1 m keeps the ground in front of a ground-level target at 5 m depth seen from 1.5 m
+  height free of the target's own ray (the ray clears the ground 1 m in front by 0.3 m > r).
+
+Setting ``foreground_margin_m = inf`` gives a pure near-field rule, ``obstacle_depth_m = 0`` a
+pure foreground rule.
+
+Clearance ("dilation by r at the local depth")
+----------------------------------------------
+A pixel ``q`` is *feasible* when its viewing ray -- the straight line from the camera through
+``q`` -- passes at least ``clearance_radius_m`` from every obstacle point ``Y_j`` (the
+back-projected obstacle pixels). In the image this is exactly the dilation of each obstacle
+pixel by the projection of a ball of radius r around its 3D point, whose pixel radius is about
+``fx * r / depth_j`` and grows toward the image border; see :func:`planning.verifier.cone_radius_px`.
+Because the whole ray clears every obstacle, so does the goal placed on it at any range and the
+straight path to it from the camera.
+
+Bearing-aware gating (``sigma_theta``)
+--------------------------------------
+``d_f = d' * exp(-0.5 * (theta / (sigma_theta * theta_max))^2)``. The range halves at
+``|theta| = sqrt(2 ln 2) * sigma_theta * theta_max = 1.177 * sigma_theta * theta_max``. With
+the default ``sigma_theta = 0.5`` that is ``0.59 * theta_max`` (26.5 deg for the 90 deg camera),
+and at the image edge ``d_f / d' = exp(-2) = 0.135``: 0.95 m from D_max = 7 m, about the 1.2 m
+the vehicle covers at v_max = 0.6 m/s while turning theta_max = 45 deg at 0.4 rad/s, so an
+edge target makes the vehicle turn first instead of running ahead with the wrong heading.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+__all__ = ["VerifierConfig", "VerifierConfigError"]
+
+
+class VerifierConfigError(ValueError):
+    """A :class:`VerifierConfig` field out of its valid range (the message names the field)."""
+
+
+@dataclass(frozen=True)
+class VerifierConfig:
+    """Parameters of the semantic-geometric verifier (frozen, validated on construction).
+
+    Attributes
+    ----------
+    tau : float
+        Cosine-similarity threshold of the semantic mask, in [-1, 1] (paper: 0.5).
+    roi_px : int
+        Side of the square region of interest centred on the target pixel, pixels; clipped at
+        the image border. 96 px is 6 x 6 patches of 16 px and 15 % of a 640 px image: enough
+        to move off an obstacle edge at the near-field depth (the clearance radius is
+        ``fx * r / z`` = 32 px at 2 m for fx = 320 px, up to 1.6x that at the image corner).
+    clearance_radius_m : float
+        Clearance r of the viewing ray from every obstacle point, metres (paper: 0.2).
+    d_max_m : float
+        D_max, metres (paper: 7). Refinement is skipped beyond it and ranges are clamped to it.
+    sigma_theta : float
+        Width of the bearing gate relative to the half horizontal FOV (see the module docs).
+    obstacle_depth_m : float
+        Near-field depth, metres: every valid reading closer than this is an obstacle.
+    foreground_margin_m : float
+        Surfaces closer than ``d_ref - foreground_margin_m`` are obstacles (metres; ``inf``
+        disables the foreground part of the rule).
+    reject_no_reading : bool
+        What to do when the target pixel has no depth reading (0, NaN, inf). False (default):
+        skip refinement and treat the pixel as open space beyond the sensor's range, placing the
+        goal at D_max along its ray, still subject to the clearance check (simulators and
+        stereo/ToF cameras return no reading for sky and for surfaces out of range). True:
+        reject with ``RejectionReason.NO_DEPTH_AT_TARGET`` (for sensors that also drop returns
+        from surfaces too close to measure).
+    connectivity : int
+        Pixel connectivity of the connected components of the semantic mask, 4 or 8. 4 (the
+        default) never joins two regions that touch only at a corner.
+    radius_bin_ratio : float
+        Obstacles are grouped into bins whose clearance radii differ by at most this ratio; each
+        bin is dilated by its largest radius (one distance transform per bin). Larger is faster
+        and more conservative; it never makes the check less safe. Must be > 1.
+    """
+
+    tau: float = 0.5
+    roi_px: int = 96
+    clearance_radius_m: float = 0.2
+    d_max_m: float = 7.0
+    sigma_theta: float = 0.5
+    obstacle_depth_m: float = 2.0
+    foreground_margin_m: float = 1.0
+    reject_no_reading: bool = False
+    connectivity: int = 4
+    radius_bin_ratio: float = 1.2
+
+    def __post_init__(self) -> None:
+        def finite(name: str) -> float:
+            value = getattr(self, name)
+            try:
+                value = float(value)
+            except (TypeError, ValueError):
+                raise VerifierConfigError(f"{name} must be a number, got {value!r}") from None
+            if not math.isfinite(value):
+                raise VerifierConfigError(f"{name} must be finite, got {value}")
+            return value
+
+        tau = finite("tau")
+        if not -1.0 <= tau <= 1.0:
+            raise VerifierConfigError(f"tau must be in [-1, 1], got {tau}")
+        if isinstance(self.roi_px, bool) or not isinstance(self.roi_px, (int,)) or self.roi_px < 1:
+            raise VerifierConfigError(f"roi_px must be a positive integer, got {self.roi_px!r}")
+        for name in ("clearance_radius_m", "d_max_m", "sigma_theta"):
+            if finite(name) <= 0.0:
+                raise VerifierConfigError(f"{name} must be > 0, got {getattr(self, name)}")
+        if finite("obstacle_depth_m") < 0.0:
+            raise VerifierConfigError(f"obstacle_depth_m must be >= 0, got {self.obstacle_depth_m}")
+        margin = float(self.foreground_margin_m)
+        if math.isnan(margin) or margin < 0.0:
+            raise VerifierConfigError(f"foreground_margin_m must be >= 0 (inf allowed), got {self.foreground_margin_m}")
+        if not isinstance(self.reject_no_reading, bool):
+            raise VerifierConfigError(f"reject_no_reading must be a bool, got {self.reject_no_reading!r}")
+        if self.connectivity not in (4, 8):
+            raise VerifierConfigError(f"connectivity must be 4 or 8, got {self.connectivity!r}")
+        if finite("radius_bin_ratio") <= 1.0:
+            raise VerifierConfigError(f"radius_bin_ratio must be > 1, got {self.radius_bin_ratio}")
+        for name in ("tau", "clearance_radius_m", "d_max_m", "sigma_theta", "obstacle_depth_m", "radius_bin_ratio"):
+            object.__setattr__(self, name, float(getattr(self, name)))
+        object.__setattr__(self, "foreground_margin_m", margin)
+
+    def obstacle_threshold_m(self, reference_depth_m: float) -> float:
+        """Depth below which a valid reading is an obstacle, metres (the rule in the module docs).
+
+        Parameters
+        ----------
+        reference_depth_m : float
+            ``d_ref = min(depth(p), d_max_m)``, or ``d_max_m`` when ``p`` has no reading.
+        """
+        return max(self.obstacle_depth_m, float(reference_depth_m) - self.foreground_margin_m)
