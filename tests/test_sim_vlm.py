@@ -101,6 +101,7 @@ def test_presets_exist_and_are_pinned():
         json.dumps({k: dataclasses.asdict(v) for k, v in sorted(PRESETS.items())}, sort_keys=True).encode()
     ).hexdigest()
     assert digest == PINNED_PRESETS_SHA256
+    assert all(isinstance(p, ErrorModel) and get_preset(name) is p and p.name == name for name, p in PRESETS.items())
     perfect = PRESETS["perfect"]
     assert perfect.confusion_prob == perfect.malformed_prob == perfect.pixel_noise_frac == 0.0
     assert PRESETS["weak"].confusion_prob > PRESETS["nominal"].confusion_prob > PRESETS["strong"].confusion_prob

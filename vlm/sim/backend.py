@@ -311,7 +311,17 @@ class SimulatedVlm:
             return 1
         return math.ceil(len(segment) / lat.chars_per_token)
 
-    def _respond(self, prompt, images, segments, text, deadline_s, max_new_tokens, cache_key) -> VlmResponse:
+    def _respond(
+        self,
+        prompt: DecisionPrompt | MonitorPrompt | DecomposePrompt,
+        images: Sequence[VlmImage],
+        segments: tuple[str, ...],
+        text: str,
+        deadline_s: float | None,
+        max_new_tokens: int,
+        cache_key: str | None,
+    ) -> VlmResponse:
+        """Charge the modelled latency, account tokens, apply the deadline and the token cap."""
         by_id = {img.frame_id: img for img in images}
         with self._lock:
             previous = self._prefix.get(cache_key, ()) if cache_key is not None else ()
