@@ -1,0 +1,271 @@
+"""The two agents of the paper's dual-agent system.
+
+- :class:`DecisionAgent` (high rate): prompt with the current subtask and the *history point*
+  (the previous 3D goal reprojected into the current image), VLM -> pixel -> candidate goal
+  ``G_c = [px, py, depth_t, f_t, pose_t]`` -> semantic-geometric verifier -> navigation goal.
+- :class:`MonitoringAgent` (low rate): forced choice over CONTINUE / STOP / LOST from its
+  memory ``M_t = [o_1, Q_t, o_t]``.
+
+Both read the same per-frame :class:`vlm.feature_cache.FeatureCache` (shared perception) and
+keep their own prompt, memory and KV-cache stream (``cache_key``). An agent call is a pure
+function of its inputs and returns an outcome value; *when* the outcome takes effect is the
+pilot's business (virtual-clock latency in simulation, a worker thread onboard).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from onfly.memory import FrameRecord, HybridMemory, SlidingWindowMemory, TimeSamplingMemory
+from onfly.observation import Observation
+from planning.frames import invert_transform, transform_points
+from planning.verifier import CandidateGoal, VerifiedGoal, Verifier, VerifierInputError
+from vlm.feature_cache import FeatureCache
+from vlm.parsing import CoordFormat, MonitorStatus, PointParse, StatusParse, parse_point, parse_status
+from vlm.prompts import build_decision_prompt, build_monitor_prompt, decision_schema, status_schema
+from vlm.types import CallStatus, VisionFeatures, VlmBackend, VlmImage, VlmResponse
+
+__all__ = [
+    "DecisionOutcome",
+    "MonitorOutcome",
+    "DecisionAgent",
+    "MonitoringAgent",
+    "history_point",
+    "vlm_image",
+    "global_descriptor",
+    "unverified_goal",
+]
+
+log = logging.getLogger(__name__)
+
+DECISION_STREAM = "decision"
+#: patch size handed to the verifier when there are no features (it then ignores patches)
+GEOMETRIC_PATCH_PX = 16.0
+MONITOR_STREAM = "monitoring"
+
+
+def vlm_image(obs: Observation) -> VlmImage:
+    """The VLM's view of an observation (the world's annotation rides along for the sim VLM)."""
+    return VlmImage(rgb=obs.rgb, frame_id=obs.frame_id, annotation=obs.annotation)
+
+
+def history_point(goal_world, obs: Observation) -> tuple[float, float] | None:
+    """The previous 3D goal reprojected into the current image.
+
+    Returns pixel ``(u, v)``, or None when there is no goal, it is behind the camera, or it
+    projects outside the image.
+    """
+    if goal_world is None:
+        return None
+    p_cam = transform_points(invert_transform(obs.T_world_cam), np.asarray(goal_world, float))
+    uv, in_front = obs.camera.project(p_cam)
+    if not in_front or not bool(obs.camera.in_image(uv[None])[0]):
+        return None
+    return float(uv[0]), float(uv[1])
+
+
+def global_descriptor(features: VisionFeatures | None, rgb: np.ndarray) -> np.ndarray:
+    """Unit-norm frame descriptor for keyframe de-duplication (cosine distance).
+
+    The mean of the frame's patch features when the backend has them; otherwise a
+    mean-subtracted 16 x 12 grey thumbnail (documented fallback for feature-less backends).
+    """
+    if features is not None:
+        f = np.asarray(features.grid, dtype=np.float64).reshape(-1, features.grid.shape[-1]).mean(axis=0)
+    else:
+        import cv2
+
+        grey = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)
+        f = cv2.resize(grey, (16, 12), interpolation=cv2.INTER_AREA).astype(np.float64).reshape(-1)
+        f = f - f.mean()
+    n = np.linalg.norm(f)
+    return f / n if n > 0 else np.full_like(f, 1.0 / np.sqrt(f.size))
+
+
+def unverified_goal(uv, obs: Observation, d_max_m: float) -> np.ndarray | None:
+    """The "without verification" ablation: lift the raw pixel at its own depth (capped at
+    ``d_max_m``), no refinement, no gating. None when the pixel has no depth reading."""
+    u, v = int(round(uv[0])), int(round(uv[1]))
+    d = float(obs.depth_m[v, u])
+    if not np.isfinite(d) or d <= 0:
+        return None
+    p_cam = obs.camera.back_project(np.array([uv[0], uv[1]], float), min(d, d_max_m))
+    return transform_points(obs.T_world_cam, p_cam)
+
+
+@dataclass(frozen=True, eq=False)
+class DecisionOutcome:
+    """One decision-agent call.
+
+    Attributes
+    ----------
+    frame_id : the frame the decision was made on
+    subtask : the subtask it was asked about
+    response : the backend's response
+    history_uv : the history point shown in the prompt, or None
+    parse : the parsed point (None when the call failed)
+    verified : the verifier's result (None when there was no pixel or verification is off)
+    goal_world : (3,) navigation goal in metres, world ENU, or None (hold the last goal)
+    reason : why there is no goal ("" when there is one)
+    """
+
+    frame_id: str
+    subtask: str
+    response: VlmResponse
+    history_uv: tuple[float, float] | None
+    parse: PointParse | None
+    verified: VerifiedGoal | None
+    goal_world: np.ndarray | None
+    reason: str = ""
+
+    @property
+    def latency_s(self) -> float:
+        return self.response.latency_s
+
+
+@dataclass(frozen=True, eq=False)
+class MonitorOutcome:
+    """One monitoring-agent call: the status, or None when the call or the parse failed."""
+
+    subtask: str
+    response: VlmResponse
+    parse: StatusParse | None
+    status: MonitorStatus | None
+    memory_frame_ids: tuple[str, ...]
+    reason: str = ""
+
+    @property
+    def latency_s(self) -> float:
+        return self.response.latency_s
+
+
+@dataclass
+class DecisionAgent:
+    """The high-rate agent: pixel goal from the VLM, verified into a 3D navigation goal.
+
+    Parameters
+    ----------
+    backend : VlmBackend
+    features : FeatureCache shared with the monitoring agent (and the verifier)
+    verifier : Verifier, or None for the "without verification" ablation
+    coord_format : how the backend writes points (see :class:`vlm.parsing.CoordFormat`)
+    d_max_m : depth cap used by the unverified ablation
+    deadline_s : per-call deadline handed to the backend
+    """
+
+    backend: VlmBackend
+    features: FeatureCache | None
+    verifier: Verifier | None
+    coord_format: CoordFormat | str = CoordFormat.PIXEL
+    model_input_size: tuple[int, int] | None = None
+    d_max_m: float = 7.0
+    deadline_s: float | None = None
+    max_new_tokens: int = 48
+    structured_output: bool = True
+    calls: int = field(default=0, init=False)
+
+    def decide(self, obs: Observation, subtask: str, last_goal_world=None) -> DecisionOutcome:
+        """Run one decision call on ``obs`` (blocking; the pilot decides when it lands)."""
+        self.calls += 1
+        image = vlm_image(obs)
+        hist = history_point(last_goal_world, obs)
+        messages, images = build_decision_prompt(subtask, image, hist)
+        response = self.backend.complete(
+            messages,
+            images,
+            deadline_s=self.deadline_s,
+            json_schema=decision_schema() if self.structured_output else None,
+            max_new_tokens=self.max_new_tokens,
+            cache_key=DECISION_STREAM,
+        )
+
+        def out(parse=None, verified=None, goal=None, reason=""):
+            return DecisionOutcome(obs.frame_id, subtask, response, hist, parse, verified, goal, reason)
+
+        if response.status is not CallStatus.OK:
+            log.info("decision call %s: %s", response.status.value, response.error)
+            return out(reason=f"call {response.status.value}: {response.error}")
+        parse = parse_point(
+            response.text, image.size, self.coord_format, model_input_size=self.model_input_size
+        )
+        if not parse.ok:
+            log.info("decision parse failed (%s): %r", parse.reason, response.text[:200])
+            return out(parse=parse, reason=f"parse: {parse.reason}")
+        if self.verifier is None:
+            goal = unverified_goal(parse.uv, obs, self.d_max_m)
+            return out(parse=parse, goal=goal, reason="" if goal is not None else "no depth at the pixel")
+        feats = self.features.get(image) if self.features is not None else None
+        candidate = self._candidate(parse.uv, obs, feats)
+        verified = self.verifier.verify(candidate)
+        if not verified.accepted:
+            return out(parse=parse, verified=verified, reason=f"rejected: {verified.record.rejection}")
+        return out(parse=parse, verified=verified, goal=np.asarray(verified.goal_world, float))
+
+    @staticmethod
+    def _candidate(uv, obs: Observation, feats: VisionFeatures | None) -> CandidateGoal:
+        """``G_c`` for the verifier. Features whose patch grid does not tile the depth image
+        (a backend whose resized input differs from the camera's) drop to geometric-only."""
+        common = dict(pixel_uv=uv, depth_m=obs.depth_m, T_world_cam=obs.T_world_cam, camera=obs.camera)
+        if feats is not None:
+            try:
+                return CandidateGoal(features=feats.grid, patch_px=feats.patch_px, **common)
+            except VerifierInputError as exc:
+                log.warning("features unusable by the verifier (%s); geometric-only mode", exc)
+        return CandidateGoal(features=None, patch_px=GEOMETRIC_PATCH_PX, **common)
+
+
+@dataclass
+class MonitoringAgent:
+    """The low-rate agent: CONTINUE / STOP / LOST over its memory.
+
+    Parameters
+    ----------
+    backend : VlmBackend
+    memory : HybridMemory, SlidingWindowMemory or TimeSamplingMemory
+    features : the shared FeatureCache (frame descriptors for keyframe de-duplication)
+    """
+
+    backend: VlmBackend
+    memory: HybridMemory | SlidingWindowMemory | TimeSamplingMemory
+    features: FeatureCache | None
+    deadline_s: float | None = None
+    max_new_tokens: int = 16
+    structured_output: bool = False
+    calls: int = field(default=0, init=False)
+
+    def observe(self, obs: Observation) -> FrameRecord:
+        """Add a frame to the memory (its descriptor comes from the shared feature cache)."""
+        image = vlm_image(obs)
+        feats = self.features.get(image) if self.features is not None else None
+        return self.memory.observe(
+            obs.frame_id, obs.t_s, obs.position, obs.yaw, global_descriptor(feats, obs.rgb), payload=image
+        )
+
+    def assess(self, subtask: str) -> MonitorOutcome:
+        """Run one monitoring call over ``M_t`` (blocking)."""
+        self.calls += 1
+        records = self.memory.select()
+        ids = tuple(r.frame_id for r in records)
+        if len(records) < 2:
+            resp = VlmResponse(CallStatus.ERROR, error="memory holds fewer than two frames")
+            return MonitorOutcome(subtask, resp, None, None, ids, reason="memory too short")
+        images = [r.payload for r in records]
+        messages, imgs = build_monitor_prompt(subtask, images[0], images[1:-1], images[-1])
+        response = self.backend.complete(
+            messages,
+            imgs,
+            deadline_s=self.deadline_s,
+            json_schema=status_schema() if self.structured_output else None,
+            max_new_tokens=self.max_new_tokens,
+            cache_key=MONITOR_STREAM,
+        )
+        if response.status is not CallStatus.OK:
+            return MonitorOutcome(subtask, response, None, None, ids, reason=f"call {response.status.value}: {response.error}")
+        parse = parse_status(response.text)
+        if not parse.ok:
+            log.info("monitor parse failed (%s): %r", parse.reason, response.text[:200])
+            return MonitorOutcome(subtask, response, parse, None, ids, reason=f"parse: {parse.reason}")
+        return MonitorOutcome(subtask, response, parse, parse.status, ids)

@@ -1,0 +1,93 @@
+"""The OnFly pilot (and its ablations) as a benchmark method."""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import replace
+from typing import Any
+
+from onfly.bench.method import EpisodeSpec, MethodStep
+from onfly.observation import Observation
+from onfly.pilot import OnFlyPilot, PilotConfig
+from planning.planner import Planner
+from planning.trajectory import VehicleState
+from vlm.factory import make_backend
+
+__all__ = ["OnFlyMethod", "ABLATIONS", "ablation_config"]
+
+#: Paper Table III ablations as config changes of the full system.
+ABLATIONS: dict[str, dict[str, Any]] = {
+    "onfly": {},
+    "onfly_no_dual_agent": {"dual_agent": False},
+    "onfly_no_verification": {"verify": False},
+    "onfly_no_planner": {"use_planner": False},
+    "onfly_time_sampling": {"memory": "time"},
+    "onfly_sliding_window": {"memory": "sliding"},
+}
+
+
+def ablation_config(name: str, base: PilotConfig | None = None) -> PilotConfig:
+    """The pilot config of a named variant (see :data:`ABLATIONS`)."""
+    if name not in ABLATIONS:
+        raise ValueError(f"unknown OnFly variant {name!r}; valid: {sorted(ABLATIONS)}")
+    cfg = base if base is not None else PilotConfig()
+    changes = dict(ABLATIONS[name])
+    if "memory" in changes:
+        changes["memory"] = replace(cfg.memory, strategy=changes["memory"])
+    return replace(cfg, **changes)
+
+
+class OnFlyMethod:
+    """Runs :class:`onfly.pilot.OnFlyPilot` in the benchmark.
+
+    Parameters
+    ----------
+    vlm_spec : backend spec for :func:`vlm.factory.make_backend` (``sim:nominal`` ...)
+    config : the pilot config (a variant from :func:`ablation_config`)
+    name : the row name in result tables
+    planner : optional prebuilt Planner shared across episodes of one process (reset per episode)
+    """
+
+    privileged = False
+
+    def __init__(self, vlm_spec: str, config: PilotConfig | None = None, name: str = "onfly", planner: Planner | None = None) -> None:
+        self.vlm_spec = vlm_spec
+        self.config = config if config is not None else PilotConfig()
+        self.name = name
+        self._planner = planner
+        self.pilot: OnFlyPilot | None = None
+
+    def reset(self, spec: EpisodeSpec) -> None:
+        backend = make_backend(self.vlm_spec, seed=spec.seed)
+        if self._planner is None and self.config.use_planner:
+            self._planner = Planner(self.config.planner)
+        self.pilot = OnFlyPilot(self.config, backend, spec.runtime, planner=self._planner)
+        self.pilot.begin(spec.instruction, spec.start_state.t_s)
+
+    def step(self, t_s: float, state: VehicleState, obs: Observation | None) -> MethodStep:
+        if self.pilot is None:
+            raise RuntimeError("reset() must be called before step()")
+        tick = self.pilot.tick(t_s, state, obs)
+        return MethodStep(tick.trajectory, tick.finished)
+
+    def summary(self) -> dict[str, Any]:
+        if self.pilot is None:
+            return {}
+        p = self.pilot
+        kinds = Counter(e.kind for e in p.events)
+        decisions = [e.data for e in p.events if e.kind == "decision"]
+        monitors = [e.data for e in p.events if e.kind == "monitor"]
+        statuses = Counter(str(m.get("status")) for m in monitors)
+        failed = Counter((d.get("reason") or "").split(":")[0] for d in decisions if d.get("goal_world") is None)
+        moved = [d for d in decisions if d.get("verifier") and d["verifier"].get("pixel_shift_px", 0) > 0]
+        return {
+            "mode": p.mode.value,
+            "subtasks": list(p.tasks.subtasks) if p.tasks else [],
+            "subtask_index": p.tasks.index if p.tasks else 0,
+            "events": dict(kinds),
+            "decisions": len(decisions),
+            "decision_failures": dict(failed),
+            "verifier_moved": len(moved),
+            "monitor_statuses": dict(statuses),
+            "planner_fallbacks": p.planner_fallbacks,
+        }

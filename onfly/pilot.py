@@ -1,0 +1,439 @@
+"""The OnFly pilot: dual agents, hybrid memory, task manager, verifier, ESDF and MPC in one loop.
+
+One :meth:`OnFlyPilot.tick` per control period (0.1 s by default):
+
+1. a new camera frame (when there is one) updates the ESDF and the monitoring memory;
+2. agent calls that have landed are applied: a decision sets the navigation goal (or is
+   logged and ignored when it failed); a monitoring status feeds the task manager
+   (stable STOP advances or finishes; LOST starts the stop-and-reorient recovery);
+3. idle agents are started when due: the decision agent as soon as its last call landed and a
+   new frame exists (high rate), the monitoring agent every ``monitor_period_s``;
+4. the planner runs on the latest verified goal, whatever the agents are doing.
+
+Safety rules the loop keeps: no goal yet, a goal older than ``goal_timeout_s`` without a fresh
+decision, or recovery in progress -> hold position; the planner's own fallbacks (shifted plan,
+braking) cover solver failures. A VLM that times out or emits garbage never blocks the loop.
+
+Ablations (paper, Table III) are switches of :class:`PilotConfig`: ``dual_agent=False`` runs
+decision and monitoring as one stream (one call pays both latencies), ``verify=False`` lifts
+raw pixels, ``use_planner=False`` flies goals in straight lines, and the memory strategy is
+``memory.strategy``.
+"""
+
+from __future__ import annotations
+
+import logging
+import tomllib
+from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
+from enum import Enum
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from onfly.agents import DecisionAgent, DecisionOutcome, MonitoringAgent, MonitorOutcome
+from onfly.memory import MemoryConfig, make_memory
+from onfly.observation import Observation
+from onfly.runtime import AgentRuntime, Landed
+from onfly.task_manager import Status, TaskEvent, TaskManager
+from planning.esdf import EsdfMap
+from planning.esdf_config import EsdfConfig
+from planning.frames import wrap_angle
+from planning.planner import Planner, PlanResult
+from planning.planner_config import PlannerConfig
+from planning.straight_line import straight_line_plan
+from planning.trajectory import Trajectory, VehicleState
+from planning.verifier import Verifier, VerifierConfig
+from vlm.decompose import decompose_detailed
+from vlm.feature_cache import FeatureCache
+from vlm.parsing import CoordFormat
+from vlm.types import VlmBackend
+
+__all__ = ["PilotConfig", "PilotConfigError", "PilotMode", "PilotEvent", "PilotTick", "OnFlyPilot"]
+
+log = logging.getLogger(__name__)
+
+DECISION = "decision"
+MONITORING = "monitoring"
+SINGLE = "single"
+DECOMPOSE = "decompose"
+
+
+class PilotConfigError(ValueError):
+    """Invalid pilot configuration (names the field)."""
+
+
+@dataclass(frozen=True)
+class PilotConfig:
+    """Every parameter of the pilot; nested configs hold the planner, verifier, ESDF, memory.
+
+    Attributes
+    ----------
+    control_period_s : planner period (10 Hz)
+    monitor_period_s : monitoring-agent period (paper: 2 s)
+    stop_confirmations : consecutive STOPs that make a STOP stable
+    goal_timeout_s : a goal not refreshed by a successful decision for this long is dropped
+        and the vehicle holds (VLM timeouts or garbage)
+    recovery_yaw_tolerance_rad : LOST recovery is over once the heading is this close
+    recovery_timeout_s : give up turning after this long and resume anyway
+    dual_agent : False = one stream that decides and monitors in the same call
+    verify : False = raw pixels lifted at their depth (ablation)
+    use_planner : False = goals flown in straight lines without the map (ablation)
+    coord_format : how the backend writes points (``vlm.parsing.CoordFormat`` value)
+    vlm_deadline_s : per-call deadline handed to the backend (None = backend default)
+    """
+
+    control_period_s: float = 0.1
+    monitor_period_s: float = 2.0
+    stop_confirmations: int = 2
+    goal_timeout_s: float = 8.0
+    recovery_yaw_tolerance_rad: float = 0.1
+    recovery_timeout_s: float = 10.0
+    dual_agent: bool = True
+    verify: bool = True
+    use_planner: bool = True
+    coord_format: str = CoordFormat.PIXEL.value
+    vlm_deadline_s: float | None = None
+    planner: PlannerConfig = field(default_factory=PlannerConfig)
+    verifier: VerifierConfig = field(default_factory=VerifierConfig)
+    esdf: EsdfConfig = field(default_factory=EsdfConfig)
+    memory: MemoryConfig = field(default_factory=MemoryConfig)
+
+    def __post_init__(self) -> None:
+        for name in ("control_period_s", "monitor_period_s", "goal_timeout_s", "recovery_timeout_s"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise PilotConfigError(f"PilotConfig.{name} must be positive, got {v}")
+        if self.stop_confirmations < 1:
+            raise PilotConfigError(f"PilotConfig.stop_confirmations must be >= 1, got {self.stop_confirmations}")
+        try:
+            CoordFormat(self.coord_format)
+        except ValueError:
+            raise PilotConfigError(
+                f"PilotConfig.coord_format must be one of {[c.value for c in CoordFormat]}, got {self.coord_format!r}"
+            ) from None
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "PilotConfig":
+        """Build from a plain dict (e.g. a TOML table); nested tables fill nested configs."""
+        known = {f.name: f for f in fields(cls)}
+        nested = {"planner": PlannerConfig, "verifier": VerifierConfig, "esdf": EsdfConfig, "memory": MemoryConfig}
+        kwargs: dict[str, Any] = {}
+        for key, value in data.items():
+            if key not in known:
+                raise PilotConfigError(f"unknown pilot option {key!r}; valid: {sorted(known)}")
+            if key in nested:
+                sub = nested[key]
+                valid = {f.name for f in fields(sub)}
+                bad = sorted(set(value) - valid)
+                if bad:
+                    raise PilotConfigError(f"unknown {key} option(s) {bad}; valid: {sorted(valid)}")
+                value = sub(**{k: tuple(v) if isinstance(v, list) else v for k, v in value.items()})
+            kwargs[key] = value
+        return cls(**kwargs)
+
+    @classmethod
+    def from_toml(cls, path: str | Path, table: str = "pilot") -> "PilotConfig":
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+        return cls.from_dict(data.get(table, {}))
+
+
+class PilotMode(str, Enum):
+    STARTING = "starting"  # waiting for the decomposition and the first goal
+    NAVIGATING = "navigating"
+    HOLDING = "holding"  # no valid goal: hover in place
+    RECOVERING = "recovering"  # LOST: stopped, turning to the last normal heading
+    FINISHED = "finished"
+
+
+@dataclass(frozen=True)
+class PilotEvent:
+    """Something the pilot did or heard, for logs and recordings."""
+
+    t_s: float
+    kind: str
+    data: dict
+
+
+@dataclass(frozen=True, eq=False)
+class PilotTick:
+    """Result of one tick: the plan to fly (None = keep the last) and whether the task ended."""
+
+    trajectory: Trajectory | None
+    finished: bool
+    mode: PilotMode
+    goal_world: np.ndarray | None
+    plan: PlanResult | None
+
+
+def _jsonable(x):
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, (np.floating, np.integer)):
+        return x.item()
+    if isinstance(x, Enum):
+        return x.value
+    if is_dataclass(x):
+        return {k: _jsonable(v) for k, v in asdict(x).items()}
+    if isinstance(x, dict):
+        return {k: _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    return x
+
+
+class OnFlyPilot:
+    """The full OnFly system over one VLM backend.
+
+    Parameters
+    ----------
+    config : PilotConfig
+    backend : VlmBackend shared by both agents (each keeps its own ``cache_key`` stream)
+    runtime : where agent calls run (``ClockRuntime`` in simulation, ``ThreadRuntime`` onboard)
+    planner : optional prebuilt Planner (building one costs CasADi set-up; benchmarks reuse it)
+    """
+
+    def __init__(
+        self, config: PilotConfig, backend: VlmBackend, runtime: AgentRuntime, planner: Planner | None = None
+    ) -> None:
+        self.config = config
+        self.backend = backend
+        self.runtime = runtime
+        self.features = FeatureCache(backend, capacity=64)
+        self.esdf = EsdfMap(config.esdf)
+        self.planner = planner if planner is not None else Planner(config.planner)
+        self.planner.reset()
+        self.decision = DecisionAgent(
+            backend,
+            self.features,
+            Verifier(config.verifier) if config.verify else None,
+            coord_format=config.coord_format,
+            d_max_m=config.verifier.d_max_m,
+            deadline_s=config.vlm_deadline_s,
+        )
+        self.monitor = MonitoringAgent(backend, make_memory(config.memory), self.features, deadline_s=config.vlm_deadline_s)
+        self.instruction: str | None = None
+        self.tasks: TaskManager | None = None
+        self.mode = PilotMode.STARTING
+        self.goal_world: np.ndarray | None = None
+        self.goal_t_s = -np.inf
+        self.latest: Observation | None = None
+        self._decision_frame: str | None = None
+        self._last_monitor_s = -np.inf
+        self._recovery_yaw: float | None = None
+        self._recovery_start_s = 0.0
+        self._hold_p: np.ndarray | None = None
+        self._last_plan: PlanResult | None = None
+        self.planner_fallbacks: dict[str, int] = {}
+        self.events: list[PilotEvent] = []
+
+    # -- lifecycle ------------------------------------------------------------------------------
+    def begin(self, instruction: str, t_s: float) -> None:
+        """Start the task: one decomposition call (deterministic fallback on failure).
+
+        The call goes through the runtime like any other, so its latency passes before the
+        agents start (the vehicle holds meanwhile).
+        """
+        self.instruction = instruction
+
+        def call():
+            dec = decompose_detailed(instruction, self.backend, deadline_s=self.config.vlm_deadline_s)
+            return _Decomposed(dec, dec.response.latency_s if dec.response is not None else 0.0)
+
+        self.runtime.submit(DECOMPOSE, call)
+
+    @property
+    def finished(self) -> bool:
+        return self.mode is PilotMode.FINISHED
+
+    def _event(self, t_s: float, kind: str, data: dict) -> None:
+        self.events.append(PilotEvent(float(t_s), kind, _jsonable(data)))
+
+    # -- the loop -------------------------------------------------------------------------------
+    def tick(self, t_s: float, state: VehicleState, obs: Observation | None = None) -> PilotTick:
+        """One control period. ``obs`` is a new camera frame, or None when none arrived."""
+        if self.instruction is None:
+            raise RuntimeError("call begin(instruction) before tick()")
+        if obs is not None:
+            self._on_frame(obs)
+        for landed in self.runtime.poll():
+            self._apply(landed, state)
+        if self.mode is not PilotMode.FINISHED and self.tasks is not None:
+            self._start_agents(t_s)
+        return self._control(t_s, state)
+
+    def _on_frame(self, obs: Observation) -> None:
+        self.esdf.integrate(obs.depth_m, obs.camera, obs.T_world_cam, center_world=obs.position)
+        self.monitor.observe(obs)
+        self.latest = obs
+
+    def _start_agents(self, t_s: float) -> None:
+        obs = self.latest
+        if obs is None or self.tasks is None:
+            return
+        subtask = self.tasks.current
+        recovering = self.mode is PilotMode.RECOVERING
+        if not self.config.dual_agent:
+            if not self.runtime.busy(SINGLE) and obs.frame_id != self._decision_frame and not recovering:
+                self._decision_frame = obs.frame_id
+                goal = self.goal_world
+                self.runtime.submit(SINGLE, lambda: _SingleStream(self.decision.decide(obs, subtask, goal), self.monitor.assess(subtask)))
+            return
+        if not recovering and not self.runtime.busy(DECISION) and obs.frame_id != self._decision_frame:
+            self._decision_frame = obs.frame_id
+            goal = self.goal_world
+            self.runtime.submit(DECISION, lambda: self.decision.decide(obs, subtask, goal))
+        if not self.runtime.busy(MONITORING) and t_s - self._last_monitor_s >= self.config.monitor_period_s:
+            self._last_monitor_s = t_s
+            self.runtime.submit(MONITORING, lambda: self.monitor.assess(subtask))
+
+    def _apply(self, landed: Landed, state: VehicleState) -> None:
+        out = landed.outcome
+        if isinstance(out, _Decomposed):
+            dec = out.decomposition
+            self.tasks = TaskManager(list(dec.subtasks), self.config.stop_confirmations)
+            self._event(
+                landed.landed_s,
+                "decomposition",
+                {"instruction": self.instruction, "subtasks": list(dec.subtasks), "source": dec.source, "reason": dec.reason},
+            )
+        elif isinstance(out, _SingleStream):
+            self._apply_decision(landed.landed_s, out.decision)
+            self._apply_monitor(landed.landed_s, out.monitor, state)
+        elif isinstance(out, DecisionOutcome):
+            self._apply_decision(landed.landed_s, out)
+        elif isinstance(out, MonitorOutcome):
+            self._apply_monitor(landed.landed_s, out, state)
+        elif isinstance(out, BaseException):
+            # an agent call raised (a backend bug): log it, keep flying the last goal
+            self._event(landed.landed_s, "agent_error", {"kind": landed.kind, "error": repr(out)})
+            log.error("%s call raised: %r", landed.kind, out)
+
+    def _apply_decision(self, t_s: float, out: DecisionOutcome) -> None:
+        rec = out.verified.record if out.verified is not None else None
+        self._event(
+            t_s,
+            "decision",
+            {
+                "frame_id": out.frame_id,
+                "subtask": out.subtask,
+                "status": out.response.status,
+                "raw": out.response.text[:500],
+                "history_uv": out.history_uv,
+                "pixel": out.parse.uv if out.parse is not None else None,
+                "goal_world": out.goal_world,
+                "reason": out.reason,
+                "verifier": rec,
+                "latency_s": out.latency_s,
+            },
+        )
+        if self.mode in (PilotMode.FINISHED, PilotMode.RECOVERING) or self.tasks is None:
+            return
+        if out.subtask != self.tasks.current:
+            return  # answered about a subtask that has since advanced
+        if out.goal_world is None:
+            return  # hold the last goal; it times out by itself
+        self.goal_world = np.asarray(out.goal_world, float)
+        self.goal_t_s = t_s
+        self.mode = PilotMode.NAVIGATING
+
+    def _apply_monitor(self, t_s: float, out: MonitorOutcome, state: VehicleState) -> None:
+        self._event(
+            t_s,
+            "monitor",
+            {
+                "subtask": out.subtask,
+                "status": out.status,
+                "raw": out.response.text[:200],
+                "memory": list(out.memory_frame_ids),
+                "reason": out.reason,
+                "latency_s": out.latency_s,
+                "cached_tokens": out.response.usage.cached_tokens,
+            },
+        )
+        if out.status is None or self.tasks is None or self.mode is PilotMode.FINISHED:
+            return
+        if out.subtask != self.tasks.current:
+            return
+        if self.mode is PilotMode.RECOVERING and out.status.value != Status.STOP.value:
+            return
+        event = self.tasks.on_status(Status(out.status.value), t_s, state.p, state.yaw)
+        if event is TaskEvent.FINISHED:
+            self.mode = PilotMode.FINISHED
+            self._hold_p = state.p.copy()
+            self._event(t_s, "finished", {"position": state.p})
+        elif event is TaskEvent.ADVANCED:
+            self.goal_world = None
+            self.mode = PilotMode.HOLDING
+            self._event(t_s, "advanced", {"subtask": self.tasks.current, "index": self.tasks.index})
+        elif event is TaskEvent.LOST:
+            self.goal_world = None
+            self.mode = PilotMode.RECOVERING
+            self._recovery_yaw = self.tasks.recovery_yaw(state.yaw)
+            self._recovery_start_s = t_s
+            self._hold_p = state.p.copy()
+            self._event(t_s, "lost", {"recovery_yaw": self._recovery_yaw, "position": state.p})
+
+    def _control(self, t_s: float, state: VehicleState) -> PilotTick:
+        cfg = self.config
+        yaw_ref = None
+        if self.mode is PilotMode.RECOVERING:
+            err = abs(wrap_angle(state.yaw - (self._recovery_yaw or state.yaw)))
+            if err <= cfg.recovery_yaw_tolerance_rad or t_s - self._recovery_start_s > cfg.recovery_timeout_s:
+                self.mode = PilotMode.HOLDING
+                self._event(t_s, "resumed", {"yaw": state.yaw, "yaw_error": err})
+            else:
+                yaw_ref = self._recovery_yaw
+        if self.mode is PilotMode.NAVIGATING and t_s - self.goal_t_s > cfg.goal_timeout_s:
+            self.goal_world = None
+            self.mode = PilotMode.HOLDING
+            self._event(t_s, "goal_timeout", {"age_s": t_s - self.goal_t_s})
+        if self.mode is PilotMode.NAVIGATING and self.goal_world is not None:
+            goal = self.goal_world
+            self._hold_p = None
+        else:
+            if self._hold_p is None:
+                self._hold_p = state.p.copy()
+            goal = self._hold_p
+        if cfg.use_planner:
+            plan = self.planner.step(state, goal, self.esdf, **({} if yaw_ref is None else {"yaw_ref": yaw_ref}))
+            traj = plan.trajectory
+        else:
+            plan = None
+            traj = straight_line_plan(
+                state,
+                goal,
+                v_max_mps=cfg.planner.v_max_mps,
+                a_max_mps2=cfg.planner.a_max_mps2,
+                yaw_rate_max_rps=cfg.planner.yaw_rate_max_rps,
+                dt_s=cfg.planner.dt_s,
+                steps=cfg.planner.horizon_steps,
+                yaw_ref=yaw_ref,
+            )
+        self._last_plan = plan
+        if plan is not None and not plan.ok:
+            key = plan.fallback.value
+            self.planner_fallbacks[key] = self.planner_fallbacks.get(key, 0) + 1
+        return PilotTick(traj, self.finished, self.mode, None if self.goal_world is None else self.goal_world.copy(), plan)
+
+
+@dataclass(frozen=True, eq=False)
+class _Decomposed:
+    decomposition: Any
+    latency_s: float
+
+
+@dataclass(frozen=True, eq=False)
+class _SingleStream:
+    """Outcome of the single-stream ablation: both answers of one call, both latencies paid."""
+
+    decision: DecisionOutcome
+    monitor: MonitorOutcome
+
+    @property
+    def latency_s(self) -> float:
+        return self.decision.latency_s + self.monitor.latency_s
