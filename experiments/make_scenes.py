@@ -405,19 +405,19 @@ def duplex(rng) -> SceneBuilder:
 
 def corridor(rng) -> SceneBuilder:
     b = SceneBuilder("corridor", "Long office corridor with numbered doors, a vending machine, an extinguisher and other sparse landmarks.",
-                     (0.4, -1.75, 0.4), (37.6, 1.75, 3.1), (2.0, 0.0, 1.5), 0.0, light=(0.3, 0.2, 0.93), ambient=0.5)
-    walls(b, "corridor walls", 0, 38, -2, 2, 3.5, color="#D9D4C7", floor_color="#9A8F7E")
-    b.add("window at the end of the corridor", "window", "#9CC8E6", [box((37.94, 0, 1.8), (0.12, 2.4, 1.6))], ["window", "end window"])
+                     (0.4, -1.75, 0.4), (36.6, 1.75, 3.1), (2.0, 0.0, 1.5), 0.0, light=(0.3, 0.2, 0.93), ambient=0.5)
+    walls(b, "corridor walls", 0, 37, -2, 2, 3.5, color="#D9D4C7", floor_color="#9A8F7E")
+    b.add("window at the end of the corridor", "window", "#9CC8E6", [box((36.94, 0, 1.8), (0.12, 2.4, 1.6))], ["window", "end window"])
     door(b, "red door", "#B0302A", 31, 1.94, "x", aliases=["red office door"])
     door(b, "blue door", "#2C56A8", 14, -1.94, "x", aliases=["blue office door"])
-    for i, (x, side) in enumerate([(9, 1), (11, -1), (19, 1), (23, -1), (27, 1), (33, -1), (35, 1)]):
+    for i, (x, side) in enumerate([(9, 1), (11, -1), (19, 1), (23, -1), (27, 1), (33, -1), (34.5, 1)]):
         door(b, f"door {101 + i}", "#8C8F93", x, side * 1.94, "x", aliases=["grey door", f"office {101 + i}"])
     b.add("fire extinguisher", "extinguisher", "#D32F2F", [cyl((20.5, 1.78, 0.3), 0.12, 0.55, 8)], ["red extinguisher"])
     b.add("vending machine", "vending machine", "#C62828", [box((24.5, -1.55, 0.95), (0.9, 0.9, 1.9)), box((24.5, -1.09, 1.2), (0.7, 0.02, 1.0), color=GLASS)],
           ["snack machine", "drinks machine"])
     b.add("water fountain", "water fountain", "#B8C2CC", [box((12, 1.8, 0.95), (0.5, 0.4, 0.3)), box((12, 1.9, 0.4), (0.2, 0.2, 0.8))],
           ["drinking fountain"])
-    b.add("exit sign", "sign", "#2EAD4B", [box((36.5, 0, 3.3), (0.08, 0.6, 0.3))], ["green exit sign", "emergency exit sign"])
+    b.add("exit sign", "sign", "#2EAD4B", [box((35.5, 0, 3.3), (0.08, 0.6, 0.3))], ["green exit sign", "emergency exit sign"])
     b.add("notice board", "board", "#C9A46B", [box((16.5, -1.97, 1.5), (1.6, 0.06, 1.0))], ["bulletin board", "cork board"],
           texture={"pattern": "noise", "period_m": 0.1, "contrast": 0.3, "seed": 6})
     b.add("potted plant", "plant", "#3E8E41", [cyl((33, 1.6, 0), 0.25, 0.45, 8, color="#8B5A2B"), sph((33, 1.6, 0.9), 0.35, 4)], ["green plant"])

@@ -112,14 +112,19 @@ class SimVehicle:
             raise VehicleError(f"expected a planning.trajectory.Trajectory, got {type(trajectory).__name__}")
         self._traj = trajectory
 
-    def _reference(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
+    def _reference(self, h: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
+        """Reference position, velocity and yaw at the start of the step; feed-forward
+        acceleration and yaw rate at its midpoint (so a step that starts a rounding error
+        before a knot still gets the next interval's held input)."""
         if self._traj is None:
             return self._p.copy(), np.zeros(3), np.zeros(3), self._yaw, 0.0
-        return self._traj.sample(self._t)
+        p_r, v_r, _, yaw_r, _ = self._traj.sample(self._t)
+        _, _, a_r, _, yaw_rate_r = self._traj.sample(self._t + 0.5 * h)
+        return p_r, v_r, a_r, yaw_r, yaw_rate_r
 
     def _substep(self, h: float) -> None:
         c = self.config
-        p_r, v_r, a_r, yaw_r, yaw_rate_r = self._reference()
+        p_r, v_r, a_r, yaw_r, yaw_rate_r = self._reference(h)
         if self._traj is None:
             a = -c.kd_per_s * self._v
         else:

@@ -1,0 +1,104 @@
+"""The ten committed scenes: load, render, safe start, reachable and visible targets."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from onfly.world import World, list_scenes
+from onfly.world.scene import scenes_dir
+
+REPO = Path(__file__).resolve().parent.parent
+EXPECTED = {"urban_block", "factory_hall", "villa", "duplex", "corridor", "park", "parking_lot", "warehouse", "plaza", "terrace"}
+BODY_R = 0.25
+
+
+def test_the_ten_scenes_are_committed():
+    assert set(list_scenes()) == EXPECTED
+
+
+def test_generator_reproduces_the_committed_files(tmp_path):
+    subprocess.run([sys.executable, str(REPO / "experiments" / "make_scenes.py"), "--out", str(tmp_path)], check=True, capture_output=True)
+    for name in EXPECTED:
+        assert (tmp_path / f"{name}.toml").read_text() == (scenes_dir() / f"{name}.toml").read_text(), name
+
+
+@pytest.fixture(scope="module", params=sorted(EXPECTED))
+def world(request):
+    return World.from_scene(request.param)
+
+
+def test_scene_is_modest_and_renders_from_the_start_pose(world):
+    assert 100 <= world.geometry.triangle_count <= 5000
+    obs = world.observe()
+    valid = obs.depth_m > 0
+    assert valid.mean() > 0.4
+    assert np.all(obs.depth_m[valid] < 200)
+    ids = set(obs.annotation.objects)
+    assert len(ids) >= 5, f"only {len(ids)} instances visible from the start"
+    assert any(world.scene.object_by_id(i).target for i in ids)
+
+
+def test_start_pose_is_collision_free_with_margin(world):
+    p = world.scene.start.position_m
+    assert world.scene.bounds.contains(p)[0]
+    assert world.collision.clearance(p[None])[0] >= BODY_R + 0.75
+    # room to fly: a 1 m step forward along the start yaw stays clear
+    yaw = world.scene.start.yaw_rad
+    ahead = p + np.array([np.cos(yaw), np.sin(yaw), 0.0]) * np.linspace(0.2, 3.0, 15)[:, None]
+    assert world.collision.first_collision(ahead) is None
+
+
+def test_targets_are_named_with_look_alikes_and_within_flight_range(world):
+    scene = world.scene
+    targets = scene.targets
+    assert len(targets) >= 8
+    labels = Counter(o.label for o in targets)
+    assert max(labels.values()) >= 2, "no look-alike distractor (two targets sharing a label)"
+    start = scene.start.position_m
+    in_range = 0
+    for o in targets:
+        lo, hi = world.geometry.object_bounds(o.instance_id)
+        nearest = np.clip(start, lo, hi)
+        d_near = np.linalg.norm((nearest - start)[:2])
+        d_centre = np.linalg.norm(((lo + hi) / 2 - start)[:2])
+        assert d_near <= 35.0, f"{o.name} is {d_near:.1f} m away"
+        in_range += 8.0 <= d_centre <= 35.0
+    assert in_range >= 6
+
+
+def _probe_points(lo, hi, bounds):
+    c, half = (lo + hi) / 2, (hi - lo) / 2
+    r0 = np.linalg.norm(half[:2])
+    pts = []
+    for ang in np.linspace(0, 2 * np.pi, 16, endpoint=False):
+        for extra in (0.8, 1.5, 3.0):
+            xy = c[:2] + (r0 + extra) * np.array([np.cos(ang), np.sin(ang)])
+            for z in (1.5, c[2], hi[2] + 0.8):
+                pts.append([xy[0], xy[1], z])
+    P = np.array(pts)
+    return P[bounds.contains(P)]
+
+
+def test_every_target_is_visible_from_free_space_nearby(world):
+    """Not buried: from some collision-free point near the object, a ray reaches it first."""
+    g = world.geometry
+    for o in world.scene.targets:
+        lo, hi = g.object_bounds(o.instance_id)
+        P = _probe_points(lo, hi, world.scene.bounds)
+        P = P[world.collision.clearance(P) >= BODY_R + 0.25]
+        assert len(P), f"{o.name}: no free point near it"
+        tri = g.triangles[g.tri_instance == o.instance_id]
+        C = g.vertices[tri].mean(axis=1)
+        C = C[np.random.default_rng(0).permutation(len(C))[:24]]
+        origins = np.repeat(P, len(C), axis=0)
+        d = np.tile(C, (len(P), 1)) - origins
+        hits = g.cast(np.hstack([origins, d]).astype(np.float32))
+        first = g.tri_instance[np.minimum(hits["primitive_ids"], g.triangle_count - 1).astype(np.int64)]
+        seen = np.isfinite(hits["t_hit"]) & (first == o.instance_id)
+        assert seen.any(), f"{o.name}: not visible from any free point near it"
