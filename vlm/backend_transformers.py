@@ -1,4 +1,4 @@
-"""In-process transformers backend for Qwen2-VL, Qwen2.5-VL and Qwen3-VL.
+"""In-process transformers backend for Qwen2.5-VL and Qwen3-VL.
 
 Loads ``AutoModelForImageTextToText`` with the checkpoint's image processor and tokenizer (the
 combined ``AutoProcessor`` is not needed: image tokens are expanded here, so the backend also
@@ -58,7 +58,7 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-SUPPORTED_MODEL_TYPES = ("qwen2_vl", "qwen2_5_vl", "qwen3_vl")
+SUPPORTED_MODEL_TYPES = ("qwen2_5_vl", "qwen3_vl")
 _DTYPES = ("auto", "float32", "bfloat16", "float16")
 _DEVICE_RE = re.compile(r"^(cpu|cuda(:\d+)?)$")
 _IMAGE_PAD = "<|image_pad|>"
