@@ -8,6 +8,10 @@ HTTP-backend tests talk to::
     python -m vlm.server --backend transformers:/path/to/Qwen2.5-VL-3B-Instruct --port 8000
     python -m vlm.server --backend sim:nominal --port 0      # prints the port it bound
 
+(The simulated VLM grounds on the frame annotations of the embedded world, which do not travel
+over HTTP: served, it sees plain pixels only, so it is useful for text prompts such as the
+task decomposition, not for pointing.)
+
 Requests follow the OpenAI chat format: content is a string or a list of ``text`` and
 ``image_url`` parts (``data:`` URLs with base64 PNG/JPEG; remote URLs are refused). Each image
 becomes a :class:`VlmImage` whose ``frame_id`` is a digest of its decoded pixels, so a repeated
