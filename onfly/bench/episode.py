@@ -13,6 +13,7 @@ import logging
 import time
 import traceback
 from dataclasses import dataclass, field
+from typing import Any, Callable
 
 import numpy as np
 
@@ -21,7 +22,7 @@ from onfly.bench.metrics import EpisodeMetrics, EpisodeTrace, GoalRegion, episod
 from onfly.runtime import ClockRuntime
 from onfly.world.world import World
 
-__all__ = ["EpisodeConfig", "EpisodeResult", "run_episode", "END_REASONS"]
+__all__ = ["EpisodeConfig", "EpisodeResult", "EpisodeStep", "run_episode", "END_REASONS"]
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +45,17 @@ class EpisodeConfig:
                 raise ValueError(f"EpisodeConfig.{name} must be positive, got {v}")
         if self.frame_period_s < self.control_period_s - 1e-9:
             raise ValueError("EpisodeConfig.frame_period_s must be >= control_period_s")
+
+
+@dataclass(frozen=True, eq=False)
+class EpisodeStep:
+    """What an observer sees each control period (before the world steps)."""
+
+    t_s: float
+    state: Any
+    obs: Any
+    output: Any
+    method: Any
 
 
 @dataclass(frozen=True, eq=False)
@@ -94,8 +106,13 @@ def run_episode(
     error_model: str,
     config: EpisodeConfig | None = None,
     privileged: PrivilegedGoal | None = None,
+    observer: Callable[[EpisodeStep], None] | None = None,
 ) -> EpisodeResult:
-    """Fly one episode and compute its metrics. ``world`` must be fresh (at the start pose)."""
+    """Fly one episode and compute its metrics. ``world`` must be fresh (at the start pose).
+
+    ``observer`` (optional) is called after every control period with an :class:`EpisodeStep`
+    (recordings, live views); it must not change the world.
+    """
     cfg = config if config is not None else EpisodeConfig()
     wall0 = time.perf_counter()
     runtime = ClockRuntime(world.clock)
@@ -130,6 +147,8 @@ def run_episode(
                 break
             if out.trajectory is not None:
                 world.set_trajectory(out.trajectory)
+            if observer is not None:
+                observer(EpisodeStep(t, world.state, obs, out, method))
             ws = world.step(cfg.control_period_s)
             runtime.deliver(ws.completed)
             t = world.clock.now_s
