@@ -147,3 +147,11 @@ def test_resolve_scene_by_name_and_unknown_name_lists_choices():
     assert resolve_scene("villa").name == "villa.toml"
     with pytest.raises(FileNotFoundError, match=r"no scene named 'atlantis'; committed scenes: .*villa"):
         resolve_scene("atlantis")
+
+
+def test_the_documented_example_loads(tmp_path):
+    doc = (Path(__file__).resolve().parent.parent / "docs" / "scene_format.md").read_text()
+    example = doc.split("```toml\n", 1)[1].split("```", 1)[0]
+    s = load_scene(write(tmp_path, example, "driveway.toml"))
+    assert s.name == "driveway" and [o.name for o in s.targets] == ["red van", "blue van", "garage"]
+    assert s.label_ids["van"] == 3
