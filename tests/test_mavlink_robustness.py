@@ -69,16 +69,18 @@ def loopback(autopilot="px4"):
     return bridge, vehicle, port
 
 
-def flood(port, packets, duration_s, max_count):
-    """Send ``packets`` round-robin to 127.0.0.1:port for at most ``duration_s`` / ``max_count``."""
+def flood(port, packets, duration_s, max_count, rate_pps=5000.0):
+    """Send ``packets`` round-robin to 127.0.0.1:port, ~``rate_pps`` datagrams per second (in bursts
+    of 50), for at most ``duration_s`` seconds and ``max_count`` datagrams. 5000 per second is
+    ~100 times the vehicle's own telemetry rate."""
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sent, t0 = 0, time.monotonic()
     try:
         while sent < max_count and time.monotonic() - t0 < duration_s:
             sock.sendto(packets[sent % len(packets)], ("127.0.0.1", port))
             sent += 1
-            if sent % 200 == 0:
-                time.sleep(0.001)
+            if sent % 50 == 0:
+                time.sleep(max(0.0, t0 + sent / rate_pps - time.monotonic()))
     finally:
         sock.close()
     return sent
@@ -88,7 +90,7 @@ def test_idle_bridge_under_hostile_traffic_commands_nothing_and_keeps_true_state
     bridge, vehicle, port = loopback()
     try:
         rng = np.random.default_rng(0)
-        sent = flood(port, hostile_packets(rng), duration_s=0.8, max_count=6000)
+        sent = flood(port, hostile_packets(rng), duration_s=0.8, max_count=4000)
         assert sent >= 600
         time.sleep(0.3)
         assert bridge.running and bridge.errors == []
@@ -99,7 +101,7 @@ def test_idle_bridge_under_hostile_traffic_commands_nothing_and_keeps_true_state
         status = bridge.status()
         assert status.custom_mode == px4_custom_mode(4, 3) and not status.armed  # not the fake OFFBOARD
         assert bridge.link.stats.bad_in > 0 and bridge.reader.counts["foreign"] > 0
-        assert bridge.failsafe.events == []
+        assert bridge.failsafe.events == [], bridge.failsafe.events
     finally:
         bridge.stop()
         vehicle.stop()
@@ -118,7 +120,7 @@ def test_flood_during_offboard_flight_keeps_the_stream_steady_and_the_state_true
         assert vehicle.mode_name == "offboard"
         sp_t = np.array([t for t in vehicle.setpoint_times if t >= t0])
         assert len(sp_t) / (t_end - t0) >= 15.0 and np.max(np.diff(sp_t)) < 0.3
-        assert bridge.failsafe.first_event(FailsafeCause.LINK_LOST) is None
+        assert bridge.failsafe.first_event(FailsafeCause.LINK_LOST) is None, bridge.failsafe.events
         sent_sp = [s for s in bridge.sent]
         assert all(s.kind is SetpointKind.HOLD for s in sent_sp)
         assert max(np.linalg.norm(s.p) for s in sent_sp) < 0.05  # held at the true origin
