@@ -75,6 +75,8 @@ _MAX_DEPTH = float(np.finfo(np.float32).max)
 _SLACK_EPS_PX = 1e-3
 #: Exact re-checks of refined candidates before giving up (a failure would be a bug; logged).
 _MAX_EXACT_RECHECKS = 8
+#: Most distance transforms (radius groups) per slack map.
+_MAX_GROUPS = 8
 #: Ratio between the depth edges of the bands in which obstacles are collected.
 _BAND_RATIO = 1.5
 
@@ -441,8 +443,9 @@ def _slack_map(obstacles: _Obstacles, box: tuple[int, int, int, int], shape: tup
     Column-pixel units (see :class:`_Obstacles`). Obstacles are grouped so radii within a
     group differ by at most ``bin_ratio``; each group is dilated by its largest radius through
     one exact Euclidean distance transform on a grid whose rows are scaled by ``fx / fy``
-    (isotropic in the normalized image plane) with cells of ``s`` column pixels (1, 2 or 4 as
-    the radius grows); the worst-case cell rounding is subtracted.
+    (isotropic in the normalized image plane) with cells of ``s`` column pixels (1 below 24 px,
+    2 below 96 px, else 4); the worst-case cell rounding is subtracted. The ratio is widened so
+    that there are at most ``_MAX_GROUPS`` groups.
     """
     r0, r1, c0, c1 = box
     slack = np.full((r1 - r0, c1 - c0), np.inf, dtype=np.float32)
@@ -456,12 +459,14 @@ def _slack_map(obstacles: _Obstacles, box: tuple[int, int, int, int], shape: tup
     fx, fy = obstacles.fx, obstacles.fy
     aspect = fx / fy
     rho_lo = max(float(rho.min()), 1e-12)
-    group = np.floor(np.log(np.maximum(rho, rho_lo) / rho_lo) / math.log(bin_ratio)).astype(np.intp)
+    # At most _MAX_GROUPS distance transforms: widen the ratio when the radii span a lot.
+    ratio = max(bin_ratio, (float(rho.max()) / rho_lo) ** (1.0 / _MAX_GROUPS) * (1.0 + 1e-9))
+    group = np.floor(np.log(np.maximum(rho, rho_lo) / rho_lo) / math.log(ratio)).astype(np.intp)
     for g in np.unique(group):
         sel = group == g
         rho_g = float(rho[sel].max())
         radius = fx * rho_g
-        s = 1 if radius < 16.0 else (2 if radius < 48.0 else 4)
+        s = 1 if radius < 24.0 else (2 if radius < 96.0 else 4)
         # Cell offsets differ by at most s - 1 along columns (integer) and, with scaled rows,
         # by less than s along rows (s - 1 when the scale is exactly 1).
         row_off = s - 1.0 if aspect == 1.0 else float(s)
@@ -481,6 +486,47 @@ def _slack_map(obstacles: _Obstacles, box: tuple[int, int, int, int], shape: tup
         group_slack = s * dt[np.ix_(iy, ix)] - (loss + radius)
         np.minimum(slack, group_slack, out=slack)
     return slack
+
+
+def _pull_toward_target(
+    obstacles: _Obstacles,
+    allowed: np.ndarray,
+    box: tuple[int, int, int, int],
+    uv: tuple[float, float],
+    found: tuple[int, int],
+    found_slack: float,
+) -> tuple[int, int, float]:
+    """Move a feasible pixel back toward the target along the line joining them.
+
+    The slack map is conservative (radius groups, coarse cells), so the nearest pixel it accepts
+    can lie a few pixels beyond the exact clearance boundary. The pixels of the line from the
+    target ``uv`` to ``found`` that are ``allowed`` (in the component, with a reading) are
+    bisected with the exact per-obstacle test; only a pixel passing that test is returned.
+
+    Returns ``(row, col, slack)`` of the chosen pixel (``found`` itself when nothing closer passes).
+    """
+    r0, _, c0, _ = box
+    fr, fc = found
+    n = int(math.ceil(math.hypot(fc - uv[0], fr - uv[1])))
+    if n < 2:
+        return fr, fc, found_slack
+    t = np.linspace(0.0, 1.0, n + 1)
+    rows = np.floor(uv[1] + t * (fr - uv[1]) + 0.5).astype(np.intp)
+    cols = np.floor(uv[0] + t * (fc - uv[0]) + 0.5).astype(np.intp)
+    line = np.unique(np.stack([rows, cols], axis=1), axis=0)
+    order = np.argsort(np.hypot(line[:, 1] - uv[0], line[:, 0] - uv[1]), kind="stable")
+    line = line[order]
+    line = line[allowed[line[:, 0] - r0, line[:, 1] - c0]]
+    # line[-1] is `found` (feasible); look for the first feasible pixel assuming one crossing.
+    lo, hi, best = -1, len(line) - 1, (fr, fc, found_slack)
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        slack = obstacles.slack_at(float(line[mid, 1]), float(line[mid, 0]))
+        if slack > _SLACK_EPS_PX:
+            hi, best = mid, (int(line[mid, 0]), int(line[mid, 1]), slack)
+        else:
+            lo = mid
+    return best
 
 
 # -- the verifier --------------------------------------------------------------------------------
@@ -572,8 +618,8 @@ class Verifier:
         slack_map = _slack_map(obstacles, roi, (h, w), cfg.radius_bin_ratio)
         roi_depth = depth[r0:r1, c0:c1]
         with np.errstate(invalid="ignore"):
-            feasible = comp & (roi_depth > 0.0) & np.isfinite(roi_depth) & (slack_map > _SLACK_EPS_PX)
-        rr, cc = np.nonzero(feasible)
+            allowed = comp & (roi_depth > 0.0) & np.isfinite(roi_depth)
+        rr, cc = np.nonzero(allowed & (slack_map > _SLACK_EPS_PX))
         if rr.size:
             dist2 = (cc + c0 - u) ** 2 + (rr + r0 - v) ** 2
             order = np.argsort(dist2, kind="stable")[:_MAX_EXACT_RECHECKS]
@@ -581,6 +627,7 @@ class Verifier:
                 qr, qc = int(rr[k] + r0), int(cc[k] + c0)
                 slack_q = obstacles.slack_at(float(qc), float(qr))
                 if slack_q > _SLACK_EPS_PX:
+                    qr, qc, slack_q = _pull_toward_target(obstacles, allowed, roi, (u, v), (qr, qc), slack_q)
                     dq = min(float(depth[qr, qc]), cfg.d_max_m)
                     return self._accept(
                         candidate, (float(qc), float(qr)), dq, note, geometric_only, component_size, d, threshold, slack_q

@@ -72,9 +72,10 @@ class VerifierConfig:
         Cosine-similarity threshold of the semantic mask, in [-1, 1] (paper: 0.5).
     roi_px : int
         Side of the square region of interest centred on the target pixel, pixels; clipped at
-        the image border. 96 px is 6 x 6 patches of 16 px and 15 % of a 640 px image: enough
-        to move off an obstacle edge at the near-field depth (the clearance radius is
-        ``fx * r / z`` = 32 px at 2 m for fx = 320 px, up to 1.6x that at the image corner).
+        the image border. 128 px is 8 x 8 patches of 16 px and a fifth of a 640 px image: its
+        half-width of 64 px is the clearance radius ``fx * r / z`` of an obstacle at 1 m on
+        the axis of a camera with fx = 320 px, so a target on the edge of anything from the
+        near field outward can be moved clear of it inside the ROI.
     clearance_radius_m : float
         Clearance r of the viewing ray from every obstacle point, metres (paper: 0.2).
     d_max_m : float
@@ -98,12 +99,13 @@ class VerifierConfig:
         default) never joins two regions that touch only at a corner.
     radius_bin_ratio : float
         Obstacles are grouped into bins whose clearance radii differ by at most this ratio; each
-        bin is dilated by its largest radius (one distance transform per bin). Larger is faster
-        and more conservative; it never makes the check less safe. Must be > 1.
+        bin is dilated by its largest radius (one distance transform per bin, at most 8 bins:
+        the ratio widens when the radii span more). Larger is faster and more conservative; it
+        never makes the check less safe. Must be > 1.
     """
 
     tau: float = 0.5
-    roi_px: int = 96
+    roi_px: int = 128
     clearance_radius_m: float = 0.2
     d_max_m: float = 7.0
     sigma_theta: float = 0.5
@@ -111,7 +113,7 @@ class VerifierConfig:
     foreground_margin_m: float = 1.0
     reject_no_reading: bool = False
     connectivity: int = 4
-    radius_bin_ratio: float = 1.2
+    radius_bin_ratio: float = 1.1
 
     def __post_init__(self) -> None:
         def finite(name: str) -> float:
