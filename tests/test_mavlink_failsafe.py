@@ -87,18 +87,19 @@ def flight():
     port = bridge_link.local_address[1]
     vehicle = SimMavlinkVehicle(
         MavlinkLink(f"udpout:127.0.0.1:{port}", 1, 1),
-        SimVehicleConfig(heartbeat_period_s=0.2, offboard_prestream_s=0.3, offboard_loss_timeout_s=LOSS_TIMEOUT_S),
+        SimVehicleConfig(heartbeat_period_s=0.2, offboard_prestream_s=0.25, offboard_loss_timeout_s=LOSS_TIMEOUT_S,
+                         k_pos=4.0, k_vel=8.0, a_max_mps2=8.0),
     ).start()
     bridge = MavlinkBridge(bridge_link, BridgeConfig(failsafe=FailsafeConfig(odometry_max_age_s=0.3, link_timeout_s=0.3, vlm_hold_after_s=0.6))).start()
     bridge.wait_for_vehicle(3.0)
-    Px4Offboard(bridge, OffboardConfig(prestream_s=0.4)).engage()
+    Px4Offboard(bridge, OffboardConfig(prestream_s=0.3)).engage()
     n, dt = 5, 0.1
     p = np.zeros((n + 1, 3))
     p[:, 2] = np.linspace(0.0, 1.0, n + 1)
     v = np.zeros((n + 1, 3))
     v[:, 2] = 2.0
     bridge.set_trajectory(Trajectory(bridge.clock(), dt, p, v, np.zeros(n + 1), np.zeros((n, 3)), np.zeros(n)))
-    time.sleep(1.0)
+    time.sleep(0.8)
     assert vehicle.mode_name == "offboard" and vehicle.position_enu()[2] > 0.8
     yield bridge, vehicle
     bridge.stop()
