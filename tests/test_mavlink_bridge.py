@@ -255,3 +255,10 @@ def test_trajectory_type_and_config_validation():
         SafetyLimits(fence_min_m=(0, 0, 0), fence_max_m=(1, -1, 1))
     with pytest.raises(BridgeError, match="started bridge"):
         bridge.command_long(M.MAV_CMD_COMPONENT_ARM_DISARM, (1,))
+    wrong, _ = memory_link_pair(1, 190, 1, 1)
+    with pytest.raises(ValueError, match="link signs as 1/190 but the bridge config says 1/191"):
+        MavlinkBridge(wrong)
+    from_url = MavlinkBridge.from_url("udpin:127.0.0.1:0", BridgeConfig(source_system=7))
+    assert (from_url.link.source_system, from_url.link.source_component) == (7, 191)
+    with pytest.raises(ValueError, match="source_system must be in"):
+        BridgeConfig(source_system=0)

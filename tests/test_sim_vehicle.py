@@ -293,3 +293,40 @@ def test_cli_sim_vehicle_serves_heartbeats(capsys):
     assert "ardupilot vehicle (system 1)" in capsys.readouterr().out
     assert onfly_main(["sim-vehicle", "--mavlink", "bogus:1"]) == 2
     assert "unsupported link URL 'bogus:1'" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_two_processes_cli_vehicle_and_bridge_fly_px4_offboard():
+    """`onfly sim-vehicle` in its own process, the bridge here: engage OFFBOARD and climb."""
+    import subprocess
+    import sys
+
+    from onfly.mavlink.autopilot import OffboardConfig, Px4Offboard
+    from onfly.mavlink.bridge import MavlinkBridge
+    from planning.trajectory import Trajectory
+
+    bridge = MavlinkBridge.from_url("udpin:127.0.0.1:0")
+    bridge.link.connect()
+    port = bridge.link.local_address[1]
+    proc = subprocess.Popen(
+        [sys.executable, "-c", "import sys; from onfly.cli import main; sys.exit(main(sys.argv[1:]))",
+         "sim-vehicle", "--mavlink", f"udpout:127.0.0.1:{port}", "--duration-s", "20"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    )
+    try:
+        bridge.start()
+        bridge.wait_for_vehicle(15.0)
+        Px4Offboard(bridge, OffboardConfig(prestream_s=1.2)).engage()
+        n, dt = 20, 0.1
+        p = np.zeros((n + 1, 3))
+        p[:, 2] = np.linspace(0, 1.0, n + 1)
+        v = np.zeros((n + 1, 3))
+        v[:, 2] = 0.5
+        bridge.set_trajectory(Trajectory(bridge.clock(), dt, p, v, np.zeros(n + 1), np.zeros((n, 3)), np.zeros(n)))
+        time.sleep(4.0)
+        assert bridge.state().p[2] == pytest.approx(1.0, abs=0.1)
+        assert bridge.status().custom_mode == 6 << 16 and bridge.status().armed
+    finally:
+        bridge.stop()
+        proc.terminate()
+        proc.wait(5)

@@ -16,6 +16,21 @@ and reads :meth:`MavlinkBridge.state` (a :class:`~planning.trajectory.VehicleSta
 The trajectory is sampled at ``clock()``, so the pilot must build the bridge with its own clock
 (``MavlinkBridge(link, config, clock=pilot_clock)``).
 
+How the pilot plugs in::
+
+    with MavlinkBridge.from_url("udpin:0.0.0.0:14540", BridgeConfig(), clock=pilot_clock) as bridge:
+        bridge.wait_for_vehicle(timeout_s=10.0)
+        bridge.request_message_intervals()
+        session = make_session("px4", bridge)        # onfly.mavlink.autopilot
+        session.engage()                             # streams, arms, OFFBOARD; watches takeover
+        while not bridge.released:
+            state = bridge.state()                   # VehicleState, ENU, pilot clock
+            result = planner.step(state, goal, esdf)
+            bridge.set_trajectory(result.trajectory)
+            bridge.failsafe.report_planner(state.t_s, ok=result.ok)
+            # VLM outcomes: bridge.failsafe.report_vlm_ok(t) / report_vlm_failure(t, cause)
+    summary = [e.as_dict() for e in bridge.failsafe.events]
+
 type_mask (POSITION_TARGET_TYPEMASK: a set bit means *ignore* that field)
 -----------------------------------------------------------------------------
 ============  ==========================================  ================
@@ -49,7 +64,7 @@ import numpy as np
 
 from onfly.mavlink import frames
 from onfly.mavlink.failsafe import FailsafeAction, FailsafeConfig, FailsafeMonitor
-from onfly.mavlink.link import Link, LinkError, mavlink2
+from onfly.mavlink.link import Link, LinkError, MavlinkLink, mavlink2
 from onfly.mavlink.state import StateReader, StateReaderConfig, VehicleStatus
 from planning.frames import wrap_angle
 from planning.trajectory import Trajectory, VehicleState
@@ -224,8 +239,8 @@ class BridgeConfig:
     Attributes
     ----------
     target_system, target_component : the autopilot's ids
-    source_component : our component id (MAV_COMP_ID_ONBOARD_COMPUTER); the system id is the
-        link's ``source_system``
+    source_system, source_component : our ids; a companion shares the vehicle's system id and
+        signs as MAV_COMP_ID_ONBOARD_COMPUTER (191), as MAVROS does. The link must use them.
     setpoint_rate_hz : streamer rate
     heartbeat_period_s : companion heartbeat period
     telemetry_rate_hz : rate requested with SET_MESSAGE_INTERVAL for ``telemetry_messages``
@@ -237,6 +252,7 @@ class BridgeConfig:
 
     target_system: int = 1
     target_component: int = _M.MAV_COMP_ID_AUTOPILOT1
+    source_system: int = 1
     source_component: int = _M.MAV_COMP_ID_ONBOARD_COMPUTER
     setpoint_rate_hz: float = 20.0
     heartbeat_period_s: float = 1.0
@@ -249,8 +265,12 @@ class BridgeConfig:
     failsafe: FailsafeConfig = field(default_factory=FailsafeConfig)
 
     def __post_init__(self) -> None:
-        if not 1 <= int(self.target_system) <= 255:
-            raise ValueError(f"target_system must be in [1, 255], got {self.target_system}")
+        for name in ("target_system", "source_system"):
+            if not 1 <= int(getattr(self, name)) <= 255:
+                raise ValueError(f"{name} must be in [1, 255], got {getattr(self, name)}")
+        for name in ("target_component", "source_component"):
+            if not 0 <= int(getattr(self, name)) <= 255:
+                raise ValueError(f"{name} must be in [0, 255], got {getattr(self, name)}")
         for name in ("setpoint_rate_hz", "telemetry_rate_hz"):
             val = getattr(self, name)
             if not (math.isfinite(val) and 2.0 < val <= 500.0):
@@ -283,6 +303,11 @@ class MavlinkBridge:
     """
 
     def __init__(self, link: Link, config: BridgeConfig = BridgeConfig(), clock: Callable[[], float] = time.monotonic) -> None:
+        if (link.source_system, link.source_component) != (config.source_system, config.source_component):
+            raise ValueError(
+                f"link signs as {link.source_system}/{link.source_component} but the bridge config says "
+                f"{config.source_system}/{config.source_component}; build the link with the config's ids (or use MavlinkBridge.from_url)"
+            )
         self.link = link
         self.config = config
         self.clock = clock
@@ -305,6 +330,11 @@ class MavlinkBridge:
         self.sent: collections.deque[Setpoint] = collections.deque(maxlen=config.setpoint_log_len)
         self.release_reason: str | None = None
         self.errors: list[str] = []
+
+    @classmethod
+    def from_url(cls, url: str, config: BridgeConfig = BridgeConfig(), clock: Callable[[], float] = time.monotonic, baud: int = 921600) -> "MavlinkBridge":
+        """A bridge over a :class:`~onfly.mavlink.link.MavlinkLink` on ``url`` signed with the config's ids."""
+        return cls(MavlinkLink(url, config.source_system, config.source_component, baud=baud), config, clock)
 
     # -- lifecycle --------------------------------------------------------------------------
     def start(self) -> "MavlinkBridge":
