@@ -182,7 +182,6 @@ def test_px4_offboard_rules(px4):
 
 def test_ardupilot_guided_rules(ardu):
     c, v = ardu
-    hb = c.of_type("HEARTBEAT") or [(0, None)]
     assert c.command(M.MAV_CMD_DO_SET_MODE, 1, ARDUCOPTER_MODE["guided"]) == M.MAV_RESULT_ACCEPTED
     assert c.command(M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 2.0) == M.MAV_RESULT_FAILED  # disarmed
     assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
@@ -199,8 +198,8 @@ def test_ardupilot_guided_rules(ardu):
     t_to = v.first_event("guided timeout")
     assert t_to is not None and 0.5 - 0.06 <= t_to - t_stop <= 0.5 + 0.1
     assert v.mode_name == "guided"
-    atts = c.of_type("ATTITUDE")
-    assert len(atts) > 50 and hb is not None and c.of_type("HEARTBEAT")[-1][1].autopilot == M.MAV_AUTOPILOT_ARDUPILOTMEGA
+    assert len(c.of_type("ATTITUDE")) > 50  # ArduPilot reports Euler ATTITUDE
+    assert c.of_type("HEARTBEAT")[-1][1].autopilot == M.MAV_AUTOPILOT_ARDUPILOTMEGA
 
 
 def test_time_boot_wraps_and_the_reader_stays_monotonic():
@@ -214,14 +213,14 @@ def test_time_boot_wraps_and_the_reader_stays_monotonic():
         m = a.recv(0.05)
         if m is None:
             continue
-        if reader.handle(m) and m.get_type() == "LOCAL_POSITION_NED":
+        if reader.handle(m) and m.get_type() == "LOCAL_POSITION_NED" and reader.state() is not None:
             raw.append(m.time_boot_ms)
-            times.append(reader.state().t_s if reader.state() else reader.odometry_age_s())
+            times.append(reader.state().t_s)
     v.stop()
     raw = np.array(raw)
     assert raw.max() > 2**32 - 300 and raw.min() < 400  # it did wrap
-    t_pos = np.array([t for t in times])
-    assert np.all(np.diff(t_pos[1:]) > 0)
+    t_pos = np.array(times)
+    assert np.all(np.diff(t_pos) > 0)
 
 
 # -- camera channel ----------------------------------------------------------------------------
