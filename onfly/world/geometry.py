@@ -37,6 +37,8 @@ class SceneGeometry:
     tri_color : float32 (m, 3), RGB in [0, 1]
     tri_texture : int8 (m,), 0 none, else 1 + index in TEXTURE_PATTERNS
     tri_tex_params : float32 (m, 6): period_m, contrast, axis (3), seed
+    tri_normal : float32 (m, 3), unit face normals (right-hand rule on the vertex order)
+    tri_v0 : float32 (m, 3), first vertex of each triangle, metres
     raycasting : open3d.t.geometry.RaycastingScene
     """
 
@@ -71,6 +73,11 @@ class SceneGeometry:
         self.tri_color = np.vstack(col).astype(np.float32)
         self.tri_texture = np.concatenate(tex)
         self.tri_tex_params = np.vstack(tex_p).astype(np.float32)
+        v0, v1, v2 = (self.vertices[self.triangles[:, k]] for k in range(3))
+        n = np.cross(v1 - v0, v2 - v0)
+        norm = np.linalg.norm(n, axis=1, keepdims=True)
+        self.tri_normal = np.where(norm > 0, n / np.where(norm > 0, norm, 1.0), 0.0).astype(np.float32)
+        self.tri_v0 = v0.astype(np.float32)
         self.raycasting = o3d.t.geometry.RaycastingScene()
         self.raycasting.add_triangles(o3d.core.Tensor(self.vertices), o3d.core.Tensor(self.triangles))
         log.debug("scene %s: %d objects, %d triangles", scene.name, len(scene.objects), len(self.triangles))

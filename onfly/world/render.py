@@ -4,8 +4,8 @@ Shading model (per pixel, vectorized):
 
 ``rgb = 255 * colour * texture * (ambient + (1 - ambient) * max(0, n . l))``
 
-``colour`` is the hit triangle's object (or part) colour, ``n`` the triangle normal flipped to
-face the camera, ``l`` the scene's light direction (towards the light) and ``texture`` the
+``colour`` is the hit triangle's object (or part) colour, ``n`` the triangle's face normal
+turned towards the camera (flat shading, so it is computed once per triangle per frame), ``l`` the scene's light direction (towards the light) and ``texture`` the
 object's procedural pattern evaluated at the world hit point (``1 - contrast * value`` with
 ``value`` in [0, 1]). Rays that hit nothing get the scene's sky colour, depth 0 (no reading)
 and ids 0.
@@ -104,18 +104,21 @@ class RenderResult:
     T_world_cam: np.ndarray
 
 
-def _hash_unit(cells: np.ndarray, seed: np.ndarray) -> np.ndarray:
-    """Deterministic pseudo-random value in [0, 1) per integer cell (n, 3) and seed (n,)."""
-    c = cells.astype(np.uint64)
-    h = (c[:, 0] * np.uint64(73856093)) ^ (c[:, 1] * np.uint64(19349663)) ^ (c[:, 2] * np.uint64(83492791))
-    h ^= seed.astype(np.uint64) * np.uint64(2654435761)
-    # splitmix64 finalizer for good mixing
-    h ^= h >> np.uint64(30)
-    h *= np.uint64(0xBF58476D1CE4E5B9)
-    h ^= h >> np.uint64(27)
-    h *= np.uint64(0x94D049BB133111EB)
-    h ^= h >> np.uint64(31)
-    return (h >> np.uint64(40)).astype(np.float32) / np.float32(2**24)
+def _rotate_into(cols: tuple[np.ndarray, np.ndarray, np.ndarray], R: np.ndarray, out: np.ndarray) -> None:
+    """``out[:, i] = sum_k R[i, k] * cols[k]`` for float32 column vectors (n,), no BLAS."""
+    R = R.astype(np.float32)
+    tmp = np.empty_like(cols[0])
+    for i in range(3):
+        col = out[:, i]
+        np.multiply(cols[0], R[i, 0], out=tmp)
+        tmp += cols[1] * R[i, 1]
+        tmp += cols[2] * R[i, 2]
+        col[...] = tmp
+
+
+#: Value noise: one random brightness per cubic cell, from a fixed table of 32^3 cells (the
+#: pattern repeats every 32 cells); each texture seed shifts the table by its own offset.
+_NOISE_N = 32
 
 
 class Renderer:
@@ -137,6 +140,7 @@ class Renderer:
         self.config = config if config is not None else RenderConfig()
         rays = self.camera.rays(normalize=True).reshape(-1, 3)
         self._rays_cam = rays.astype(np.float32)  # (HW, 3) unit rays, optical frame
+        self._rays_cols = tuple(np.ascontiguousarray(self._rays_cam[:, k]) for k in range(3))
         self._ray_z = rays[:, 2].astype(np.float32)  # z-depth = ray length * ray_z
         self._buf = np.empty((rays.shape[0], 6), dtype=np.float32)
         scene = geometry.scene
@@ -146,9 +150,27 @@ class Renderer:
         # per-triangle tables with one extra "sky" row at index triangle_count
         self._tri_instance = np.append(geometry.tri_instance, 0).astype(np.int32)
         self._tri_label = np.append(geometry.tri_label, 0).astype(np.int32)
-        self._tri_color = np.vstack([geometry.tri_color, np.zeros((1, 3), np.float32)])
         self._tri_texture = np.append(geometry.tri_texture, 0).astype(np.int8)
+        prm = geometry.tri_tex_params
+        self._tex_inv_period = np.where(prm[:, 0] > 0, 1.0 / np.where(prm[:, 0] > 0, prm[:, 0], 1.0), 0.0).astype(np.float32)
+        self._tex_contrast = prm[:, 1].astype(np.float32)
+        self._tex_axis = np.argmax(np.abs(prm[:, 2:5]), axis=1).astype(np.intp)
+        seeds = prm[:, 5].astype(np.int64)
+        offsets = {int(sd): np.random.default_rng([0x5EED, int(sd)]).integers(0, _NOISE_N, 3) for sd in np.unique(seeds)}
+        self._tex_offset = np.array([offsets[int(sd)] for sd in seeds], dtype=np.int32).reshape(-1, 3)
+        self._noise = np.random.default_rng(0x5EED).random(_NOISE_N**3).astype(np.float32)
         self._objects = {o.instance_id: VisibleObject(o.instance_id, o.name, o.label, o.aliases) for o in scene.objects}
+
+    def world_rays(self, T_world_cam) -> np.ndarray:
+        """Camera rays in the world, float32 (H * W, 6) ``[origin, unit direction]`` in row-major
+        pixel order. The array is a buffer reused by the next call (copy it to keep it)."""
+        T = np.asarray(T_world_cam, dtype=float)
+        buf = self._buf
+        buf[:, :3] = T[:3, 3].astype(np.float32)
+        # Rotate without BLAS: a (n, 3) @ (3, 3) product through a threaded BLAS stalls when the
+        # cores are shared; three fused passes per axis are cheap and predictable.
+        _rotate_into(self._rays_cols, T[:3, :3], buf[:, 3:])
+        return buf
 
     def render(self, T_world_cam, *, noise_key: int = 0) -> RenderResult:
         """Render RGB, z-depth and id images.
@@ -160,58 +182,68 @@ class Renderer:
         """
         T = check_transform(T_world_cam, "T_world_cam")
         H, W = self.camera.height, self.camera.width
-        R = T[:3, :3].astype(np.float32)
-        buf = self._buf
-        buf[:, :3] = T[:3, 3].astype(np.float32)
-        np.matmul(self._rays_cam, R.T, out=buf[:, 3:])
+        buf = self.world_rays(T)
         hits = self.geometry.cast(buf, threads=self.config.threads)
         g = self.geometry
-        # Misses carry primitive id 2^32 - 1: clamp them onto the sky row of the lookup tables
-        # so every per-pixel lookup is one gather, without boolean masks.
-        tri = np.minimum(hits["primitive_ids"], g.triangle_count).astype(np.intp)
-        hit = tri < g.triangle_count
+        m = g.triangle_count
+        # Misses carry primitive id 2^32 - 1: clamp them onto the sky row (index m) of the
+        # per-triangle tables so every per-pixel lookup is one gather, without boolean masks.
+        tri = np.minimum(hits["primitive_ids"], m).astype(np.intp)
         t_hit = hits["t_hit"]
         depth = t_hit * self._ray_z
-        depth[~hit] = 0.0
+        depth[tri == m] = 0.0
         inst = np.take(self._tri_instance, tri)
         sem = np.take(self._tri_label, tri)
-
-        dirs = buf[:, 3:]
-        n = hits["primitive_normals"]  # (HW, 3), zero on misses
-        # normals towards the camera (meshes may be single-sided)
-        sign = -np.sign(np.einsum("ij,ij->i", n, dirs))
-        lam = self._ambient + (1.0 - self._ambient) * np.maximum(sign * (n @ self._light), 0.0)
-        color = np.take(self._tri_color, tri, axis=0)
-        color *= lam[:, None]
-        textured = np.flatnonzero(self._tri_texture[tri])
+        # Flat shading is per triangle: shade the m triangles once, then gather per pixel.
+        color_tri = self._shade_triangles(T[:3, 3])
+        rgb = np.take((color_tri * 255.0 + 0.5).astype(np.uint8), tri, axis=0)
+        textured = np.flatnonzero(np.take(self._tri_texture, tri))
         if len(textured):
             ti = tri[textured]
-            P = buf[textured, :3] + dirs[textured] * t_hit[textured, None] - 1e-3 * sign[textured, None] * n[textured]
-            color[textured] *= self._texture(self._tri_texture[ti], ti, P)[:, None]
-        rgb = (color * 255.0 + 0.5).astype(np.uint8)
-        rgb[~hit] = self._sky
+            # hit points pulled 1 mm towards the camera, so faces on a cell boundary never flicker
+            t_tex = t_hit[textured] - np.float32(1e-3)
+            cols = tuple(np.take(c, textured) * t_tex for c in self._rays_cols)
+            P = np.empty((len(textured), 3), dtype=np.float32)
+            _rotate_into(cols, T[:3, :3], P)
+            P += T[:3, 3].astype(np.float32)
+            shaded = color_tri[ti] * self._texture(self._tri_texture[ti], ti, P)[:, None]
+            rgb[textured] = (shaded * 255.0 + 0.5).astype(np.uint8)
 
         depth = depth.reshape(H, W)
         if self.config.depth_noise.enabled:
             depth = self.config.depth_noise.apply(depth, noise_key)
         return RenderResult(rgb.reshape(H, W, 3), depth, inst.reshape(H, W), sem.reshape(H, W), T)
 
+    def _shade_triangles(self, camera_m: np.ndarray) -> np.ndarray:
+        """Lambert colour in [0, 1] of every triangle seen from ``camera_m`` (3,), float32
+        (m + 1, 3); the last row is the sky. Normals are turned towards the camera."""
+        g = self.geometry
+        facing = np.sign(np.einsum("ij,ij->i", g.tri_normal, camera_m.astype(np.float32) - g.tri_v0))
+        lam = self._ambient + (1.0 - self._ambient) * np.maximum(facing * (g.tri_normal @ self._light), 0.0)
+        out = np.empty((g.triangle_count + 1, 3), dtype=np.float32)
+        out[:-1] = g.tri_color * lam[:, None]
+        out[-1] = self._sky.astype(np.float32) / 255.0
+        return out
+
     def _texture(self, code: np.ndarray, tri: np.ndarray, P: np.ndarray) -> np.ndarray:
-        """Brightness factor in [1 - contrast, 1] per hit (n,); P (n, 3) hit points just
-        inside the surface (so faces on a cell boundary do not flicker)."""
-        prm = np.take(self.geometry.tri_tex_params, tri, axis=0)
-        inv_period = 1.0 / prm[:, 0]
+        """Brightness factor in [1 - contrast, 1] per hit (n,) of triangles ``tri`` with pattern
+        ``code``; P (n, 3) the hit points, metres, world ENU."""
+        Q = P * np.take(self._tex_inv_period, tri)[:, None]  # position in cells
         val = np.empty(len(code), dtype=np.float32)
-        for c in np.unique(code):
-            sel = slice(None) if code[0] == c and code[-1] == c and np.all(code == c) else np.flatnonzero(code == c)
-            Q = P[sel] * inv_period[sel, None]
+        present = np.flatnonzero(np.bincount(code, minlength=4))
+        for c in present:
+            sel = slice(None) if len(present) == 1 else np.flatnonzero(code == c)
+            q = Q[sel]
+            t = tri[sel]
             if c == 1:  # stripes across the axis
-                val[sel] = np.floor(np.einsum("ij,ij->i", Q, prm[sel, 2:5])) % 2.0
+                val[sel] = np.floor(np.take_along_axis(q, np.take(self._tex_axis, t)[:, None], axis=1)[:, 0]) % 2.0
             elif c == 2:  # 3D checker
-                val[sel] = np.floor(Q).sum(axis=1) % 2.0
-            else:  # value noise per cell
-                val[sel] = _hash_unit(np.floor(Q).astype(np.int64), prm[sel, 5].astype(np.int64))
-        return 1.0 - prm[:, 1] * val
+                val[sel] = np.floor(q).sum(axis=1) % 2.0
+            else:  # value noise: a fixed random value per cell, periodic over 32 cells, shifted per seed
+                cells = np.floor(q).astype(np.int32) + np.take(self._tex_offset, t, axis=0)
+                cells &= _NOISE_N - 1
+                val[sel] = np.take(self._noise, (cells[:, 0] * _NOISE_N + cells[:, 1]) * _NOISE_N + cells[:, 2])
+        return 1.0 - np.take(self._tex_contrast, tri) * val
 
     def annotate(self, result: RenderResult) -> FrameAnnotation:
         """Ground truth for the simulated VLM: ids, depth and the instances present in the image."""

@@ -1,0 +1,181 @@
+"""Benchmark of the embedded world: render cost now, closed-loop cost once the oracle exists.
+
+Measured in the same run, per committed scene (or ``--scenes``), at the benchmark resolution
+(640 x 427, 90 x 60 deg) on ``--threads`` Embree threads (1 = the one-core budget):
+
+- ``render_ms_median``: :meth:`Renderer.render` + :meth:`Renderer.annotate` (RGB, z-depth,
+  instance and semantic ids, the VLM annotation) from seeded collision-free poses, with the
+  scene's ray-casting structure and camera rays built once (the fast path);
+- ``cast_ms_median``: Open3D ``cast_rays`` alone on the same rays, the floor our shading adds to;
+- ``naive_ms_median`` (reference): the same frame when nothing is kept between frames (meshes,
+  ``RaycastingScene`` and camera rays rebuilt each frame), measured on ``--naive-frames`` frames.
+
+Closed loop (``step_ms_median``: one 0.1 s control step of the oracle pilot: render when due,
+ESDF update, MPC, vehicle; ``realtime_factor``: simulated seconds per wall second over whole
+episodes) flies the registry's ``oracle`` method (:mod:`onfly.bench.registry`) through
+:func:`onfly.bench.episode.run_episode` on the first checked task of up to ``--episodes``
+scenes. If the oracle, the episode loop or checked tasks are missing, those two keys are
+**left out of the JSON** and the reason is printed and written as ``closed_loop_not_measured``.
+Nothing is estimated.
+
+Run: ``.venv/bin/python experiments/bench_world.py --json /tmp/bench_world.json``
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import platform
+import time
+
+import numpy as np
+
+from onfly.world import World, list_scenes
+from onfly.world.geometry import SceneGeometry
+from onfly.world.render import Renderer, default_camera
+from onfly.world.scene import load_scene, resolve_scene
+from planning.frames import body_transform, cam_transform_from_body
+
+
+def free_poses(world: World, n: int, rng: np.random.Generator) -> list[np.ndarray]:
+    """``n`` camera poses at collision-free points (clearance >= 0.5 m) inside the bounds,
+    starting with the start pose; random yaw, level camera."""
+    b = world.scene.bounds
+    s = world.scene.start
+    poses = [cam_transform_from_body(body_transform(s.position_m, s.yaw_rad))]
+    while len(poses) < n:
+        P = rng.uniform(b.min_m, b.max_m, size=(64, 3))
+        P[:, 2] = rng.uniform(b.min_m[2] + 0.5, min(b.max_m[2], b.min_m[2] + 4.0), size=64)
+        ok = P[world.collision.clearance(P) >= 0.5]
+        for p in ok[: n - len(poses)]:
+            poses.append(cam_transform_from_body(body_transform(p, rng.uniform(-np.pi, np.pi))))
+    return poses
+
+
+def bench_scene(name: str, frames: int, naive_frames: int, threads: int, seed: int) -> dict:
+    from onfly.world.render import RenderConfig
+
+    cfg = RenderConfig(threads=threads)
+    world = World.from_scene(name, render_config=cfg)
+    poses = free_poses(world, frames, np.random.default_rng(seed))
+    r = world.renderer
+    r.render(poses[0])  # first call builds Embree's BVH lazily; keep it out of the timings
+    fast, cast = [], []
+    for T in poses:
+        t0 = time.perf_counter()
+        out = r.render(T)
+        r.annotate(out)
+        t1 = time.perf_counter()
+        fast.append(t1 - t0)
+        t0 = time.perf_counter()
+        world.geometry.cast(r.world_rays(T), threads=threads)
+        cast.append(time.perf_counter() - t0)
+    naive = []
+    path = resolve_scene(name)
+    for T in poses[:naive_frames]:
+        t0 = time.perf_counter()
+        rn = Renderer(SceneGeometry(load_scene(path)), default_camera(), cfg)
+        rn.annotate(rn.render(T))
+        naive.append(time.perf_counter() - t0)
+    return {
+        "scene": name,
+        "triangles": world.geometry.triangle_count,
+        "frames": len(fast),
+        "render_ms_median": 1e3 * float(np.median(fast)),
+        "render_ms_p90": 1e3 * float(np.percentile(fast, 90)),
+        "cast_ms_median": 1e3 * float(np.median(cast)),
+        "naive_ms_median": 1e3 * float(np.median(naive)),
+    }
+
+
+def closed_loop(scenes: list[str], episodes: int) -> tuple[dict | None, str]:
+    """Time oracle episodes on the first committed tasks of the selected scenes.
+
+    Returns (results, "") or (None, why nothing was measured). ``step_ms_median`` is the wall
+    time between consecutive control periods (render when due, method step with ESDF update and
+    MPC, vehicle and collision step); ``realtime_factor`` is total simulated over total wall time.
+    """
+    try:
+        from onfly.bench.episode import EpisodeStep, run_episode
+        from onfly.bench.registry import make_method
+        from onfly.bench.tasks import load_tasks
+    except ImportError as exc:
+        return None, f"oracle pilot / benchmark modules not available ({exc})"
+    try:
+        tasks = [t for t in load_tasks() if t.scene in scenes and t.reference is not None]
+    except (FileNotFoundError, ValueError) as exc:
+        return None, f"tasks could not be loaded ({exc})"
+    if not tasks:
+        return None, "no checked tasks for the selected scenes"
+    by_scene: dict[str, list] = {}
+    for t in tasks:
+        by_scene.setdefault(t.scene, []).append(t)
+    chosen = [ts[0] for ts in by_scene.values()][:episodes]
+    steps: list[float] = []
+    sim_s = wall_s = 0.0
+    rows = []
+    for task in chosen:
+        world = World.from_scene(task.scene)
+        last = [time.perf_counter()]
+        first = len(steps)
+
+        def observer(_: EpisodeStep) -> None:
+            now = time.perf_counter()
+            steps.append(now - last[0])
+            last[0] = now
+
+        res = run_episode(world, make_method("oracle", "sim:nominal", 0), instruction=task.instruction, goal=task.goal_region,
+                          reference_path_m=task.reference.path_length_m, seed=0, error_model="none",
+                          privileged=task.privileged_goal(), observer=observer)
+        del steps[first]  # the first interval includes method reset
+        sim_s += res.sim_s
+        wall_s += res.wall_s
+        rows.append({"task": task.task_id, "end_reason": res.end_reason, "sim_s": res.sim_s, "wall_s": res.wall_s})
+    return {"step_ms_median": 1e3 * float(np.median(steps)), "realtime_factor": sim_s / wall_s, "episodes": rows}, ""
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description="Embedded-world render benchmark (and closed loop once the oracle exists).")
+    ap.add_argument("--scenes", nargs="*", default=None, help="scene names (default: all committed)")
+    ap.add_argument("--frames", type=int, default=30, help="frames per scene for the fast path")
+    ap.add_argument("--naive-frames", type=int, default=5, help="frames per scene for the rebuild-every-frame reference")
+    ap.add_argument("--threads", type=int, default=1, help="Embree threads (1 = one core)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--episodes", type=int, default=3, help="oracle episodes for the closed-loop columns (one task per scene)")
+    ap.add_argument("--json", type=str, default=None, help="write the results here")
+    args = ap.parse_args(argv)
+    scenes = args.scenes or list_scenes()
+    cam = default_camera()
+    rows = [bench_scene(s, args.frames, args.naive_frames, args.threads, args.seed) for s in scenes]
+    print(f"camera {cam.width} x {cam.height}, threads {args.threads}, {args.frames} frames per scene")
+    print(f"{'scene':<14} {'tris':>5} {'render ms':>10} {'p90 ms':>8} {'cast ms':>8} {'naive ms':>9} {'naive/fast':>10}")
+    for r in rows:
+        print(f"{r['scene']:<14} {r['triangles']:>5} {r['render_ms_median']:>10.1f} {r['render_ms_p90']:>8.1f} "
+              f"{r['cast_ms_median']:>8.1f} {r['naive_ms_median']:>9.1f} {r['naive_ms_median'] / r['render_ms_median']:>10.2f}")
+    result = {
+        "camera": [cam.width, cam.height],
+        "threads": args.threads,
+        "render_ms_median": float(np.median([r["render_ms_median"] for r in rows])),
+        "cast_ms_median": float(np.median([r["cast_ms_median"] for r in rows])),
+        "naive_ms_median": float(np.median([r["naive_ms_median"] for r in rows])),
+        "per_scene": rows,
+        "machine": platform.processor() or platform.machine(),
+    }
+    print(f"all scenes: render_ms_median {result['render_ms_median']:.1f} (cast alone {result['cast_ms_median']:.1f}, "
+          f"naive reference {result['naive_ms_median']:.1f})")
+    loop, why = closed_loop(scenes, args.episodes)
+    if loop is None:
+        result["closed_loop_not_measured"] = why
+        print(f"closed loop: not measured: {why}")
+    else:
+        result.update(loop)
+        print(f"closed loop: step_ms_median {loop['step_ms_median']:.1f}, realtime_factor {loop['realtime_factor']:.1f} over {len(loop['episodes'])} episodes")
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(result, fh, indent=2)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
