@@ -1,0 +1,222 @@
+"""The oracle pilot: perfect goals from ground truth through the ESDF + MPC (a check, not a method).
+
+It validates the world, the tasks and the planner: with the answer given, every task must be
+flown to success without a collision. It is privileged (``privileged = True``): the episode
+loop hands it the goal box and the checker's reference waypoints. Everything else is the
+verifier-free path of the real pilot:
+
+- every camera frame's depth goes into an :class:`planning.esdf.EsdfMap` (the map the MPC
+  sees is built from rendered depth only, never from the scene's meshes);
+- the goal of each control period is a *carrot* ``lookahead_m`` of arc length ahead of the
+  vehicle's progress along the reference polyline (progress is the nearest polyline point in
+  a window ahead of the last one, so it never jumps back), and on the last stretch the
+  reference's end, the free point next to the goal region;
+- :class:`planning.planner.Planner` plans to it;
+- it declares the task done when the vehicle is within ``done_radius_m`` of the goal region
+  and slower than ``done_speed_mps``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import asdict, dataclass, fields
+from typing import Any
+
+import numpy as np
+
+from onfly.bench.method import EpisodeSpec, MethodStep
+from onfly.bench.metrics import GoalRegion
+from onfly.observation import Observation
+from planning.esdf import EsdfMap
+from planning.esdf_config import EsdfConfig
+from planning.planner import Fallback, Planner
+from planning.planner_config import PlannerConfig
+from planning.trajectory import VehicleState
+
+__all__ = ["OracleConfig", "OraclePilot", "OracleError", "make_oracle"]
+
+log = logging.getLogger(__name__)
+
+
+class OracleError(ValueError):
+    """The oracle was started without the privileged goal it needs, or with bad options."""
+
+
+@dataclass(frozen=True)
+class OracleConfig:
+    """Oracle parameters.
+
+    lookahead_m : arc length from the vehicle's progress point to the carrot, metres
+    done_radius_m : declare done within this distance of the goal region, metres
+    done_speed_mps : ... and below this speed, m/s
+    path_step_m : spacing the reference polyline is resampled at, metres
+    progress_window_m : how far ahead of the last progress point the nearest point is searched
+    """
+
+    lookahead_m: float = 4.0
+    done_radius_m: float = 1.5
+    done_speed_mps: float = 0.15
+    path_step_m: float = 0.1
+    progress_window_m: float = 6.0
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
+                raise OracleError(f"OracleConfig.{f.name} must be a positive number, got {v!r}")
+
+
+def _resample(points: np.ndarray, step_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Polyline (k, 3) -> points (n, 3) at most ``step_m`` apart and their arc length (n,)."""
+    out = [points[:1]]
+    for a, b in zip(points[:-1], points[1:]):
+        n = max(1, int(math.ceil(np.linalg.norm(b - a) / step_m)))
+        out.append(a + (np.arange(1, n + 1)[:, None] / n) * (b - a))
+    P = np.vstack(out)
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
+    return P, s
+
+
+class _PlannerCache:
+    """Planners built once per process and configuration (CasADi set-up is not free)."""
+
+    def __init__(self) -> None:
+        self._planners: dict[PlannerConfig, Planner] = {}
+
+    def get(self, config: PlannerConfig) -> Planner:
+        if config not in self._planners:
+            self._planners[config] = Planner(config)
+        planner = self._planners[config]
+        planner.reset()
+        return planner
+
+
+_PLANNERS = _PlannerCache()
+
+
+def _recenter_in_hops(esdf: EsdfMap, center_m: np.ndarray) -> None:
+    """Move a fresh map's window to ``center_m`` in hops shorter than the window.
+
+    Works around planning.esdf_occupancy.shift_array failing when one shift exceeds the window
+    size (a first frame far from the map's initial origin); the map is empty, so hops are free.
+    """
+    lo, hi = esdf.bounds_world
+    here = (lo + hi) / 2
+    hop = 0.4 * float(np.min(hi - lo))
+    while True:
+        d = center_m - here
+        n = float(np.linalg.norm(d))
+        if n <= hop:
+            break
+        here = here + d * (hop / n)
+        esdf.recenter(here)
+    esdf.recenter(center_m)
+
+
+class OraclePilot:
+    """Privileged method: follows the reference waypoints with the ESDF + MPC (module docstring)."""
+
+    name = "oracle"
+    privileged = True
+
+    def __init__(
+        self,
+        config: OracleConfig | None = None,
+        planner_config: PlannerConfig | None = None,
+        esdf_config: EsdfConfig | None = None,
+        planner: Planner | None = None,
+    ) -> None:
+        self.config = config if config is not None else OracleConfig()
+        self.planner_config = planner_config if planner_config is not None else PlannerConfig()
+        self.esdf_config = esdf_config if esdf_config is not None else EsdfConfig()
+        self._planner = planner
+        self._reset_counters()
+
+    def _reset_counters(self) -> None:
+        self._steps = 0
+        self._frames = 0
+        self._fallbacks = {f.value: 0 for f in Fallback}
+        self._min_pred_clearance = float("inf")
+        self._plan_ms: list[float] = []
+        self._esdf_ms: list[float] = []
+
+    def reset(self, spec: EpisodeSpec) -> None:
+        goal = spec.privileged
+        if goal is None:
+            raise OracleError("the oracle needs the privileged goal (EpisodeSpec.privileged is None)")
+        wp = np.asarray(goal.waypoints, float)
+        if wp.ndim != 2 or wp.shape[1] != 3 or len(wp) < 1:
+            raise OracleError(f"the oracle needs reference waypoints (k, 3), got shape {wp.shape}")
+        self.region = GoalRegion(goal.center, goal.half_extents_m)
+        start = spec.start_state.p.astype(float)
+        if np.linalg.norm(wp[0] - start) > 1e-6:
+            wp = np.vstack([start, wp])
+        self.path, self.arc = _resample(wp, self.config.path_step_m)
+        self.goal_point = self.path[-1].copy()
+        self._progress = 0
+        self.esdf = EsdfMap(self.esdf_config)
+        _recenter_in_hops(self.esdf, start)
+        if self._planner is None:
+            self.planner = _PLANNERS.get(self.planner_config)
+        else:
+            self.planner = self._planner
+            self.planner.reset()
+        self._reset_counters()
+
+    def _carrot(self, p: np.ndarray) -> np.ndarray:
+        c = self.config
+        i0 = self._progress
+        i1 = int(np.searchsorted(self.arc, self.arc[i0] + c.progress_window_m, side="right"))
+        window = self.path[i0 : max(i1, i0 + 1)]
+        self._progress = i0 + int(np.argmin(np.linalg.norm(window - p, axis=1)))
+        k = int(np.searchsorted(self.arc, self.arc[self._progress] + c.lookahead_m, side="left"))
+        return self.path[min(k, len(self.path) - 1)]
+
+    def step(self, t_s: float, state: VehicleState, obs: Observation | None) -> MethodStep:
+        if obs is not None:
+            upd = self.esdf.integrate(obs.depth_m, obs.camera, obs.T_world_cam, center_world=state.p)
+            self._frames += 1
+            self._esdf_ms.append(float(upd.total_ms))
+        self._steps += 1
+        gap = float(self.region.distance(state.p))
+        speed = float(np.linalg.norm(state.v))
+        if gap <= self.config.done_radius_m and speed <= self.config.done_speed_mps:
+            return MethodStep(None, True, {"goal_gap_m": gap})
+        carrot = self._carrot(state.p)
+        plan = self.planner.step(state, carrot, self.esdf)
+        self._fallbacks[plan.fallback.value] += 1
+        self._min_pred_clearance = min(self._min_pred_clearance, float(plan.min_predicted_clearance_m))
+        self._plan_ms.append(float(plan.solve_time_ms))
+        return MethodStep(plan.trajectory, False, {"carrot": carrot, "goal_gap_m": gap})
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "steps": self._steps,
+            "frames": self._frames,
+            "fallbacks": dict(self._fallbacks),
+            "min_predicted_clearance_m": None if not math.isfinite(self._min_pred_clearance) else self._min_pred_clearance,
+            "plan_ms_mean": float(np.mean(self._plan_ms)) if self._plan_ms else 0.0,
+            "esdf_ms_mean": float(np.mean(self._esdf_ms)) if self._esdf_ms else 0.0,
+        }
+
+
+_SHARED = ("planner", "esdf", "verifier")
+
+
+def make_oracle(vlm_spec: str, seed: int, **options) -> OraclePilot:
+    """Registry factory. Options: ``planner`` / ``esdf`` (dicts of config overrides), the
+    fields of :class:`OracleConfig`; ``verifier`` is accepted and unused (no verifier on the
+    privileged path). The VLM spec and seed are unused: the oracle asks no VLM and draws nothing."""
+    planner = PlannerConfig.from_dict(dict(options.pop("planner", {}) or {}))
+    esdf = EsdfConfig(**dict(options.pop("esdf", {}) or {}))
+    options.pop("verifier", None)
+    valid = {f.name for f in fields(OracleConfig)}
+    bad = sorted(set(options) - valid)
+    if bad:
+        raise OracleError(f"unknown oracle option(s) {bad}; valid: {sorted(valid | set(_SHARED))}")
+    return OraclePilot(OracleConfig(**options), planner, esdf)
+
+
+def oracle_config_dict(config: OracleConfig) -> dict:
+    return asdict(config)
