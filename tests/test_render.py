@@ -200,3 +200,13 @@ def test_bad_pose_and_configs_are_rejected():
         DepthNoise(dropout_prob=1.5)
     with pytest.raises(ValueError, match="threads"):
         RenderConfig(threads=-1)
+
+
+def test_mesh_file_objects_render_with_their_id(tmp_path):
+    ply = tmp_path / "quad.obj"
+    ply.write_text("v 0 -1 0\nv 0 1 0\nv 0 1 2\nv 0 -1 2\nf 1 2 3\nf 1 3 4\n")
+    r = renderer([obj("sign", 21, "#20A040", [{"type": "mesh", "path": str(ply), "position_m": [4, 0, 0]}])])
+    out = r.render(forward([0, 0, 1]))
+    row, col = CAM.height // 2, CAM.width // 2
+    assert out.instance_ids[row, col] == 21
+    assert out.depth_m[row, col] == pytest.approx(4.0, rel=2e-6)

@@ -322,7 +322,7 @@ def _type_name(v: Any) -> str:
     return type(v).__name__
 
 
-def _get(ctx: _Ctx, table: dict, key: str, default: Any = ..., kind: str = "any") -> Any:
+def _get(ctx: _Ctx, table: dict, key: str, default: Any = ...) -> Any:
     if key not in table:
         if default is ...:
             raise ctx.err(key, "missing required field")
