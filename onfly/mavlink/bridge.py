@@ -639,8 +639,8 @@ class MavlinkBridge:
             self._stop.wait(max(0.0, min(next_sp, next_hb) - self.clock()))
 
     def _tick(self, now: float) -> None:
-        if not self._vehicle_seen.is_set():
-            return  # no contact yet: nothing to command and nothing has failed
+        if not self._vehicle_seen.is_set() or (not self.streaming and self.reader.state() is None):
+            return  # no contact (or no telemetry while idle) yet: nothing to command, nothing failed
         r = self.reader
         action = self.failsafe.evaluate(now, r.odometry_age_s(now), r.link_age_s(now), r.heartbeat_age_s(now))
         if self._mode is not _StreamMode.ACTIVE or action is FailsafeAction.STOP_STREAMING:
