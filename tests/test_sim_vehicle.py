@@ -1,6 +1,7 @@
 """SimMavlinkVehicle: PX4 and ArduCopter rules, telemetry rates and clocks, the point-mass
 model's limits, the loopback camera channel, and the `onfly sim-vehicle` command."""
 
+import argparse
 import socket
 import threading
 import time
@@ -8,7 +9,8 @@ import time
 import numpy as np
 import pytest
 
-from onfly.cli import main as onfly_main
+from onfly.cli import CliError
+from onfly.commands import sim_vehicle as sim_vehicle_cmd
 from onfly.mavlink import frames
 from onfly.mavlink.autopilot import ARDUCOPTER_MODE, PX4_MAIN, px4_main_mode
 from onfly.mavlink.camera_channel import FrameChannelError, FrameClient, FrameServer, decode_observation, encode_observation, parse_tcp_url
@@ -268,12 +270,18 @@ def test_frame_channel_rejects_bad_input():
 
 
 # -- CLI -------------------------------------------------------------------------------------------
+def _cli(argv):
+    """Parse ``argv`` with the command's own arguments (no other CLI modules imported)."""
+    parser = argparse.ArgumentParser(prog="onfly sim-vehicle")
+    sim_vehicle_cmd.add_arguments(parser)
+    return sim_vehicle_cmd.run(parser.parse_args(argv))
+
+
 def test_cli_sim_vehicle_serves_heartbeats(capsys):
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.bind(("127.0.0.1", 0))
-    sock.settimeout(2.0)
     port = sock.getsockname()[1]
-    rc = onfly_main(["sim-vehicle", "--mavlink", f"udpout:127.0.0.1:{port}", "--autopilot", "ardupilot", "--duration-s", "0.4"])
+    rc = _cli(["--mavlink", f"udpout:127.0.0.1:{port}", "--autopilot", "ardupilot", "--duration-s", "0.4"])
     assert rc == 0
     parser = M.MAVLink(None)
     parser.robust_parsing = True
@@ -290,8 +298,11 @@ def test_cli_sim_vehicle_serves_heartbeats(capsys):
     sock.close()
     assert heartbeats and heartbeats[0].autopilot == M.MAV_AUTOPILOT_ARDUPILOTMEGA
     assert "ardupilot vehicle (system 1)" in capsys.readouterr().out
-    assert onfly_main(["sim-vehicle", "--mavlink", "bogus:1"]) == 2
-    assert "unsupported link URL 'bogus:1'" in capsys.readouterr().err
+    with pytest.raises(CliError, match="unsupported link URL 'bogus:1'"):
+        _cli(["--mavlink", "bogus:1"])
+    with pytest.raises(CliError, match="--duration-s must be positive"):
+        _cli(["--duration-s", "-1"])
+    assert sim_vehicle_cmd.NAME == "sim-vehicle"
 
 
 @pytest.mark.slow
