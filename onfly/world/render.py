@@ -201,11 +201,9 @@ class Renderer:
         if len(textured):
             ti = tri[textured]
             # hit points pulled 1 mm towards the camera, so faces on a cell boundary never flicker
-            t_tex = t_hit[textured] - np.float32(1e-3)
-            cols = tuple(np.take(c, textured) * t_tex for c in self._rays_cols)
-            P = np.empty((len(textured), 3), dtype=np.float32)
-            _rotate_into(cols, T[:3, :3], P)
-            P += T[:3, 3].astype(np.float32)
+            rows = np.take(buf, textured, axis=0)
+            P = rows[:, 3:] * (np.take(t_hit, textured) - np.float32(1e-3))[:, None]
+            P += rows[:, :3]
             shaded = color_tri[ti] * self._texture(self._tri_texture[ti], ti, P)[:, None]
             rgb[textured] = (shaded * 255.0 + 0.5).astype(np.uint8)
 
@@ -219,7 +217,7 @@ class Renderer:
         (m + 1, 3); the last row is the sky. Normals are turned towards the camera."""
         g = self.geometry
         facing = np.sign(np.einsum("ij,ij->i", g.tri_normal, camera_m.astype(np.float32) - g.tri_v0))
-        lam = self._ambient + (1.0 - self._ambient) * np.maximum(facing * (g.tri_normal @ self._light), 0.0)
+        lam = self._ambient + (1.0 - self._ambient) * np.maximum(facing * np.einsum("ij,j->i", g.tri_normal, self._light), 0.0)
         out = np.empty((g.triangle_count + 1, 3), dtype=np.float32)
         out[:-1] = g.tri_color * lam[:, None]
         out[-1] = self._sky.astype(np.float32) / 255.0
