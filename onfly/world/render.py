@@ -139,8 +139,7 @@ class Renderer:
         self.camera = camera if camera is not None else default_camera()
         self.config = config if config is not None else RenderConfig()
         rays = self.camera.rays(normalize=True).reshape(-1, 3)
-        self._rays_cam = rays.astype(np.float32)  # (HW, 3) unit rays, optical frame
-        self._rays_cols = tuple(np.ascontiguousarray(self._rays_cam[:, k]) for k in range(3))
+        self._rays_cols = tuple(np.ascontiguousarray(rays[:, k], dtype=np.float32) for k in range(3))  # unit rays, optical frame
         self._ray_z = rays[:, 2].astype(np.float32)  # z-depth = ray length * ray_z
         self._buf = np.empty((rays.shape[0], 6), dtype=np.float32)
         scene = geometry.scene
