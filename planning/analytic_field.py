@@ -120,57 +120,88 @@ class HalfSpace:
         object.__setattr__(self, "normal", n / norm)
 
 
-def _box_sdf(P: np.ndarray, c: np.ndarray, h: np.ndarray, cos_y: np.ndarray, sin_y: np.ndarray):
-    """Signed distance (m, n) and gradient (m, n, 3) of m boxes at n points (vectorized)."""
-    d = P[None, :, :] - c[:, None, :]  # (m, n, 3) world offsets
-    # rotate into box frame: local = R(yaw)^T d
-    lx = cos_y[:, None] * d[..., 0] + sin_y[:, None] * d[..., 1]
-    ly = -sin_y[:, None] * d[..., 0] + cos_y[:, None] * d[..., 1]
-    local = np.stack([lx, ly, d[..., 2]], axis=-1)
-    sgn = np.where(local >= 0, 1.0, -1.0)
-    q = np.abs(local) - h[:, None, :]
+def _box_local(P: np.ndarray, c: np.ndarray, cos_y: np.ndarray, sin_y: np.ndarray):
+    """Point offsets in the frames of boxes: (..., 3) -> lx, ly, lz, broadcast over boxes."""
+    dx = P[..., 0] - c[..., 0]
+    dy = P[..., 1] - c[..., 1]
+    dz = P[..., 2] - c[..., 2]
+    return cos_y * dx + sin_y * dy, -sin_y * dx + cos_y * dy, dz
+
+
+def _box_dist(P: np.ndarray, c: np.ndarray, h: np.ndarray, cos_y: np.ndarray, sin_y: np.ndarray) -> np.ndarray:
+    """Signed distance (m, n) of m boxes at n points."""
+    lx, ly, lz = _box_local(P[None, :, :], c[:, None, :], cos_y[:, None], sin_y[:, None])
+    qx = np.abs(lx) - h[:, 0:1]
+    qy = np.abs(ly) - h[:, 1:2]
+    qz = np.abs(lz) - h[:, 2:3]
+    ox, oy, oz = np.maximum(qx, 0.0), np.maximum(qy, 0.0), np.maximum(qz, 0.0)
+    return np.sqrt(ox * ox + oy * oy + oz * oz) + np.minimum(np.maximum(np.maximum(qx, qy), qz), 0.0)
+
+
+def _box_grad(P: np.ndarray, c: np.ndarray, h: np.ndarray, cos_y: np.ndarray, sin_y: np.ndarray) -> np.ndarray:
+    """Gradient (k, 3) of box k (parameters (k, ...)) at point k (k, 3): paired, not crossed."""
+    lx, ly, lz = _box_local(P, c, cos_y, sin_y)
+    loc = np.stack([lx, ly, lz], axis=1)
+    sgn = np.where(loc >= 0.0, 1.0, -1.0)
+    q = np.abs(loc) - h
     qpos = np.maximum(q, 0.0)
-    outside = np.linalg.norm(qpos, axis=-1)
-    qmax = q.max(axis=-1)
-    dist = outside + np.minimum(qmax, 0.0)
-    # gradient in the box frame
-    is_out = outside > 0
-    g_out = sgn * qpos / np.where(is_out, outside, 1.0)[..., None]
-    axis = np.argmax(q, axis=-1)
-    g_in = np.zeros_like(local)
-    np.put_along_axis(g_in, axis[..., None], np.take_along_axis(sgn, axis[..., None], axis=-1), axis=-1)
-    g_loc = np.where(is_out[..., None], g_out, g_in)
-    gx = cos_y[:, None] * g_loc[..., 0] - sin_y[:, None] * g_loc[..., 1]
-    gy = sin_y[:, None] * g_loc[..., 0] + cos_y[:, None] * g_loc[..., 1]
-    return dist, np.stack([gx, gy, g_loc[..., 2]], axis=-1)
+    outside = np.sqrt(np.sum(qpos * qpos, axis=1))
+    is_out = outside > 0.0
+    g = sgn * qpos / np.where(is_out, outside, 1.0)[:, None]
+    if not np.all(is_out):
+        inside = ~is_out
+        axis = np.argmax(q[inside], axis=1)
+        gi = np.zeros((axis.size, 3))
+        gi[np.arange(axis.size), axis] = sgn[inside][np.arange(axis.size), axis]
+        g[inside] = gi
+    gx = cos_y * g[:, 0] - sin_y * g[:, 1]
+    gy = sin_y * g[:, 0] + cos_y * g[:, 1]
+    g[:, 0], g[:, 1] = gx, gy
+    return g
 
 
-def _sphere_sdf(P: np.ndarray, c: np.ndarray, r: np.ndarray):
+def _sphere_dist(P: np.ndarray, c: np.ndarray, r: np.ndarray) -> np.ndarray:
     d = P[None, :, :] - c[:, None, :]
-    n = np.linalg.norm(d, axis=-1)
+    return np.sqrt(np.einsum("mnk,mnk->mn", d, d)) - r[:, None]
+
+
+def _sphere_grad(P: np.ndarray, c: np.ndarray) -> np.ndarray:
+    d = P - c
+    n = np.linalg.norm(d, axis=1)
     safe = n > 1e-12
-    g = np.where(safe[..., None], d / np.where(safe, n, 1.0)[..., None], np.array([1.0, 0.0, 0.0]))
-    return n - r[:, None], g
+    out = np.zeros_like(d)
+    out[:, 0] = 1.0
+    out[safe] = d[safe] / n[safe, None]
+    return out
 
 
-def _cylinder_sdf(P: np.ndarray, cxy: np.ndarray, r: np.ndarray, zc: np.ndarray, hz: np.ndarray):
-    dxy = P[None, :, :2] - cxy[:, None, :]
-    rho = np.linalg.norm(dxy, axis=-1)
+def _cylinder_dist(P: np.ndarray, cxy: np.ndarray, r: np.ndarray, zc: np.ndarray, hz: np.ndarray) -> np.ndarray:
+    dx = P[None, :, 0] - cxy[:, 0:1]
+    dy = P[None, :, 1] - cxy[:, 1:2]
+    q_r = np.sqrt(dx * dx + dy * dy) - r[:, None]
+    q_z = np.abs(P[None, :, 2] - zc[:, None]) - hz[:, None]
+    o_r, o_z = np.maximum(q_r, 0.0), np.maximum(q_z, 0.0)
+    return np.sqrt(o_r * o_r + o_z * o_z) + np.minimum(np.maximum(q_r, q_z), 0.0)
+
+
+def _cylinder_grad(P: np.ndarray, cxy: np.ndarray, r: np.ndarray, zc: np.ndarray, hz: np.ndarray) -> np.ndarray:
+    dxy = P[:, 0:2] - cxy
+    rho = np.linalg.norm(dxy, axis=1)
     safe = rho > 1e-12
-    radial = np.where(safe[..., None], dxy / np.where(safe, rho, 1.0)[..., None], np.array([1.0, 0.0]))
-    dz = P[None, :, 2] - zc[:, None]
-    sz = np.where(dz >= 0, 1.0, -1.0)
-    q_r = rho - r[:, None]
-    q_z = np.abs(dz) - hz[:, None]
-    out_r, out_z = np.maximum(q_r, 0.0), np.maximum(q_z, 0.0)
-    outside = np.hypot(out_r, out_z)
-    dist = outside + np.minimum(np.maximum(q_r, q_z), 0.0)
-    is_out = outside > 0
+    radial = np.zeros_like(dxy)
+    radial[:, 0] = 1.0
+    radial[safe] = dxy[safe] / rho[safe, None]
+    dz = P[:, 2] - zc
+    sz = np.where(dz >= 0.0, 1.0, -1.0)
+    q_r = rho - r
+    q_z = np.abs(dz) - hz
+    o_r, o_z = np.maximum(q_r, 0.0), np.maximum(q_z, 0.0)
+    outside = np.hypot(o_r, o_z)
+    is_out = outside > 0.0
     den = np.where(is_out, outside, 1.0)
-    w_r = np.where(is_out, out_r / den, (q_r >= q_z).astype(float))
-    w_z = np.where(is_out, out_z / den, (q_z > q_r).astype(float))
-    g = np.concatenate([radial * w_r[..., None], (sz * w_z)[..., None]], axis=-1)
-    return dist, g
+    w_r = np.where(is_out, o_r / den, (q_r >= q_z).astype(float))
+    w_z = np.where(is_out, o_z / den, (q_z > q_r).astype(float))
+    return np.concatenate([radial * w_r[:, None], (sz * w_z)[:, None]], axis=1)
 
 
 @dataclass(frozen=True, eq=False)
@@ -212,6 +243,8 @@ class AnalyticField:
         self._set("_chz", np.array([0.5 * (x.z_max_m - x.z_min_m) for x in c], dtype=float).reshape(-1))
         self._set("_hp", np.array([x.point for x in self.half_spaces]).reshape(-1, 3))
         self._set("_hn", np.array([x.normal for x in self.half_spaces]).reshape(-1, 3))
+        counts = [len(self.boxes), len(self.spheres), len(self.cylinders)]
+        self._set("_offsets", np.concatenate([[0], np.cumsum(counts)]).astype(int))
 
     def _set(self, name: str, value) -> None:
         object.__setattr__(self, name, value)
@@ -235,28 +268,37 @@ class AnalyticField:
             raise AnalyticFieldError(f"points must have shape (n, 3), got {np.shape(points)}")
         if not np.all(np.isfinite(P)):
             raise AnalyticFieldError("points contain NaN or inf")
-        dists, grads = [], []
+        parts = []
         if len(self._bc):
-            d, g = _box_sdf(P, self._bc, self._bh, self._bcos, self._bsin)
-            dists.append(d)
-            grads.append(g)
+            parts.append(_box_dist(P, self._bc, self._bh, self._bcos, self._bsin))
         if len(self._sc):
-            d, g = _sphere_sdf(P, self._sc, self._sr)
-            dists.append(d)
-            grads.append(g)
+            parts.append(_sphere_dist(P, self._sc, self._sr))
         if len(self._cxy):
-            d, g = _cylinder_sdf(P, self._cxy, self._cr, self._czc, self._chz)
-            dists.append(d)
-            grads.append(g)
+            parts.append(_cylinder_dist(P, self._cxy, self._cr, self._czc, self._chz))
         if len(self._hp):
-            d = np.einsum("mnk,mk->mn", P[None, :, :] - self._hp[:, None, :], self._hn)
-            dists.append(d)
-            grads.append(np.broadcast_to(self._hn[:, None, :], d.shape + (3,)))
-        D = np.concatenate(dists, axis=0)
-        Gr = np.concatenate(grads, axis=0)
-        i = np.argmin(D, axis=0)
+            parts.append(self._hn @ P.T - np.sum(self._hn * self._hp, axis=1)[:, None])
+        D = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=0)
         cols = np.arange(P.shape[0])
-        return D[i, cols], Gr[i, cols]
+        i = np.argmin(D, axis=0)
+        dist = D[i, cols]
+        grad = np.empty((P.shape[0], 3))
+        o = self._offsets
+        sel = (i < o[1])
+        if sel.any():
+            j = i[sel]
+            grad[sel] = _box_grad(P[sel], self._bc[j], self._bh[j], self._bcos[j], self._bsin[j])
+        sel = (i >= o[1]) & (i < o[2])
+        if sel.any():
+            j = i[sel] - o[1]
+            grad[sel] = _sphere_grad(P[sel], self._sc[j])
+        sel = (i >= o[2]) & (i < o[3])
+        if sel.any():
+            j = i[sel] - o[2]
+            grad[sel] = _cylinder_grad(P[sel], self._cxy[j], self._cr[j], self._czc[j], self._chz[j])
+        sel = i >= o[3]
+        if sel.any():
+            grad[sel] = self._hn[i[sel] - o[3]]
+        return dist, grad
 
     def distance(self, points: np.ndarray) -> np.ndarray:
         """Signed distance only, shape (n,)."""

@@ -38,6 +38,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.ndimage as ndi
 
 from planning.camera import PinholeCamera
 from planning.esdf_config import EsdfConfig
@@ -234,7 +235,8 @@ class EsdfMap:
         if delta.flipped.size:
             idx = np.stack(np.unravel_index(delta.flipped, self.shape), axis=-1)
             lo, hi = idx.min(axis=0), idx.max(axis=0) + 1
-            n_esdf = self._update_box((tuple(int(v) for v in lo), tuple(int(v) for v in hi)))
+            for box in self._cluster_boxes(idx):
+                n_esdf += self._update_box(box)
             box_min = tuple(float(v) for v in (lo + self._occ.origin_index) * self.voxel_m)
             box_max = tuple(float(v) for v in (hi + self._occ.origin_index) * self.voxel_m)
         t_end = time.perf_counter()
@@ -254,22 +256,99 @@ class EsdfMap:
             total_ms=(t_end - t0) * 1e3,
         )
 
+    def _block_cost(self, lo: np.ndarray, hi: np.ndarray) -> int:
+        """Voxels in the outside-transform block of a changed box (its cost, roughly)."""
+        k2 = 2 * self._k_out
+        return int(np.prod(np.minimum(hi + k2, self._shape_arr) - np.maximum(lo - k2, 0)))
+
+    def _cluster_boxes(self, idx: np.ndarray) -> list[IndexBox]:
+        """Split flipped voxels (k, 3) into boxes that are cheaper to update than their hull.
+
+        A frame's changes are often a few small clusters far apart (new surfaces at the edges
+        of the view); one bounding box would span the empty space between them. Voxels are
+        grouped by connected cells of ``K`` voxels (26-neighbourhood), then boxes are merged
+        greedily while the merged block costs no more than the two apart. Any partition is
+        exact: each box rewrites exactly the voxels within ``K`` of its changes.
+        """
+        lo, hi = idx.min(axis=0), idx.max(axis=0) + 1
+        if len(idx) < 2 or np.all(hi - lo <= 2 * self._k_out):
+            return [(tuple(int(v) for v in lo), tuple(int(v) for v in hi))]
+        cell = idx // self._k_out
+        coarse = np.zeros(tuple(self._shape_arr // self._k_out + 1), dtype=bool)
+        coarse[tuple(cell.T)] = True
+        labels, n = ndi.label(coarse, structure=np.ones((3, 3, 3), dtype=bool))
+        if n == 1:
+            return [(tuple(int(v) for v in lo), tuple(int(v) for v in hi))]
+        lab = labels[tuple(cell.T)] - 1
+        los = np.full((n, 3), np.iinfo(np.int64).max, dtype=np.int64)
+        his = np.full((n, 3), -1, dtype=np.int64)
+        np.minimum.at(los, lab, idx)
+        np.maximum.at(his, lab, idx + 1)
+        boxes = [(los[i], his[i]) for i in range(n)]
+        merged = True
+        while merged and len(boxes) > 1:
+            merged = False
+            for i in range(len(boxes)):
+                for j in range(i + 1, len(boxes)):
+                    (a_lo, a_hi), (b_lo, b_hi) = boxes[i], boxes[j]
+                    u_lo, u_hi = np.minimum(a_lo, b_lo), np.maximum(a_hi, b_hi)
+                    if self._block_cost(u_lo, u_hi) <= self._block_cost(a_lo, a_hi) + self._block_cost(b_lo, b_hi):
+                        boxes[i] = (u_lo, u_hi)
+                        del boxes[j]
+                        merged = True
+                        break
+                if merged:
+                    break
+        return [(tuple(int(v) for v in a), tuple(int(v) for v in b)) for a, b in boxes]
+
     def _update_box(self, box: IndexBox) -> int:
         """Rewrite the distance of every voxel within ``K`` of ``box``; returns how many.
 
         ``box`` is a half-open local index box of voxels whose obstacle state changed. The
-        outside transform runs on the box grown by ``2 K`` (clipped to the grid), the inside
-        one on the write region grown by the inside clamp.
+        outside transform runs on the box grown by ``2 K`` (clipped to the grid). Obstacle
+        voxels with a free 6-neighbour are exactly one voxel from free space and read 0 (the
+        outside lookup already gives that); only the interior ones (all six neighbours solid)
+        need the inside transform, run on their bounding box grown by the inside clamp.
         """
         shape = self._shape_arr
         lo, hi = np.asarray(box[0], dtype=np.int64), np.asarray(box[1], dtype=np.int64)
         w_lo, w_hi = np.maximum(lo - self._k_out, 0), np.minimum(hi + self._k_out, shape)
+        w = tuple(slice(int(a), int(b)) for a, b in zip(w_lo, w_hi))
         solid = self._occ.solid
         d2_out = self._block_edt(solid, w_lo, w_hi, self._k_out, sites_are_solid=True)
-        d2_in = self._block_edt(solid, w_lo, w_hi, self._k_in, sites_are_solid=False)
-        w = tuple(slice(int(a), int(b)) for a, b in zip(w_lo, w_hi))
-        self._distance[w] = self._lut_out[d2_out] + self._lut_in[d2_in]
+        np.take(self._lut_out, d2_out, out=self._distance[w], mode="clip")
+        interior = self._interior(solid, w_lo, w_hi)
+        if interior is not None:
+            idx = np.argwhere(interior)
+            r_lo, r_hi = w_lo + idx.min(axis=0), w_lo + idx.max(axis=0) + 1
+            d2_in = self._block_edt(solid, r_lo, r_hi, self._k_in, sites_are_solid=False)
+            r = tuple(slice(int(a), int(b)) for a, b in zip(r_lo - w_lo, r_hi - w_lo))
+            inner = interior[r]
+            region = self._distance[tuple(slice(int(a), int(b)) for a, b in zip(r_lo, r_hi))]
+            region[inner] = self._lut_in[d2_in[inner]]
         return int(np.prod(w_hi - w_lo))
+
+    def _interior(self, solid: np.ndarray, w_lo: np.ndarray, w_hi: np.ndarray) -> np.ndarray | None:
+        """Bool mask over ``[w_lo, w_hi)`` of solid voxels whose six face neighbours are solid.
+
+        Space outside the window takes the unknown policy. None when there is no such voxel.
+        """
+        shape = self._shape_arr
+        e_lo, e_hi = np.maximum(w_lo - 1, 0), np.minimum(w_hi + 1, shape)
+        e = solid[tuple(slice(int(a), int(b)) for a, b in zip(e_lo, e_hi))]
+        pad = [(int(a == 0), int(b == n)) for a, b, n in zip(w_lo, w_hi, shape)]
+        if any(p != (0, 0) for p in pad):
+            e = np.pad(e, pad, mode="constant", constant_values=self._unknown_solid)
+        core = (slice(1, -1),) * 3
+        out = e[core].copy()
+        if not out.any():
+            return None
+        for axis in range(3):
+            lo_s, hi_s = list(core), list(core)
+            lo_s[axis], hi_s[axis] = slice(None, -2), slice(2, None)
+            out &= e[tuple(lo_s)]
+            out &= e[tuple(hi_s)]
+        return out if out.any() else None
 
     def _block_edt(self, solid, w_lo, w_hi, k: int, sites_are_solid: bool) -> np.ndarray:
         """Truncated squared EDT on the write region ``[w_lo, w_hi)``, from a block grown by k.

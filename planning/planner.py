@@ -63,6 +63,7 @@ __all__ = [
     "PlannerInputError",
     "adjust_goal",
     "ClosedLoopLog",
+    "ProblemSnapshot",
     "run_closed_loop",
 ]
 
@@ -113,6 +114,26 @@ class ControlCommand:
 
     a: np.ndarray
     yaw_rate: float
+
+
+@dataclass(frozen=True, eq=False)
+class ProblemSnapshot:
+    """The optimization problem a step posed, for re-solving it with another solver.
+
+    Attributes
+    ----------
+    theta : array (n_theta,), parameters in the vehicle-centred frame (see
+        :class:`planning.mpc_model.MpcLayout`)
+    origin : array (3,), world ENU position of that frame's origin (the vehicle), metres
+    z_init : array (n_z,), the linearization point the step started from (decision layout)
+    z_plan : array (n_z,), the returned plan in decision layout (slack = the exact field's
+        clearance shortfall, so ``cost(z_plan, theta)`` is the plan's cost in the exact problem)
+    """
+
+    theta: np.ndarray
+    origin: np.ndarray
+    z_init: np.ndarray
+    z_plan: np.ndarray
 
 
 @dataclass(frozen=True, eq=False)
@@ -258,6 +279,11 @@ class Planner:
         previous plan)
     """
 
+    #: Keep a :class:`ProblemSnapshot` of every step in :attr:`last_problem` (benchmarks,
+    #: solver comparisons); off by default, it copies a few arrays per step.
+    record_problems: bool = False
+    last_problem: ProblemSnapshot | None = None
+
     def __init__(self, config: PlannerConfig | None = None, solver: str = "qp") -> None:
         if solver not in SOLVERS:
             raise ValueError(f"solver must be one of {SOLVERS}, got {solver!r}")
@@ -349,10 +375,8 @@ class Planner:
             u_bar[:-1] = self._prev_u[1:]
             u_bar[-1] = self._prev_u[-1]
         X_bar = simulate(x0, u_bar, dt)
-        pts = np.empty((N + 2, 3))
-        pts[0] = goal
-        pts[1] = origin
-        pts[2:] = X_bar[1:, 0:3] + origin
+        extra = self._attractor_points(origin, goal)
+        pts = np.concatenate([goal[None, :], origin[None, :], X_bar[1:, 0:3] + origin, extra])
         d_all, g_all = _query(field, pts)
         d0 = float(d_all[1])
 
@@ -361,7 +385,8 @@ class Planner:
         goal_used, adjusted = adjust_goal(
             goal, origin, field, goal_clear, c.goal_search_max_m, goal_query=(float(d_all[0]), g_all[0])
         )
-        attractor = self._attractor(state.t_s, origin, d0, goal_used, field)
+        pre = None if adjusted else (extra, d_all[N + 2 :])
+        attractor = self._attractor(state.t_s, origin, d0, goal_used, field, pre)
         goal_local = attractor - origin
         to_goal = goal_used - origin
         horiz = float(np.hypot(to_goal[0], to_goal[1]))
@@ -391,7 +416,8 @@ class Planner:
         if not cold and self._prev_y is not None and self._qp is not None:
             y_warm = self._prev_y[self._qp.shift_y]
         s_warm = np.zeros(N) if cold else np.concatenate([self._prev_s[1:], self._prev_s[-1:]])
-        knots_query = (d_all[2:], g_all[2:])
+        knots_query = (d_all[2 : N + 2], g_all[2 : N + 2])
+        z_init = None
         for outer in range(n_outer):
             if outer > 0:
                 X_bar = simulate(x0, u_bar, dt)
@@ -399,6 +425,8 @@ class Planner:
             cuts_mode = ("fresh" if outer == 0 else "keep") if cold else "shift"
             self._linearize(X_bar, u_bar, origin, goal_local, field, cuts_mode, knots_query)
             z_warm = self._assemble_z(X_bar, u_bar, s_warm)
+            if z_init is None:
+                z_init = z_warm.copy()
             sol = self._solve(th, z_warm, y_warm, field, origin)
             iterations += sol[2]
             solves += sol[3]
@@ -439,6 +467,13 @@ class Planner:
             logger.info("planner fallback %s (status %s)", fallback.value, status.value)
         X, U, d_knots = plan
         self._prev_u = U
+        if self.record_problems:
+            self.last_problem = ProblemSnapshot(
+                theta=th.copy(),
+                origin=origin,
+                z_init=z_init,
+                z_plan=self._assemble_z(X, U, np.maximum(c.d_safe_m - d_knots, 0.0)),
+            )
 
         P = X[:, 0:3] + origin
         traj = Trajectory(
@@ -460,23 +495,83 @@ class Planner:
             attractor=attractor,
         )
 
+    def converge(
+        self, problem: ProblemSnapshot, field: DistanceField, max_iterations: int = 20, tol: float = 1e-4
+    ) -> tuple[np.ndarray, int]:
+        """Iterate the fast path's QP on one problem to its fixed point (sequential QP).
+
+        The step solves *one* QP about the shifted previous plan (real-time iteration); this
+        re-linearizes clearance and speed about each new solution, with the goal, state and
+        bounds of ``problem`` fixed, until the inputs change by less than ``tol`` (m/s^2,
+        rad/s). At the fixed point the proximal term vanishes and the QP's optimum is a KKT
+        point of the exact problem, which is what :mod:`planning.mpc_nlp` solves. The
+        planner's own state (previous plan, cuts) is left untouched.
+
+        Returns
+        -------
+        z : array (n_z,), inputs clipped to their bounds, states rolled out exactly, slack
+            equal to the exact field's shortfall
+        iterations : QP solves used
+        """
+        if self._qp is None:
+            raise ValueError("converge() needs the QP solver (Planner(solver='qp'))")
+        c, L = self.config, self.layout
+        saved_theta, saved_cuts = self._theta.copy(), None if self._cuts is None else self._cuts.copy()
+        try:
+            self._theta[:] = problem.theta
+            th = self._theta
+            x0 = th[L.th_x0].copy()
+            goal_local = th[L.th_goal].copy()
+            U = np.clip(problem.z_plan[self._idx_u], -self._u_max, self._u_max)
+            z_warm, y_warm = problem.z_plan.copy(), None
+            self._cuts = th[L.th_speed_dir].reshape(L.N, L.speed_cuts, 3).copy()
+            it = 0
+            for it in range(1, max_iterations + 1):
+                X = simulate(x0, U, c.dt_s)
+                self._linearize(X, U, problem.origin, goal_local, field, "keep")
+                status, z, _, _, y = self._solve(th, z_warm, y_warm, field, problem.origin)
+                if z is None:
+                    break
+                U_new = np.clip(z[self._idx_u], -self._u_max, self._u_max)
+                change = float(np.max(np.abs(U_new - U)))
+                U, z_warm, y_warm = U_new, z, y
+                if change < tol:
+                    break
+            X = simulate(x0, U, c.dt_s)
+            d, _ = _query(field, X[1:, 0:3] + problem.origin)
+            return self._assemble_z(X, U, np.maximum(c.d_safe_m - d, 0.0)), it
+        finally:
+            self._theta[:] = saved_theta
+            self._cuts = saved_cuts
+
     # ------------------------------------------------------------------ pieces
-    def _attractor(self, t_s: float, origin: np.ndarray, d0: float, goal: np.ndarray, field) -> np.ndarray:
+    def _attractor_points(self, origin: np.ndarray, goal: np.ndarray) -> np.ndarray:
+        """Points whose clearance :meth:`_attractor` needs: the segment to the goal, then the
+        current guide path (empty when the front-end is off)."""
+        if not self.config.guide_enable:
+            return np.empty((0, 3))
+        seg = segment_points(origin, goal, 0.1)
+        return seg if self._guide is None else np.concatenate([seg, self._guide])
+
+    def _attractor(self, t_s, origin, d0, goal, field, pre=None) -> np.ndarray:
         """The point the progress terms pull toward: the goal when the straight segment to it
-        keeps ``d_safe``, else a point ``guide_lookahead_m`` ahead on the guide path."""
+        keeps ``d_safe``, else a point ``guide_lookahead_m`` ahead on the guide path.
+
+        ``pre``: ``(points, distances)`` of :meth:`_attractor_points` already queried.
+        """
         c = self.config
         if not c.guide_enable:
             return goal
-        seg = segment_points(origin, goal, 0.1)
-        skip = 0.3 + max(0.0, c.d_safe_m - d0)
-        seg = seg[np.linalg.norm(seg - origin, axis=1) > skip]
+        if pre is None:
+            pts = self._attractor_points(origin, goal)
+            d, _ = _query(field, pts)
+        else:
+            pts, d = pre
         path = self._guide
-        n_seg = seg.shape[0]
-        pts = seg if path is None else np.concatenate([seg, path])
-        if pts.shape[0] == 0:
-            return goal
-        d, _ = _query(field, pts)
-        if segment_clear(d[:n_seg], c.d_safe_m):
+        n_seg = pts.shape[0] - (0 if path is None else path.shape[0])
+        skip = 0.3 + max(0.0, c.d_safe_m - d0)
+        far = np.linalg.norm(pts[:n_seg] - origin, axis=1) > skip
+        if segment_clear(d[:n_seg][far], c.d_safe_m):
             self._guide = None
             return goal
         if path is not None:

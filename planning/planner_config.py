@@ -149,7 +149,7 @@ class PlannerConfig:
                 object.__setattr__(self, f.name, float(value))
         positive = (
             "dt_s", "v_max_mps", "a_max_mps2", "yaw_rate_max_rps", "d_safe_m", "w_goal",
-            "w_slack_l1", "w_slack_l2", "speed_tolerance_rel", "qp_eps_abs", "qp_eps_rel",
+            "w_slack_l1", "w_slack_l2", "speed_tolerance_rel", "qp_eps_abs",
             "qp_rho", "nlp_tol", "guide_resolution_m", "guide_lookahead_m",
         )
         for name in positive:
@@ -158,7 +158,7 @@ class PlannerConfig:
         non_negative = (
             "w_terminal_pos", "w_terminal_vel", "w_vel", "w_accel", "w_jerk", "w_yaw",
             "w_yaw_rate", "w_prox_accel", "goal_clearance_margin_m", "goal_search_max_m", "yaw_hold_radius_m",
-            "safety_tolerance_m", "max_speed_refinements", "qp_adaptive_rho_interval",
+            "safety_tolerance_m", "max_speed_refinements", "qp_adaptive_rho_interval", "qp_eps_rel",
             "guide_clearance_margin_m", "guide_preferred_clearance_m", "guide_replan_period_s",
         )
         for name in non_negative:

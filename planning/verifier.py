@@ -78,7 +78,7 @@ _MAX_EXACT_RECHECKS = 8
 #: Most distance transforms (radius groups) per slack map.
 _MAX_GROUPS = 8
 #: Ratio between the depth edges of the bands in which obstacles are collected.
-_BAND_RATIO = 1.5
+_BAND_RATIO = 1.2
 
 
 class VerifierInputError(ValueError):
@@ -347,6 +347,16 @@ class _Obstacles:
     def empty(self) -> bool:
         return self.rows.size == 0
 
+    def reachable(self, box: tuple[int, int, int, int]) -> "_Obstacles":
+        """The obstacles whose clearance region can reach ``box`` (half-open rows, columns)."""
+        if self.empty:
+            return self
+        r0, r1, c0, c1 = box
+        d_row = np.maximum(np.maximum(r0 - self.rows, self.rows - (r1 - 1)), 0)
+        d_col = np.maximum(np.maximum(c0 - self.cols, self.cols - (c1 - 1)), 0)
+        keep = (d_row <= self.fy * self.rho) & (d_col <= self.fx * self.rho)
+        return _Obstacles(self.rows[keep], self.cols[keep], self.rho[keep], self.fx, self.fy)
+
     def slack_at(self, u: float, v: float) -> float:
         """``min_j (dist((u, v), j) - fx * rho_j)`` in column pixels; inf with no obstacle."""
         if self.empty:
@@ -462,8 +472,12 @@ def _slack_map(obstacles: _Obstacles, box: tuple[int, int, int, int], shape: tup
     # At most _MAX_GROUPS distance transforms: widen the ratio when the radii span a lot.
     ratio = max(bin_ratio, (float(rho.max()) / rho_lo) ** (1.0 / _MAX_GROUPS) * (1.0 + 1e-9))
     group = np.floor(np.log(np.maximum(rho, rho_lo) / rho_lo) / math.log(ratio)).astype(np.intp)
-    for g in np.unique(group):
-        sel = group == g
+    order = np.argsort(group, kind="stable")
+    group_sorted = group[order]
+    starts = np.flatnonzero(np.r_[True, group_sorted[1:] != group_sorted[:-1]])
+    ends = np.r_[starts[1:], group_sorted.size]
+    for a, b in zip(starts, ends):
+        sel = order[a:b]
         rho_g = float(rho[sel].max())
         radius = fx * rho_g
         s = 1 if radius < 24.0 else (2 if radius < 96.0 else 4)
@@ -486,6 +500,21 @@ def _slack_map(obstacles: _Obstacles, box: tuple[int, int, int, int], shape: tup
         group_slack = s * dt[np.ix_(iy, ix)] - (loss + radius)
         np.minimum(slack, group_slack, out=slack)
     return slack
+
+
+def _pixel_box(u: float, v: float) -> tuple[int, int, int, int]:
+    """Half-open box of the integer rows and columns within one pixel of (u, v)."""
+    return (int(math.floor(v)), int(math.floor(v)) + 2, int(math.floor(u)), int(math.floor(u)) + 2)
+
+
+def _segment_box(u: float, v: float, col: int, row: int) -> tuple[int, int, int, int]:
+    """Half-open box containing the pixels of the segment (u, v) -> (col, row), one pixel wider."""
+    return (
+        int(math.floor(min(v, row))) - 1,
+        int(math.ceil(max(v, row))) + 2,
+        int(math.floor(min(u, col))) - 1,
+        int(math.ceil(max(u, col))) + 2,
+    )
 
 
 def _pull_toward_target(
@@ -610,7 +639,7 @@ class Verifier:
         geometric_only = note is not RefinementNote.SEMANTIC
         obstacles = _gather_obstacles(depth, cam, roi, threshold, cfg.clearance_radius_m)
 
-        slack_p = obstacles.slack_at(u, v)
+        slack_p = obstacles.reachable(_pixel_box(u, v)).slack_at(u, v)
         if slack_p > _SLACK_EPS_PX:  # already feasible: stays put
             return self._accept(candidate, (u, v), min(d, cfg.d_max_m), note, geometric_only, component_size, d, threshold, slack_p)
 
@@ -625,9 +654,10 @@ class Verifier:
             order = np.argsort(dist2, kind="stable")[:_MAX_EXACT_RECHECKS]
             for k in order:
                 qr, qc = int(rr[k] + r0), int(cc[k] + c0)
-                slack_q = obstacles.slack_at(float(qc), float(qr))
+                near_line = obstacles.reachable(_segment_box(u, v, qc, qr))
+                slack_q = near_line.slack_at(float(qc), float(qr))
                 if slack_q > _SLACK_EPS_PX:
-                    qr, qc, slack_q = _pull_toward_target(obstacles, allowed, roi, (u, v), (qr, qc), slack_q)
+                    qr, qc, slack_q = _pull_toward_target(near_line, allowed, roi, (u, v), (qr, qc), slack_q)
                     dq = min(float(depth[qr, qc]), cfg.d_max_m)
                     return self._accept(
                         candidate, (float(qc), float(qr)), dq, note, geometric_only, component_size, d, threshold, slack_q
