@@ -102,3 +102,24 @@ def test_every_target_is_visible_from_free_space_nearby(world):
         first = g.tri_instance[np.minimum(hits["primitive_ids"], g.triangle_count - 1).astype(np.int64)]
         seen = np.isfinite(hits["t_hit"]) & (first == o.instance_id)
         assert seen.any(), f"{o.name}: not visible from any free point near it"
+
+
+def test_every_target_is_reachable_through_free_space_from_the_start(world):
+    """Free voxels (0.5 m grid, clearance >= 0.45 m at the centre) connected to the start
+    reach within 3 m of every target (the success radius is 5 m)."""
+    import scipy.ndimage as ndi
+
+    b = world.scene.bounds
+    h = 0.5
+    axes = [np.arange(lo + h / 2, hi, h) for lo, hi in zip(b.min_m, b.max_m)]
+    G = np.stack(np.meshgrid(*axes, indexing="ij"), -1)
+    P = G.reshape(-1, 3)
+    free = (world.collision.clearance(P) >= 0.45).reshape(G.shape[:3])
+    labels, _ = ndi.label(free)
+    idx = tuple(np.clip(np.floor((world.scene.start.position_m - b.min_m) / h).astype(int), 0, np.array(G.shape[:3]) - 1))
+    assert labels[idx] > 0, "start voxel is not free"
+    R = P[(labels == labels[idx]).reshape(-1)]
+    for o in world.scene.targets:
+        lo, hi = world.geometry.object_bounds(o.instance_id)
+        d = np.linalg.norm(np.maximum(np.maximum(lo - R, 0.0), R - hi), axis=1).min()
+        assert d <= 3.0, f"{o.name}: nearest reachable free voxel is {d:.1f} m away"
