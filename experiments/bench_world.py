@@ -24,7 +24,6 @@ Run: ``.venv/bin/python experiments/bench_world.py --json /tmp/bench_world.json`
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import platform
 import time
@@ -33,7 +32,7 @@ import numpy as np
 
 from onfly.world import World, list_scenes
 from onfly.world.geometry import SceneGeometry
-from onfly.world.render import Renderer, default_camera
+from onfly.world.render import RenderConfig, Renderer, default_camera
 from onfly.world.scene import load_scene, resolve_scene
 from planning.frames import body_transform, cam_transform_from_body
 
@@ -54,7 +53,6 @@ def free_poses(world: World, n: int, rng: np.random.Generator) -> list[np.ndarra
 
 
 def bench_scene(name: str, frames: int, naive_frames: int, threads: int, seed: int) -> dict:
-    from onfly.world.render import RenderConfig
 
     cfg = RenderConfig(threads=threads)
     world = World.from_scene(name, render_config=cfg)
