@@ -164,7 +164,7 @@ def test_pilot_takeover_stops_companion_commands(autopilot):
         reaction_s = time.monotonic() - t_cut
         print(f"{autopilot} takeover: companion released after {reaction_s * 1000:.0f} ms (heartbeat period 200 ms)")
         # Noticed from the next HEARTBEAT (0.2 s period here; 1 s on real autopilots)
-        assert bridge.released and reaction_s < 0.2 + 0.3
+        assert bridge.released and reaction_s < 0.2 + 0.4
         t_release = time.monotonic()
         time.sleep(0.4)
         late = [t for t in vehicle.setpoint_times if t > t_release + 0.06]

@@ -160,8 +160,8 @@ def test_streamer_samples_the_trajectory_at_a_steady_rate_while_the_main_thread_
     bridge.stop_streaming()
     times = np.array([t for t, _ in vehicle.of_type("SET_POSITION_TARGET_LOCAL_NED")])
     rate = (len(times) - 1) / (times[-1] - times[0])
-    assert 17.0 <= rate <= 23.0
-    assert np.max(np.diff(times)) < 0.15
+    assert 16.0 <= rate <= 24.0
+    assert np.max(np.diff(times)) < 0.2
     # What was sent equals the trajectory sampled at the send time (all TRACK, in ENU)
     sent = list(bridge.sent)
     assert all(s.kind is SetpointKind.TRACK for s in sent)
