@@ -13,6 +13,7 @@ Measured in the same run:
   ``scipy.ndimage.distance_transform_edt`` (outside and inside transforms), on every
   ``--reference-every``-th frame; ``incremental_vs_full_max_diff_m`` checks that our
   incremental field equals it;
+- ``query_us_40_points``: one :meth:`EsdfMap.query` of 40 points (the planner's per-step size);
 - ``max_abs_error_m``: ours against the exact mesh distance
   (``RaycastingScene.compute_distance``), both clamped to ``max_distance_m``, at points in
   seen free space (on the last frames' rays, short of the hit) whose nearest mesh point lies
@@ -189,6 +190,14 @@ def main(argv=None) -> int:
     clamp = config.max_distance_m
     err = np.abs(np.minimum(ours, clamp) - np.minimum(truth, clamp))
 
+    # query latency at the planner's size (about 40 points per control step)
+    q = P[:40] if len(P) >= 40 else np.resize(P, (40, 3))
+    n_calls = 2000
+    t0 = time.perf_counter()
+    for _ in range(n_calls):
+        esdf.query(q)
+    query_us_40 = (time.perf_counter() - t0) / n_calls * 1e6
+
     stage = np.asarray(stage)
     update_ms = np.asarray(update_ms)
     result = {
@@ -201,6 +210,7 @@ def main(argv=None) -> int:
         "mean_abs_error_m": float(err.mean()),
         "error_points": int(len(P)),
         "incremental_vs_full_max_diff_m": float(max(diffs)),
+        "query_us_40_points": float(query_us_40),
         "voxel_m": config.voxel_m,
         "grid_shape": list(esdf.shape),
         "frames": int(len(update_ms)),
@@ -224,6 +234,7 @@ def main(argv=None) -> int:
         ("speedup (reference / ours)", f"{result['speedup']:.1f}x"),
         ("incremental vs full max diff m", f"{result['incremental_vs_full_max_diff_m']:.2e}"),
         ("max / mean abs error vs mesh m", f"{result['max_abs_error_m']:.3f} / {result['mean_abs_error_m']:.3f} ({len(P)} pts)"),
+        ("query of 40 points us", f"{query_us_40:.1f}"),
         ("voxel m / grid", f"{config.voxel_m} / {tuple(esdf.shape)}"),
     ]
     width = max(len(r[0]) for r in rows)

@@ -67,8 +67,10 @@ class EsdfUpdate:
     changed_box_min_m, changed_box_max_m : world AABB (voxel faces, metres) of the flipped
         voxels, or None when nothing flipped
     shift_voxels : (3,) whole voxels the window moved before this frame
-    esdf_voxels : voxels whose distance was rewritten (all boxes, including shift slabs)
+    esdf_voxels : voxel distances rewritten (the frame's boxes and the shift slabs; a voxel in
+        two overlapping boxes counts twice)
     shift_ms, backproject_ms, occupancy_ms, esdf_ms, total_ms : wall time of each stage
+        (shift_ms includes the distance update of the shift slabs)
     """
 
     n_points: int
@@ -182,16 +184,21 @@ class EsdfMap:
         Returns the shift in whole voxels. Overlapping content is kept voxel for voxel; entering
         voxels are unknown; distances near the entering and leaving faces are recomputed.
         """
+        return self._recenter(center_world)[0]
+
+    def _recenter(self, center_world) -> tuple[tuple[int, int, int], int]:
+        """:meth:`recenter`, also returning how many voxel distances were rewritten."""
         center = np.asarray(center_world, dtype=float)
         if center.shape != (3,) or not np.all(np.isfinite(center)):
             raise EsdfError(f"center_world must be a finite array of shape (3,), got {center!r}")
         shift, boxes = self._occ.shift_to(self._occ.origin_for_center(center))
+        n_rewritten = 0
         if shift.any():
             fill = -self.config.max_inside_distance_m if self._unknown_solid else self.config.max_distance_m
             self._distance = shift_array(self._distance, shift, np.float32(fill))
             for box in boxes:
-                self._update_box(box)
-        return tuple(int(s) for s in shift)
+                n_rewritten += self._update_box(box)
+        return tuple(int(s) for s in shift), n_rewritten
 
     # -- integration ------------------------------------------------------------------------
     def integrate(self, depth_m, camera: PinholeCamera, T_world_cam, center_world=None) -> EsdfUpdate:
@@ -226,12 +233,13 @@ class EsdfMap:
             depth = depth.astype(np.float32)
         center = T[:3, 3] if center_world is None else center_world
         t_shift = time.perf_counter()
-        shift = self.recenter(center)
+        shift, n_esdf = self._recenter(center)
         t_occ = time.perf_counter()
         delta = self._occ.integrate(depth, camera, T)
         t_esdf = time.perf_counter()
+        if delta.n_points == 0:
+            log.debug("depth frame had no reading in [%.2f, %.2f) m", self.config.min_range_m, self.config.max_range_m)
         box_min = box_max = None
-        n_esdf = 0
         if delta.flipped.size:
             idx = np.stack(np.unravel_index(delta.flipped, self.shape), axis=-1)
             lo, hi = idx.min(axis=0), idx.max(axis=0) + 1

@@ -81,6 +81,7 @@ class RollingOccupancy:
         self.logodds = np.zeros(self.shape, dtype=np.float32)
         self.observed = np.zeros(self.shape, dtype=bool)
         self.solid = np.full(self.shape, self._unknown_solid, dtype=bool)
+        self._pristine = True  # no voxel observed since construction or reset
         self._scratch = np.zeros(int(np.prod(self.shape)), dtype=bool)
 
     # -- geometry of the window -------------------------------------------------------------
@@ -103,6 +104,7 @@ class RollingOccupancy:
         self.logodds.fill(0.0)
         self.observed.fill(False)
         self.solid.fill(self._unknown_solid)
+        self._pristine = True
 
     def shift_to(self, new_origin: np.ndarray) -> tuple[np.ndarray, list[IndexBox]]:
         """Move the window so local voxel 0 is global voxel ``new_origin`` (3,) int.
@@ -120,7 +122,10 @@ class RollingOccupancy:
             return shift, []
         shape = np.asarray(self.shape)
         self.origin_index = new_origin.copy()
+        if self._pristine:
+            return shift, []  # nothing observed yet: an all-unknown window looks the same anywhere
         if np.any(np.abs(shift) >= shape):
+            log.info("window jumped %s voxels (more than its size %s): map reset", shift.tolist(), list(self.shape))
             self.reset()
             return shift, [((0, 0, 0), tuple(int(n) for n in shape))]
         self.logodds = shift_array(self.logodds, shift, 0.0)
@@ -172,6 +177,8 @@ class RollingOccupancy:
         obs[hit_lin] = True
         obs[miss_lin] = True
         touched = np.concatenate([hit_lin, miss_lin])
+        if touched.size:
+            self._pristine = False
         now_solid = lo[touched] > np.float32(cfg.occupied_logodds)
         flipped = touched[now_solid != solid[touched]]
         solid[flipped] = ~solid[flipped]
