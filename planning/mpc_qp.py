@@ -143,6 +143,8 @@ class MpcQp:
         lbz, ubz = formulation.z_bounds(th)
         lbz0, ubz0 = (np.array(b).ravel() for b in formulation.z_bounds(self._generic_theta()))
         bounded = np.flatnonzero(np.isfinite(lbz0) | np.isfinite(ubz0))
+        #: indices of ``z`` with a finite bound, one identity row each (the last rows of A)
+        self.bounded_z = bounded
         G = ca.vertcat(
             formulation.dynamics(z, th),
             formulation.clearance_linear(z, th),

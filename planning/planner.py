@@ -411,7 +411,7 @@ class Planner:
         status = SolveStatus.FAILED
         plan = None
         slack_max = 0.0
-        n_outer = max(1, c.cold_start_iterations) if cold else 1
+        n_outer = max(1, c.cold_start_iterations) if cold and self._qp is not None else 1
         y_warm = None
         if not cold and self._prev_y is not None and self._qp is not None:
             y_warm = self._prev_y[self._qp.shift_y]
