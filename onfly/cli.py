@@ -66,4 +66,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    # run through the imported module so commands and this entry share one CliError class
+    from onfly.cli import main as _main
+
+    sys.exit(_main())
