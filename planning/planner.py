@@ -342,7 +342,9 @@ class Planner:
         return goal
 
     # ------------------------------------------------------------------ step
-    def step(self, state: VehicleState, goal_world: np.ndarray, field: DistanceField) -> PlanResult:
+    def step(
+        self, state: VehicleState, goal_world: np.ndarray, field: DistanceField, yaw_ref: float | None = None
+    ) -> PlanResult:
         """Plan from ``state`` toward ``goal_world`` in ``field``; always returns a command.
 
         Parameters
@@ -350,6 +352,9 @@ class Planner:
         state : VehicleState, measured state (world ENU)
         goal_world : array (3,), metres, world ENU
         field : DistanceField, signed distance and gradient (world ENU)
+        yaw_ref : optional heading in radians that replaces the goal bearing as the yaw
+            reference (e.g. turning in place toward a target or a recovery heading); it is
+            unwrapped relative to the current yaw like the bearing
 
         Raises
         ------
@@ -390,7 +395,11 @@ class Planner:
         goal_local = attractor - origin
         to_goal = goal_used - origin
         horiz = float(np.hypot(to_goal[0], to_goal[1]))
-        if horiz > c.yaw_hold_radius_m:
+        if yaw_ref is not None:
+            if not np.isfinite(yaw_ref):
+                raise PlannerInputError(f"yaw_ref must be finite, got {yaw_ref}")
+            psi_ref = float(unwrap_near(float(yaw_ref), state.yaw))
+        elif horiz > c.yaw_hold_radius_m:
             psi_ref = float(unwrap_near(np.arctan2(to_goal[1], to_goal[0]), state.yaw))
         else:
             psi_ref = float(state.yaw)
