@@ -210,3 +210,12 @@ def test_mesh_file_objects_render_with_their_id(tmp_path):
     row, col = CAM.height // 2, CAM.width // 2
     assert out.instance_ids[row, col] == 21
     assert out.depth_m[row, col] == pytest.approx(4.0, rel=2e-6)
+
+
+def test_textures_can_be_switched_off_for_speed():
+    tex = {"pattern": "checker", "period_m": 0.3, "contrast": 0.4}
+    objs = [obj("floor", 1, "#C8C8C8", [{"type": "plane", "center_m": [0, 0, 0], "size_m": [100, 100]}], texture=tex)]
+    on, off = renderer(objs).render(looking_down(3.0)), renderer(objs, textures=False).render(looking_down(3.0))
+    assert len(np.unique(off.rgb[..., 0])) == 1 and len(np.unique(on.rgb[..., 0])) == 2
+    np.testing.assert_array_equal(on.depth_m, off.depth_m)
+    np.testing.assert_array_equal(on.instance_ids, off.instance_ids)

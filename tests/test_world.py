@@ -45,3 +45,15 @@ def test_leaving_the_bounds_is_reported():
     flags = [w.step(0.1).out_of_bounds for _ in range(5)]
     # bounds top at 3.1 m: crossed during the 5th step (z reaches 3.15)
     assert flags == [False, False, False, False, True]
+
+
+def test_observe_at_another_resolution_shares_the_scene(world):
+    half = world.camera.scaled(0.5)
+    obs = world.observe(half)
+    assert obs.camera == half and obs.depth_m.shape == (half.height, half.width)
+    assert world.renderer_for(half) is world.renderer_for(half)
+    assert world.renderer_for(half).geometry is world.geometry
+    full = world.observe()
+    # the same view: mean depth over the valid pixels agrees closely between resolutions
+    a, b = obs.depth_m[obs.depth_m > 0].mean(), full.depth_m[full.depth_m > 0].mean()
+    assert abs(a - b) < 0.02 * b

@@ -80,6 +80,7 @@ class World:
         self.vehicle = SimVehicle(initial_state, vehicle_config)
         self.clock = SimClock(initial_state.t_s, latency)
         self.T_body_cam = np.asarray(T_body_cam, dtype=float)
+        self._renderers: dict[PinholeCamera, Renderer] = {}
         self._frame_index = 0
         self._collision: Collision | None = None
 
@@ -122,23 +123,39 @@ class World:
         s = self.vehicle.state if state is None else state
         return cam_transform_from_body(body_transform(s.p, s.yaw), self.T_body_cam)
 
-    def render(self) -> RenderResult:
+    def renderer_for(self, camera: PinholeCamera | None = None) -> Renderer:
+        """The renderer of ``camera`` (default: the world's camera). Renderers of other cameras
+        (e.g. ``world.camera.scaled(0.5)`` for cheap depth frames) share the scene geometry and
+        are built once each."""
+        if camera is None or camera == self.renderer.camera:
+            return self.renderer
+        r = self._renderers.get(camera)
+        if r is None:
+            r = self._renderers[camera] = Renderer(self.geometry, camera, self.renderer.config)
+        return r
+
+    def render(self, camera: PinholeCamera | None = None) -> RenderResult:
         """Render the current view (advances the frame counter that keys depth noise)."""
-        result = self.renderer.render(self.T_world_cam(), noise_key=self._frame_index)
+        result = self.renderer_for(camera).render(self.T_world_cam(), noise_key=self._frame_index)
         self._frame_index += 1
         return result
 
-    def observe(self) -> Observation:
-        """Render the current view as an Observation with its ground-truth annotation."""
+    def observe(self, camera: PinholeCamera | None = None) -> Observation:
+        """Render the current view as an Observation with its ground-truth annotation.
+
+        ``camera`` (optional) renders at other intrinsics, e.g. a lower resolution; render cost
+        is proportional to the pixel count.
+        """
         index = self._frame_index
-        r = self.render()
+        renderer = self.renderer_for(camera)
+        r = self.render(renderer.camera)
         return Observation(
             t_s=self.clock.now_s,
             rgb=r.rgb,
             depth_m=r.depth_m,
             T_world_cam=r.T_world_cam,
-            camera=self.camera,
+            camera=renderer.camera,
             frame_id=f"{self.scene.name}/{index:06d}",
             T_body_cam=self.T_body_cam,
-            annotation=self.renderer.annotate(r),
+            annotation=renderer.annotate(r),
         )
