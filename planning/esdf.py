@@ -8,11 +8,15 @@ Pipeline of one :meth:`EsdfMap.integrate` call, and what each stage uses:
    world points (``PointCloud.create_from_depth_image``), numpy bins them into hit voxels and
    projects the obstacle voxels of the frustum into the image for free-space clearing, then a
    log-odds update. Output: the voxels whose obstacle state flipped.
-3. **Distance** (:mod:`planning.esdf_edt`): Fast-Planner's bounding-box idea. The box of the
-   flipped voxels, grown by the clamp ``K = max_distance_m``, is the only region whose
+3. **Distance** (:mod:`planning.esdf_edt`, numpy): Fast-Planner's bounding-box idea. The box
+   of the flipped voxels, grown by the clamp ``K = max_distance_m``, is the only region whose
    distances can change; it is rewritten from an exact truncated EDT computed on the box grown
    by ``2 K`` (every obstacle within ``K`` of a rewritten voxel is inside that block), so the
-   field stays exactly the full-grid EDT (clamped) after every frame.
+   field stays exactly the full-grid EDT (clamped) after every frame. Changes far apart are
+   split into several boxes (clusters of ``K``-sized cells) when that is cheaper than their
+   hull, and the inside transform runs only around obstacle voxels with no free face
+   neighbour. scipy's ``distance_transform_edt`` computes the same field on the whole grid;
+   ``experiments/bench_esdf.py`` compares the two.
 
 Field convention (Fast-Planner's): for a free voxel, the distance between its centre and the
 nearest obstacle voxel centre; for an obstacle voxel, minus the distance to the nearest free

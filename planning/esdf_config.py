@@ -73,7 +73,9 @@ class EsdfConfig:
     unknown_policy : what never-observed space means for the field: ``"free"`` (Fast-Planner's
         optimistic map: only observed obstacles count; cheapest, since only occupied voxels
         need the free-space test) or ``"occupied"`` (conservative: unknown voxels and the space
-        outside the grid are obstacles, so the frustum sweep marks observed free space).
+        outside the grid are obstacles, so every unknown voxel of the frustum is projected to
+        mark observed free space; slower, and the shell of ``clear_margin_m`` in front of a
+        surface that no ray saw past stays unknown, so obstacles read up to that much closer).
     """
 
     voxel_m: float = 0.1
