@@ -35,7 +35,7 @@ METHODS: dict[str, Factory] = {"oracle": make_oracle}
 
 #: Modules imported (once) before a name is looked up; each calls :func:`register` at import.
 #: A module that is missing or fails to import is logged and skipped.
-PROVIDERS: tuple[str, ...] = ("onfly.agents", "onfly.pilot", "onfly.baselines")
+PROVIDERS: tuple[str, ...] = ("onfly.bench.onfly_method", "onfly.baselines")
 
 _loaded = False
 

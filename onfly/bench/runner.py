@@ -1,0 +1,630 @@
+"""The benchmark runner: methods x tasks x runs, in parallel, resumable, reproducible.
+
+A run is described by a TOML config (``experiments/configs/*.toml``, see :class:`BenchConfig`)
+and writes into an output folder:
+
+- ``episodes.jsonl``: one JSON line per finished episode, appended as soon as it finishes
+  (config hash, method, task, kind, run index, seed, metrics, end and failure reason, VLM calls
+  and their charged latency, simulated and wall seconds, the method's own summary);
+- ``summary.json`` and ``summary.md``: SR / OSR / CR / FT / NE / SPL per method and per method
+  and task kind, the error model and the realtime factor (simulated s / wall s);
+- ``config.json``: the resolved config and the hash of each method's part.
+
+Episodes are keyed by ``(config hash, method, task, run index)``: an interrupted run started
+again with the same config and folder skips every episode already in ``episodes.jsonl``. The
+config hash of a method covers everything that can change its results (episode protocol,
+world, shared planner / ESDF / verifier tables, the method's own options, VLM spec, base seed,
+the task's content), never the worker count, folder or task selection.
+
+Determinism: an episode's seed is derived from ``(base seed, task id, run index)`` only, every
+episode builds a fresh world and method in whatever process runs it, and planners cached per
+process are reset at every episode; results are therefore identical whatever the number of
+workers, and equal on Ray (``ray_address``) and local processes.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import functools
+import hashlib
+import json
+import logging
+import math
+import multiprocessing as mp
+import time
+import tomllib
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any, Callable, Iterable, Sequence
+
+import numpy as np
+
+from onfly.bench.episode import EpisodeConfig, run_episode
+from onfly.bench.metrics import EpisodeMetrics, summarize
+from onfly.bench.registry import get_factory, method_names
+from onfly.bench.tasks import KINDS, Task, load_tasks, select_tasks
+from onfly.world.render import RenderConfig
+from onfly.world.scene import Scene, load_scene, resolve_scene
+from onfly.world.world import World
+from planning.camera import PinholeCamera
+from planning.trajectory import VehicleState
+
+__all__ = [
+    "BenchConfig",
+    "BenchConfigError",
+    "EpisodeJob",
+    "episode_seed",
+    "error_model_name",
+    "plan_jobs",
+    "run_job",
+    "run_bench",
+    "read_records",
+    "summarize_records",
+    "format_summary",
+    "BenchResult",
+    "EPISODES_FILE",
+]
+
+log = logging.getLogger(__name__)
+
+EPISODES_FILE = "episodes.jsonl"
+SHARED_TABLES = ("planner", "esdf", "verifier")
+_WORLD_KEYS = ("width_px", "height_px", "hfov_deg", "vfov_deg", "render_threads")
+
+
+class BenchConfigError(ValueError):
+    """A benchmark config that cannot be used (the message names the file and field)."""
+
+
+def _jsonable(x: Any) -> Any:
+    """Plain JSON types: numpy to lists / numbers, non-finite floats to None, enums to values."""
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, (np.bool_, bool)):
+        return bool(x)
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, (float, np.floating)):
+        v = float(x)
+        return v if math.isfinite(v) else None
+    if isinstance(x, (int, str)) or x is None:
+        return x
+    if hasattr(x, "value") and isinstance(getattr(x, "value"), (str, int)):
+        return x.value
+    return repr(x)
+
+
+def _digest(data: Any) -> str:
+    return hashlib.sha256(json.dumps(_jsonable(data), sort_keys=True, separators=(",", ":")).encode()).hexdigest()[:16]
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    """A benchmark run (the ``[bench]`` table plus the protocol, world and method tables).
+
+    name : label of the run
+    methods : registered method names
+    task_ids / scenes / kinds / count : task selection (see :func:`onfly.bench.tasks.select_tasks`)
+    task_files : task files (default: the committed ones)
+    runs : runs per task (the paper: 3); seed : base seed
+    vlm : VLM spec for every method (``sim:<preset>``, see :mod:`vlm.factory`)
+    workers : local worker processes
+    episode : EpisodeConfig fields; world : camera and renderer (``width_px``, ``height_px``,
+        ``hfov_deg``, ``vfov_deg``, ``render_threads``)
+    shared : ``planner`` / ``esdf`` / ``verifier`` override tables passed to every method
+    method_options : method name -> its own option table (``[methods.<name>]``)
+    source : the file it was read from
+    """
+
+    name: str = "bench"
+    methods: tuple[str, ...] = ("oracle",)
+    task_ids: tuple[str, ...] | None = None
+    scenes: tuple[str, ...] | None = None
+    kinds: tuple[str, ...] | None = None
+    count: int | None = None
+    task_files: tuple[str, ...] | None = None
+    runs: int = 3
+    seed: int = 0
+    vlm: str = "sim:nominal"
+    workers: int = 1
+    episode: dict = field(default_factory=dict)
+    world: dict = field(default_factory=dict)
+    shared: dict = field(default_factory=dict)
+    method_options: dict = field(default_factory=dict)
+    source: str | None = None
+
+    def __post_init__(self) -> None:
+        where = f"{self.source}: " if self.source else ""
+        if not self.methods:
+            raise BenchConfigError(f"{where}bench.methods: list at least one method")
+        for name in ("runs", "workers"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise BenchConfigError(f"{where}bench.{name} must be a positive integer, got {v!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise BenchConfigError(f"{where}bench.seed must be an integer >= 0, got {self.seed!r}")
+        if not isinstance(self.vlm, str) or not self.vlm:
+            raise BenchConfigError(f"{where}bench.vlm must be a VLM spec string like 'sim:nominal', got {self.vlm!r}")
+        try:
+            EpisodeConfig(**self.episode)
+        except TypeError as exc:
+            raise BenchConfigError(f"{where}[episode]: {exc}; valid fields: {[f.name for f in fields(EpisodeConfig)]}") from None
+        except ValueError as exc:
+            raise BenchConfigError(f"{where}[episode]: {exc}") from None
+        bad = sorted(set(self.world) - set(_WORLD_KEYS))
+        if bad:
+            raise BenchConfigError(f"{where}[world]: unknown field(s) {bad}; valid: {list(_WORLD_KEYS)}")
+        bad = sorted(set(self.shared) - set(SHARED_TABLES))
+        if bad:
+            raise BenchConfigError(f"{where}unknown shared table(s) {bad}; valid: {list(SHARED_TABLES)}")
+        if self.kinds is not None:
+            bad = sorted(set(self.kinds) - set(KINDS))
+            if bad:
+                raise BenchConfigError(f"{where}bench.tasks.kinds: unknown kind(s) {bad}; valid: {list(KINDS)}")
+
+    # -- loading ---------------------------------------------------------------------------
+    @classmethod
+    def from_toml(cls, path: str | Path) -> "BenchConfig":
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"benchmark config not found: {path}")
+        try:
+            data = tomllib.loads(path.read_text())
+        except tomllib.TOMLDecodeError as exc:
+            raise BenchConfigError(f"{path}: not valid TOML: {exc}") from None
+        return cls.from_dict(data, source=str(path))
+
+    @classmethod
+    def from_dict(cls, data: dict, source: str | None = None) -> "BenchConfig":
+        where = f"{source}: " if source else ""
+        allowed = ("bench", "episode", "world", "methods", *SHARED_TABLES)
+        bad = sorted(set(data) - set(allowed))
+        if bad:
+            raise BenchConfigError(f"{where}unknown table(s) {bad}; valid: {list(allowed)}")
+        b = dict(data.get("bench", {}))
+        sel = dict(b.pop("tasks", {}) or {})
+        bad_sel = sorted(set(sel) - {"ids", "scenes", "kinds", "count", "files"})
+        if bad_sel:
+            raise BenchConfigError(f"{where}bench.tasks: unknown field(s) {bad_sel}; valid: ids, scenes, kinds, count, files")
+        valid = {"name", "methods", "runs", "seed", "vlm", "workers"}
+        bad = sorted(set(b) - valid)
+        if bad:
+            raise BenchConfigError(f"{where}[bench]: unknown field(s) {bad}; valid: {sorted(valid | {'tasks'})}")
+        methods_tbl = data.get("methods", {})
+        if not isinstance(methods_tbl, dict) or not all(isinstance(v, dict) for v in methods_tbl.values()):
+            raise BenchConfigError(f"{where}[methods.<name>] must be tables of options")
+
+        def tup(v, field_name):
+            if v is None:
+                return None
+            if not isinstance(v, list) or not all(isinstance(s, str) for s in v):
+                raise BenchConfigError(f"{where}{field_name} must be a list of strings, got {v!r}")
+            return tuple(v)
+
+        methods = b.get("methods", ["oracle"])
+        return cls(
+            name=str(b.get("name", Path(source).stem if source else "bench")),
+            methods=tup(methods if isinstance(methods, list) else [methods], "bench.methods"),
+            task_ids=tup(sel.get("ids"), "bench.tasks.ids"),
+            scenes=tup(sel.get("scenes"), "bench.tasks.scenes"),
+            kinds=tup(sel.get("kinds"), "bench.tasks.kinds"),
+            count=sel.get("count"),
+            task_files=tup(sel.get("files"), "bench.tasks.files"),
+            runs=b.get("runs", 3),
+            seed=b.get("seed", 0),
+            vlm=b.get("vlm", "sim:nominal"),
+            workers=b.get("workers", 1),
+            episode=dict(data.get("episode", {})),
+            world=dict(data.get("world", {})),
+            shared={k: dict(data[k]) for k in SHARED_TABLES if k in data},
+            method_options={k: dict(v) for k, v in methods_tbl.items()},
+            source=source,
+        )
+
+    # -- identity ----------------------------------------------------------------------------
+    def method_options_for(self, method: str) -> dict:
+        """Options handed to the method's factory: shared tables plus its own table."""
+        opts = {k: dict(v) for k, v in self.shared.items()}
+        opts.update(self.method_options.get(method, {}))
+        return opts
+
+    def method_hash(self, method: str) -> str:
+        """Hash of everything that can change ``method``'s results (see the module docstring)."""
+        return _digest(
+            {
+                "method": method,
+                "options": self.method_options_for(method),
+                "episode": asdict(EpisodeConfig(**self.episode)),
+                "world": self.world_settings(),
+                "vlm": self.vlm,
+                "seed": self.seed,
+            }
+        )
+
+    def world_settings(self) -> dict:
+        w = {"width_px": 640, "height_px": 427, "hfov_deg": 90.0, "vfov_deg": 60.0, "render_threads": 1}
+        w.update(self.world)
+        return w
+
+    def to_dict(self) -> dict:
+        return _jsonable(asdict(self))
+
+
+def episode_seed(base_seed: int, task_id: str, run_index: int) -> int:
+    """Seed of one episode, from the base seed, the task and the run index only (< 2**31)."""
+    h = hashlib.sha256(f"onfly-episode:{int(base_seed)}:{task_id}:{int(run_index)}".encode()).digest()
+    return int.from_bytes(h[:4], "little") & 0x7FFFFFFF
+
+
+def error_model_name(vlm_spec: str) -> str:
+    """The simulated-VLM error model of a spec (``sim:nominal`` -> ``nominal``), or
+    ``real:<spec>`` for a real backend."""
+    if vlm_spec.startswith("sim:"):
+        return vlm_spec.split(":", 1)[1] or "nominal"
+    return f"real:{vlm_spec}"
+
+
+def _task_digest(task: Task) -> str:
+    return _digest(
+        {
+            "instruction": task.instruction,
+            "start": [task.start.position_m, task.start.yaw_rad],
+            "goal": [task.goal.center_m, task.goal.half_extents_m],
+            "reference": None if task.reference is None else [task.reference.path_length_m, task.reference.waypoints_m],
+        }
+    )
+
+
+@dataclass(frozen=True)
+class EpisodeJob:
+    """One episode to run (picklable; a worker rebuilds world and method from it)."""
+
+    method: str
+    task_id: str
+    run_index: int
+    seed: int
+    config_hash: str
+    vlm: str
+    options: dict
+    episode: dict
+    world: dict
+    task_files: tuple[str, ...] | None
+
+    @property
+    def key(self) -> str:
+        return f"{self.config_hash}/{self.method}/{self.task_id}/{self.run_index}"
+
+
+def plan_jobs(config: BenchConfig, tasks: Sequence[Task]) -> list[EpisodeJob]:
+    """All episodes of a run, method-major then task then run index."""
+    jobs = []
+    for m in config.methods:
+        base = config.method_hash(m)
+        for t in tasks:
+            h = _digest([base, _task_digest(t)])
+            for r in range(config.runs):
+                jobs.append(
+                    EpisodeJob(m, t.task_id, r, episode_seed(config.seed, t.task_id, r), h, config.vlm,
+                               config.method_options_for(m), dict(config.episode), config.world_settings(), config.task_files)
+                )
+    return jobs
+
+
+# -- running one episode (in any process) ---------------------------------------------------
+
+
+@functools.lru_cache(maxsize=4)
+def _tasks_by_id(files: tuple[str, ...] | None) -> dict[str, Task]:
+    return {t.task_id: t for t in load_tasks(files)}
+
+
+@functools.lru_cache(maxsize=16)
+def _scene(name: str) -> Scene:
+    return load_scene(resolve_scene(name))
+
+
+def _failure(end_reason: str, m: EpisodeMetrics) -> str:
+    if m.success:
+        return ""
+    if end_reason == "stopped":
+        return "stopped_outside_radius"
+    return end_reason
+
+
+def run_job(job: EpisodeJob) -> dict:
+    """Run one episode and return its JSON-able record (the line written to episodes.jsonl)."""
+    task = _tasks_by_id(job.task_files)[job.task_id]
+    if task.reference is None:
+        raise ValueError(f"task {task.task_id!r} has no reference path: run `onfly tasks check --write`")
+    w = job.world
+    camera = PinholeCamera.from_fov(int(w["width_px"]), int(w["height_px"]), float(w["hfov_deg"]), float(w["vfov_deg"]))
+    start = VehicleState(0.0, task.start.position_m.copy(), np.zeros(3), float(task.start.yaw_rad))
+    world = World(_scene(task.scene), camera=camera, render_config=RenderConfig(threads=int(w["render_threads"])), initial_state=start)
+    factory = get_factory(job.method)
+    method = factory(job.vlm, job.seed, **{k: (dict(v) if isinstance(v, dict) else v) for k, v in job.options.items()})
+    result = run_episode(
+        world,
+        method,
+        instruction=task.instruction,
+        goal=task.goal_region,
+        reference_path_m=task.reference.path_length_m,
+        seed=job.seed,
+        error_model=error_model_name(job.vlm),
+        config=EpisodeConfig(**job.episode),
+        privileged=task.privileged_goal(),
+    )
+    rec = result.to_dict()
+    return _jsonable(
+        {
+            "key": job.key,
+            "config_hash": job.config_hash,
+            "method": job.method,
+            "task": task.task_id,
+            "scene": task.scene,
+            "kind": task.kind,
+            "run": job.run_index,
+            "seed": job.seed,
+            "vlm": job.vlm,
+            "error_model": error_model_name(job.vlm),
+            "metrics": rec.pop("metrics"),
+            "end_reason": rec.pop("end_reason"),
+            "failure": _failure(result.end_reason, result.metrics),
+            **rec,
+        }
+    )
+
+
+# -- results ------------------------------------------------------------------------------------
+
+
+def read_records(path: str | Path) -> list[dict]:
+    """Records of an episodes.jsonl (a torn last line from an interrupted write is skipped)."""
+    path = Path(path)
+    if not path.is_file():
+        return []
+    out = []
+    with path.open() as f:
+        for n, line in enumerate(f, 1):
+            line = line.strip()
+            if not line:
+                continue
+            try:
+                out.append(json.loads(line))
+            except json.JSONDecodeError:
+                log.warning("%s:%d: skipping an unreadable line (interrupted write?)", path, n)
+    return out
+
+
+def _metrics(rec: dict) -> EpisodeMetrics:
+    m = rec["metrics"]
+    return EpisodeMetrics(**{f.name: m[f.name] for f in fields(EpisodeMetrics)})
+
+
+def _block(recs: list[dict]) -> dict:
+    s = summarize(_metrics(r) for r in recs)
+    sim = sum(r["sim_s"] for r in recs)
+    wall = sum(r["wall_s"] for r in recs)
+    s["realtime_factor"] = sim / wall if wall > 0 else None
+    s["sim_s"] = sim
+    s["wall_s"] = wall
+    s["failures"] = {}
+    for r in recs:
+        if r["failure"]:
+            s["failures"][r["failure"]] = s["failures"].get(r["failure"], 0) + 1
+    calls: dict[str, float] = {}
+    charged: dict[str, float] = {}
+    for r in recs:
+        for k, v in (r.get("vlm_calls") or {}).items():
+            calls[k] = calls.get(k, 0) + v
+        for k, v in (r.get("vlm_charged_s") or {}).items():
+            charged[k] = charged.get(k, 0.0) + v
+    s["vlm_calls_per_episode"] = {k: v / len(recs) for k, v in calls.items()}
+    s["vlm_charged_s_per_episode"] = {k: v / len(recs) for k, v in charged.items()}
+    return _jsonable(s)
+
+
+def summarize_records(records: Iterable[dict], *, error_model: str, name: str = "bench") -> dict:
+    """The summary JSON: per method (and per method and kind) metrics, error model, realtime factor."""
+    recs = list(records)
+    by_method: dict[str, list[dict]] = {}
+    for r in recs:
+        by_method.setdefault(r["method"], []).append(r)
+    methods = {}
+    for m, rs in by_method.items():
+        block = _block(rs)
+        block["error_model"] = error_model
+        block["by_kind"] = {k: _block([r for r in rs if r["kind"] == k]) for k in KINDS if any(r["kind"] == k for r in rs)}
+        methods[m] = block
+    sim = sum(r["sim_s"] for r in recs)
+    wall = sum(r["wall_s"] for r in recs)
+    return _jsonable(
+        {
+            "name": name,
+            "error_model": error_model,
+            "episodes": len(recs),
+            "realtime_factor": sim / wall if wall > 0 else None,
+            "methods": methods,
+        }
+    )
+
+
+def _pct(x) -> str:
+    return "  n/a" if x is None else f"{100 * x:5.1f}"
+
+
+def _num(x, fmt="{:5.1f}") -> str:
+    return "  n/a" if x is None else fmt.format(x)
+
+
+def format_summary(summary: dict) -> str:
+    """Markdown table: one row per method and one per method and task kind."""
+    lines = [
+        f"### {summary['name']} (simulated VLM error model: {summary['error_model']}; {summary['episodes']} episodes)",
+        "",
+        "| method | kind | episodes | SR % | OSR % | CR % | FT s | NE m | SPL | realtime x |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for m, b in summary["methods"].items():
+        rows = [("all", b)] + list(b["by_kind"].items())
+        for kind, s in rows:
+            lines.append(
+                f"| {m} | {kind} | {s['episodes']} | {_pct(s['SR'])} | {_pct(s['OSR'])} | {_pct(s['CR'])} | "
+                f"{_num(s['FT'])} | {_num(s['NE'], '{:5.2f}')} | {_num(s['SPL'], '{:4.2f}')} | {_num(s['realtime_factor'], '{:5.2f}')} |"
+            )
+    return "\n".join(lines)
+
+
+# -- executing ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class BenchResult:
+    """What :func:`run_bench` did: the summary, the records it covers, and counts."""
+
+    summary: dict
+    records: list
+    ran: int
+    skipped: int
+    out_dir: Path
+    wall_s: float
+
+
+def _worker_init(level: int) -> None:
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+
+
+def _run_local(jobs: list[EpisodeJob], workers: int, on_record: Callable[[dict], None]) -> None:
+    if workers <= 1:
+        for job in jobs:
+            on_record(run_job(job))
+        return
+    ctx = mp.get_context("spawn")
+    pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init, initargs=(logging.getLogger().level,))
+    try:
+        futures = [pool.submit(run_job, j) for j in jobs]
+        for fut in cf.as_completed(futures):
+            on_record(fut.result())
+    except BaseException:
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown(wait=True)
+
+
+def _run_ray(jobs: list[EpisodeJob], address: str, workers: int, on_record: Callable[[dict], None]) -> None:
+    import ray  # optional at import time: only --ray needs it
+
+    started = False
+    if not ray.is_initialized():
+        if address == "local":
+            ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
+        else:
+            ray.init(address=address, log_to_driver=False)
+        started = True
+    try:
+        remote = ray.remote(num_cpus=1, max_retries=0)(run_job)
+        pending = [remote.remote(j) for j in jobs]
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            on_record(ray.get(done[0]))
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def run_bench(
+    config: BenchConfig,
+    out_dir: str | Path,
+    *,
+    workers: int | None = None,
+    ray_address: str | None = None,
+    max_episodes: int | None = None,
+    progress: bool = False,
+) -> BenchResult:
+    """Run (or resume) a benchmark and write episodes.jsonl, summary.json, summary.md, config.json.
+
+    Parameters
+    ----------
+    config : BenchConfig
+    out_dir : output folder (created); episodes already recorded there are not run again
+    workers : local worker processes (default ``config.workers``); with ``ray_address`` the
+        number of CPUs of a local Ray instance
+    ray_address : None (local processes), ``"local"`` (start a local Ray instance) or a Ray
+        cluster address
+    max_episodes : stop after this many new episodes (for tests of resumption)
+    progress : show a tqdm bar with an ETA
+    """
+    wall0 = time.perf_counter()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    unknown = [m for m in config.methods if m not in method_names()]
+    if unknown:
+        raise BenchConfigError(f"unknown method(s) {unknown}; registered methods: {', '.join(method_names())}")
+    all_tasks = load_tasks(config.task_files)
+    tasks = select_tasks(all_tasks, ids=config.task_ids, scenes=config.scenes, kinds=config.kinds, count=config.count)
+    if not tasks:
+        raise BenchConfigError("the task selection is empty")
+    unchecked = [t.task_id for t in tasks if t.reference is None]
+    if unchecked:
+        raise BenchConfigError(f"task(s) without a reference path {unchecked[:5]}...: run `onfly tasks check --write`")
+    jobs = plan_jobs(config, tasks)
+    (out / "config.json").write_text(
+        json.dumps({"config": config.to_dict(), "method_hashes": {m: config.method_hash(m) for m in config.methods}}, indent=1)
+    )
+    path = out / EPISODES_FILE
+    done = {r["key"] for r in read_records(path)}
+    todo = [j for j in jobs if j.key not in done]
+    skipped = len(jobs) - len(todo)
+    if max_episodes is not None:
+        todo = todo[:max_episodes]
+    n_workers = config.workers if workers is None else int(workers)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(todo), unit="ep", desc=config.name, dynamic_ncols=True)
+    ran = 0
+    with path.open("a") as f:
+
+        def on_record(rec: dict) -> None:
+            nonlocal ran
+            f.write(json.dumps(rec, sort_keys=True) + "\n")
+            f.flush()
+            ran += 1
+            if bar is not None:
+                bar.set_postfix_str(f"{rec['method']} {rec['task']} {'ok' if rec['metrics']['success'] else rec['failure']}")
+                bar.update(1)
+
+        try:
+            if not todo:
+                pass
+            elif ray_address:
+                _run_ray(todo, ray_address, n_workers, on_record)
+            else:
+                _run_local(todo, n_workers, on_record)
+        finally:
+            if bar is not None:
+                bar.close()
+    keys = {j.key for j in jobs}
+    latest: dict[str, dict] = {}
+    for r in read_records(path):
+        if r["key"] in keys:
+            latest[r["key"]] = r
+    order = {j.key: i for i, j in enumerate(jobs)}
+    records = sorted(latest.values(), key=lambda r: order[r["key"]])
+    summary = summarize_records(records, error_model=error_model_name(config.vlm), name=config.name) if records else {
+        "name": config.name, "error_model": error_model_name(config.vlm), "episodes": 0, "realtime_factor": None, "methods": {}}
+    summary["run_wall_s"] = time.perf_counter() - wall0
+    summary["complete"] = len(records) == len(jobs)
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    if records:
+        (out / "summary.md").write_text(format_summary(summary) + "\n")
+    return BenchResult(summary, records, ran, skipped, out, time.perf_counter() - wall0)
+
+
+def with_overrides(config: BenchConfig, **changes) -> BenchConfig:
+    """A copy of ``config`` with fields replaced (None values are ignored)."""
+    return replace(config, **{k: v for k, v in changes.items() if v is not None})
