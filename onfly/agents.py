@@ -110,6 +110,8 @@ class DecisionOutcome:
     verified : the verifier's result (None when there was no pixel or verification is off)
     goal_world : (3,) navigation goal in metres, world ENU, or None (hold the last goal)
     reason : why there is no goal ("" when there is one)
+    pixel_yaw : world heading (radians) of the parsed pixel's viewing ray, or None; a
+        rejected candidate still says which way the target is
     """
 
     frame_id: str
@@ -120,10 +122,18 @@ class DecisionOutcome:
     verified: VerifiedGoal | None
     goal_world: np.ndarray | None
     reason: str = ""
+    pixel_yaw: float | None = None
 
     @property
     def latency_s(self) -> float:
         return self.response.latency_s
+
+
+def pixel_yaw(uv, obs: Observation) -> float:
+    """World heading (radians) of the viewing ray through pixel ``uv`` of ``obs``."""
+    ray_cam = obs.camera.K_inv @ np.array([uv[0], uv[1], 1.0])
+    ray_world = obs.T_world_cam[:3, :3] @ ray_cam
+    return float(np.arctan2(ray_world[1], ray_world[0]))
 
 
 @dataclass(frozen=True, eq=False)
@@ -183,7 +193,8 @@ class DecisionAgent:
         )
 
         def out(parse=None, verified=None, goal=None, reason=""):
-            return DecisionOutcome(obs.frame_id, subtask, response, hist, parse, verified, goal, reason)
+            yaw = pixel_yaw(parse.uv, obs) if parse is not None and parse.ok else None
+            return DecisionOutcome(obs.frame_id, subtask, response, hist, parse, verified, goal, reason, yaw)
 
         if response.status is not CallStatus.OK:
             log.info("decision call %s: %s", response.status.value, response.error)

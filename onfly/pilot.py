@@ -225,6 +225,7 @@ class OnFlyPilot:
         self._decision_frame: str | None = None
         self._last_monitor_s = -np.inf
         self._recovery_yaw: float | None = None
+        self._face_yaw: float | None = None
         self._recovery_start_s = 0.0
         self._hold_p: np.ndarray | None = None
         self._last_plan: PlanResult | None = None
@@ -336,7 +337,11 @@ class OnFlyPilot:
         if out.subtask != self.tasks.current:
             return  # answered about a subtask that has since advanced
         if out.goal_world is None:
-            return  # hold the last goal; it times out by itself
+            # hold the last goal (it times out by itself); with no goal, at least face the
+            # target the VLM pointed at, so a rejected edge-of-image target comes into view
+            self._face_yaw = out.pixel_yaw
+            return
+        self._face_yaw = None
         self.goal_world = np.asarray(out.goal_world, float)
         self.goal_t_s = t_s
         self.mode = PilotMode.NAVIGATING
@@ -368,10 +373,12 @@ class OnFlyPilot:
             self._event(t_s, "finished", {"position": state.p})
         elif event is TaskEvent.ADVANCED:
             self.goal_world = None
+            self._face_yaw = None
             self.mode = PilotMode.HOLDING
             self._event(t_s, "advanced", {"subtask": self.tasks.current, "index": self.tasks.index})
         elif event is TaskEvent.LOST:
             self.goal_world = None
+            self._face_yaw = None
             self.mode = PilotMode.RECOVERING
             self._recovery_yaw = self.tasks.recovery_yaw(state.yaw)
             self._recovery_start_s = t_s
@@ -399,8 +406,10 @@ class OnFlyPilot:
             if self._hold_p is None:
                 self._hold_p = state.p.copy()
             goal = self._hold_p
+            if yaw_ref is None and self.mode is not PilotMode.FINISHED:
+                yaw_ref = self._face_yaw
         if cfg.use_planner:
-            plan = self.planner.step(state, goal, self.esdf, **({} if yaw_ref is None else {"yaw_ref": yaw_ref}))
+            plan = self.planner.step(state, goal, self.esdf, yaw_ref=yaw_ref)
             traj = plan.trajectory
         else:
             plan = None

@@ -94,6 +94,9 @@ class TaskManager:
                     event = TaskEvent.FINISHED
                 else:
                     self.index += 1
+                    # a normal point belongs to its subtask: recovery never turns back
+                    # toward the previous subtask's target
+                    self.last_normal = None
                     event = TaskEvent.ADVANCED
         else:
             self._stops = 0

@@ -35,6 +35,15 @@ def test_lost_recovery_heading_is_last_normal_point():
     assert tm.recovery_yaw(0.0) == pytest.approx(1.4)
 
 
+def test_normal_point_belongs_to_its_subtask():
+    tm = TaskManager(["a", "b"], stop_confirmations=1)
+    tm.on_status("CONTINUE", 0, [0, 0, 1], 1.0)
+    assert tm.on_status("STOP", 2, [1, 0, 1], 1.0) is TaskEvent.ADVANCED
+    assert tm.last_normal is None
+    tm.on_status("LOST", 4, [1, 0, 1], -0.5)
+    assert tm.recovery_yaw(-0.5) == -0.5  # no normal point in subtask "b" yet: just stop
+
+
 def test_invalid_input():
     with pytest.raises(TaskManagerError, match="non-empty"):
         TaskManager([])

@@ -13,7 +13,7 @@ from planning.planner import Planner
 from planning.trajectory import VehicleState
 from vlm.factory import make_backend
 
-__all__ = ["OnFlyMethod", "ABLATIONS", "ablation_config"]
+__all__ = ["OnFlyMethod", "ABLATIONS", "ablation_config", "make_onfly_factory"]
 
 #: Paper Table III ablations as config changes of the full system.
 ABLATIONS: dict[str, dict[str, Any]] = {
@@ -91,3 +91,44 @@ class OnFlyMethod:
             "monitor_statuses": dict(statuses),
             "planner_fallbacks": p.planner_fallbacks,
         }
+
+
+_PLANNERS: dict[Any, Planner] = {}
+
+
+def _shared_planner(config) -> Planner:
+    """One Planner per planner config per process (CasADi set-up is built once; the pilot
+    resets it at every episode)."""
+    if config not in _PLANNERS:
+        _PLANNERS[config] = Planner(config)
+    return _PLANNERS[config]
+
+
+def make_onfly_factory(variant: str):
+    """Registry factory of an OnFly variant: ``factory(vlm_spec, seed, **options)``.
+
+    Options: the shared tables ``planner`` / ``esdf`` / ``verifier`` and the variant's own
+    ``[methods.<name>]`` table, all :class:`PilotConfig` fields (``memory`` as a table too).
+    """
+    if variant not in ABLATIONS:
+        raise ValueError(f"unknown OnFly variant {variant!r}; valid: {sorted(ABLATIONS)}")
+
+    def factory(vlm_spec: str, seed: int, **options) -> OnFlyMethod:
+        data = {k: dict(v or {}) if k in ("planner", "esdf", "verifier", "memory") else v for k, v in options.items()}
+        base = PilotConfig.from_dict(data)
+        cfg = ablation_config(variant, base)
+        planner = _shared_planner(cfg.planner) if cfg.use_planner else None
+        return OnFlyMethod(vlm_spec, cfg, name=variant, planner=planner)
+
+    factory.__name__ = f"make_{variant}"
+    return factory
+
+
+def _register() -> None:
+    from onfly.bench.registry import register
+
+    for name in ABLATIONS:
+        register(name, make_onfly_factory(name), replace=True)
+
+
+_register()
