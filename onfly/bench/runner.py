@@ -358,6 +358,7 @@ def run_job(job: EpisodeJob) -> dict:
         privileged=task.privileged_goal(),
     )
     rec = result.to_dict()
+    clearance = world.collision.clearance(result.trace.positions)
     return _jsonable(
         {
             "key": job.key,
@@ -373,6 +374,7 @@ def run_job(job: EpisodeJob) -> dict:
             "metrics": rec.pop("metrics"),
             "end_reason": rec.pop("end_reason"),
             "failure": _failure(result.end_reason, result.metrics),
+            "min_clearance_m": float(clearance.min()),
             **rec,
         }
     )
@@ -411,6 +413,8 @@ def _block(recs: list[dict]) -> dict:
     s["realtime_factor"] = sim / wall if wall > 0 else None
     s["sim_s"] = sim
     s["wall_s"] = wall
+    clear = [r["min_clearance_m"] for r in recs if r.get("min_clearance_m") is not None]
+    s["min_clearance_m"] = min(clear) if clear else None
     s["failures"] = {}
     for r in recs:
         if r["failure"]:

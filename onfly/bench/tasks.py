@@ -416,8 +416,7 @@ def select_tasks(
     """Tasks matching every given filter, in their original order.
 
     ``ids`` must all exist (a ValueError lists the unknown ones); ``count`` then keeps that
-    many tasks spread evenly over the filtered list (deterministic, so a count covers all
-    scenes and kinds in proportion).
+    many tasks, each kind in proportion and spread evenly over the scenes (deterministic).
     """
     out = list(tasks)
     if ids is not None:
@@ -442,9 +441,21 @@ def select_tasks(
         if isinstance(count, bool) or not isinstance(count, int) or count < 1:
             raise ValueError(f"count must be a positive integer, got {count!r}")
         if count < len(out):
-            n = len(out)
-            out = [out[(i * n) // count] for i in range(count)]
+            out = _spread(out, count)
     return out
+
+
+def _spread(tasks: list[Task], count: int) -> list[Task]:
+    """``count`` tasks, each kind in proportion (largest remainder), each kind's share spread
+    evenly over its tasks (so over the scenes); original order kept."""
+    n = len(tasks)
+    groups = [[i for i, t in enumerate(tasks) if t.kind == k] for k in KINDS]
+    exact = [count * len(g) / n for g in groups]
+    quota = [int(math.floor(e)) for e in exact]
+    for j in sorted(range(len(groups)), key=lambda j: (quota[j] - exact[j], j))[: count - sum(quota)]:
+        quota[j] += 1
+    keep = sorted(g[(i * len(g)) // q] for g, q in zip(groups, quota) for i in range(q))
+    return [tasks[i] for i in keep]
 
 
 # -- writing -------------------------------------------------------------------------------
