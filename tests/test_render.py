@@ -219,3 +219,18 @@ def test_textures_can_be_switched_off_for_speed():
     assert len(np.unique(off.rgb[..., 0])) == 1 and len(np.unique(on.rgb[..., 0])) == 2
     np.testing.assert_array_equal(on.depth_m, off.depth_m)
     np.testing.assert_array_equal(on.instance_ids, off.instance_ids)
+
+
+def test_objects_with_different_patterns_in_one_frame_keep_their_own_pattern():
+    objs = [
+        obj("striped", 1, "#C8C8C8", [{"type": "box", "center_m": [5, 3, 1], "size_m": [1, 4, 6]}],
+            texture={"pattern": "stripes", "period_m": 0.25, "contrast": 0.5, "axis": "z"}),
+        obj("noisy", 2, "#C8C8C8", [{"type": "box", "center_m": [5, -3, 1], "size_m": [1, 4, 6]}],
+            texture={"pattern": "noise", "period_m": 0.1, "contrast": 0.5, "seed": 4}),
+        obj("plain", 3, "#C8C8C8", [{"type": "box", "center_m": [5, 0, 1], "size_m": [1, 2, 6]}]),
+    ]
+    out = renderer(objs).render(forward([0, 0, 1]))
+    red = out.rgb[..., 0]
+    assert len(np.unique(red[out.instance_ids == 1])) == 2  # two stripe brightnesses
+    assert len(np.unique(red[out.instance_ids == 2])) > 8  # many noise levels
+    assert len(np.unique(red[out.instance_ids == 3])) == 1  # untextured

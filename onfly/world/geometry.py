@@ -96,9 +96,10 @@ class SceneGeometry:
 
     def cast(self, rays: np.ndarray, threads: int = 1) -> dict[str, np.ndarray]:
         """First hits of rays (n, 6) float32 ``[origin, direction]``: ``t_hit`` (n,) in units of
-        the direction's length (inf on a miss), ``primitive_ids`` (n,) uint32,
-        ``primitive_normals`` (n, 3)."""
-        out = self.raycasting.cast_rays(o3d.core.Tensor(rays), nthreads=threads)
+        the direction's length (inf on a miss), ``primitive_ids`` (n,) uint32 (2^32 - 1 on a
+        miss), ``primitive_normals`` (n, 3). The rays are passed to Open3D without a copy."""
+        rays = np.ascontiguousarray(rays, dtype=np.float32)
+        out = self.raycasting.cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=threads)
         return {k: out[k].numpy() for k in ("t_hit", "primitive_ids", "primitive_normals")}
 
     def closest(self, points: np.ndarray, threads: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -5,10 +5,11 @@ Shading model (per pixel, vectorized):
 ``rgb = 255 * colour * texture * (ambient + (1 - ambient) * max(0, n . l))``
 
 ``colour`` is the hit triangle's object (or part) colour, ``n`` the triangle's face normal
-turned towards the camera (flat shading, so it is computed once per triangle per frame), ``l`` the scene's light direction (towards the light) and ``texture`` the
-object's procedural pattern evaluated at the world hit point (``1 - contrast * value`` with
-``value`` in [0, 1]). Rays that hit nothing get the scene's sky colour, depth 0 (no reading)
-and ids 0.
+turned towards the camera (flat shading, so it is computed once per triangle per frame), ``l``
+the scene's light direction (towards the light) and ``texture`` the object's procedural
+pattern evaluated at the world hit point: ``1 - contrast * level / 15`` with the level 0 or 15
+for stripes and checker and one of 16 random levels per cell for noise. Rays that hit nothing
+get the scene's sky colour, depth 0 (no reading) and ids 0.
 
 Depth sensor-noise model (:class:`DepthNoise`, off by default), applied to depth only:
 axial Gaussian noise with ``sigma(z) = sigma_base_m + sigma_quadratic_per_m * z**2`` (the
@@ -23,10 +24,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import open3d as o3d
 
 from onfly.world.geometry import SceneGeometry
 from planning.camera import PinholeCamera
-from planning.frames import check_transform
+from planning.frames import check_transform, invert_transform
 from vlm.types import FrameAnnotation, VisibleObject
 
 __all__ = ["RenderConfig", "DepthNoise", "RenderResult", "Renderer", "default_camera"]
@@ -107,28 +109,19 @@ class RenderResult:
     T_world_cam: np.ndarray
 
 
-def _rotate_into(cols: tuple[np.ndarray, np.ndarray, np.ndarray], R: np.ndarray, out: np.ndarray) -> None:
-    """``out[:, i] = sum_k R[i, k] * cols[k]`` for float32 column vectors (n,), no BLAS."""
-    R = R.astype(np.float32)
-    tmp = np.empty_like(cols[0])
-    for i in range(3):
-        col = out[:, i]
-        np.multiply(cols[0], R[i, 0], out=tmp)
-        tmp += cols[1] * R[i, 1]
-        tmp += cols[2] * R[i, 2]
-        col[...] = tmp
-
-
-#: Value noise: one random brightness per cubic cell, from a fixed table of 32^3 cells (the
-#: pattern repeats every 32 cells); each texture seed shifts the table by its own offset.
+#: Value noise: one random brightness level per cubic cell, from a fixed table of 32^3 cells
+#: (the pattern repeats every 32 cells along each axis); each seed rolls the table by its own
+#: shift.
 _NOISE_N = 32
+#: Texture brightness levels: stripes and checker use the two ends, noise all of them.
+_LEVELS = 16
 
 
 class Renderer:
     """Renders a scene from a pinhole camera.
 
-    Build once per scene (the ray-casting structure and the camera rays are precomputed);
-    :meth:`render` only rotates the rays, casts them and shades the hits.
+    Build once per scene (the ray-casting structure is built with the SceneGeometry); per
+    frame :meth:`render` makes the camera rays (Open3D, in C++), casts them and shades the hits.
 
     Parameters
     ----------
@@ -141,10 +134,11 @@ class Renderer:
         self.geometry = geometry
         self.camera = camera if camera is not None else default_camera()
         self.config = config if config is not None else RenderConfig()
-        rays = self.camera.rays(normalize=True).reshape(-1, 3)
-        self._rays_cols = tuple(np.ascontiguousarray(rays[:, k], dtype=np.float32) for k in range(3))  # unit rays, optical frame
-        self._ray_z = rays[:, 2].astype(np.float32)  # z-depth = ray length * ray_z
-        self._buf = np.empty((rays.shape[0], 6), dtype=np.float32)
+        # Open3D samples pixel (u, v) at (u + 0.5, v + 0.5); our pixel centres are integers.
+        K = self.camera.K
+        K[0, 2] += 0.5
+        K[1, 2] += 0.5
+        self._K_o3d = o3d.core.Tensor(K)
         scene = geometry.scene
         self._light = scene.light.direction.astype(np.float32)
         self._ambient = np.float32(scene.light.ambient)
@@ -155,24 +149,23 @@ class Renderer:
         self._tri_texture = np.append(geometry.tri_texture, 0).astype(np.int8)
         prm = geometry.tri_tex_params
         self._tex_inv_period = np.where(prm[:, 0] > 0, 1.0 / np.where(prm[:, 0] > 0, prm[:, 0], 1.0), 0.0).astype(np.float32)
-        self._tex_contrast = prm[:, 1].astype(np.float32)
+        self._tex_contrast = np.append(prm[:, 1], 0.0).astype(np.float32)  # sky row: no texture
         self._tex_axis = np.argmax(np.abs(prm[:, 2:5]), axis=1).astype(np.intp)
         seeds = prm[:, 5].astype(np.int64)
-        offsets = {int(sd): np.random.default_rng([0x5EED, int(sd)]).integers(0, _NOISE_N, 3) for sd in np.unique(seeds)}
-        self._tex_offset = np.array([offsets[int(sd)] for sd in seeds], dtype=np.int32).reshape(-1, 3)
-        self._noise = np.random.default_rng(0x5EED).random(_NOISE_N**3).astype(np.float32)
+        shifts = {int(sd): int(np.random.default_rng([0x5EED, int(sd)]).integers(0, _NOISE_N**3)) for sd in np.unique(seeds)}
+        self._tex_shift = np.array([shifts[int(sd)] for sd in seeds], dtype=np.int32)
+        self._noise = np.random.default_rng(0x5EED).integers(0, _LEVELS, _NOISE_N**3).astype(np.int32)
         self._objects = {o.instance_id: VisibleObject(o.instance_id, o.name, o.label, o.aliases) for o in scene.objects}
 
     def world_rays(self, T_world_cam) -> np.ndarray:
-        """Camera rays in the world, float32 (H * W, 6) ``[origin, unit direction]`` in row-major
-        pixel order. The array is a buffer reused by the next call (copy it to keep it)."""
+        """Camera rays in the world, float32 (H * W, 6) ``[origin, direction]`` in row-major
+        pixel order. Directions are ``R_world_cam @ K^-1 [u, v, 1]``: their optical-z component
+        is 1, so a hit at ray parameter ``t`` lies at z-depth ``t`` (ray length ``t * |d|``)."""
         T = np.asarray(T_world_cam, dtype=float)
-        buf = self._buf
-        buf[:, :3] = T[:3, 3].astype(np.float32)
-        # Rotate without BLAS: a (n, 3) @ (3, 3) product through a threaded BLAS stalls when the
-        # cores are shared; three fused passes per axis are cheap and predictable.
-        _rotate_into(self._rays_cols, T[:3, :3], buf[:, 3:])
-        return buf
+        rays = o3d.t.geometry.RaycastingScene.create_rays_pinhole(
+            self._K_o3d, o3d.core.Tensor(invert_transform(T)), self.camera.width, self.camera.height
+        )
+        return rays.numpy().reshape(-1, 6)
 
     def render(self, T_world_cam, *, noise_key: int = 0) -> RenderResult:
         """Render RGB, z-depth and id images.
@@ -192,58 +185,76 @@ class Renderer:
         # per-triangle tables so every per-pixel lookup is one gather, without boolean masks.
         tri = np.minimum(hits["primitive_ids"], m).astype(np.intp)
         t_hit = hits["t_hit"]
-        depth = t_hit * self._ray_z
+        depth = t_hit.copy()  # rays have unit optical z: t is the z-depth
         depth[tri == m] = 0.0
         inst = np.take(self._tri_instance, tri)
         sem = np.take(self._tri_label, tri)
-        # Flat shading is per triangle: shade the m triangles once, then gather per pixel.
-        color_tri = self._shade_triangles(T[:3, 3])
-        rgb = np.take((color_tri * 255.0 + 0.5).astype(np.uint8), tri, axis=0)
+        # Flat shading is per triangle and texture brightness is quantized to _LEVELS levels,
+        # so the colour of every (triangle, level) pair is tabulated once per frame and the
+        # image is one gather.
+        lut = self._colour_table(T[:3, 3])
+        index = tri * _LEVELS
         textured = np.flatnonzero(np.take(self._tri_texture, tri)) if self.config.textures else ()
         if len(textured):
             ti = tri[textured]
-            # hit points pulled 1 mm towards the camera, so faces on a cell boundary never flicker
-            rows = np.take(buf, textured, axis=0)
-            P = rows[:, 3:] * (np.take(t_hit, textured) - np.float32(1e-3))[:, None]
-            P += rows[:, :3]
-            shaded = color_tri[ti] * self._texture(self._tri_texture[ti], ti, P)[:, None]
-            rgb[textured] = (shaded * 255.0 + 0.5).astype(np.uint8)
+            # cell coordinates of the hit points, pulled 1 mm towards the camera so faces on a
+            # cell boundary never flicker; one contiguous pass per world axis
+            t_tex = np.take(t_hit, textured) - np.float32(1e-3)
+            inv = np.take(self._tex_inv_period, ti)
+            cells = []
+            for k in range(3):
+                q = np.take(buf[:, 3 + k], textured)
+                q *= t_tex
+                q += buf[0, k]
+                q *= inv
+                cells.append(np.floor(q, out=q).astype(np.int32))
+            index[textured] += self._texture_level(self._tri_texture[ti], ti, tuple(cells))
+        rgb = np.take(lut, index, axis=0)
 
         depth = depth.reshape(H, W)
         if self.config.depth_noise.enabled:
             depth = self.config.depth_noise.apply(depth, noise_key)
         return RenderResult(rgb.reshape(H, W, 3), depth, inst.reshape(H, W), sem.reshape(H, W), T)
 
-    def _shade_triangles(self, camera_m: np.ndarray) -> np.ndarray:
-        """Lambert colour in [0, 1] of every triangle seen from ``camera_m`` (3,), float32
-        (m + 1, 3); the last row is the sky. Normals are turned towards the camera."""
+    def _colour_table(self, camera_m: np.ndarray) -> np.ndarray:
+        """uint8 RGB of every triangle at every texture level seen from ``camera_m`` (3,):
+        shape ((m + 1) * _LEVELS, 3), row ``tri * _LEVELS + level``; the last block is the sky.
+
+        Lambert shading with the face normal turned towards the camera; level ``l`` scales the
+        colour by ``1 - contrast * l / (_LEVELS - 1)``.
+        """
         g = self.geometry
         facing = np.sign(np.einsum("ij,ij->i", g.tri_normal, camera_m.astype(np.float32) - g.tri_v0))
         lam = self._ambient + (1.0 - self._ambient) * np.maximum(facing * np.einsum("ij,j->i", g.tri_normal, self._light), 0.0)
-        out = np.empty((g.triangle_count + 1, 3), dtype=np.float32)
-        out[:-1] = g.tri_color * lam[:, None]
-        out[-1] = self._sky.astype(np.float32) / 255.0
-        return out
+        colour = np.empty((g.triangle_count + 1, 3), dtype=np.float32)
+        colour[:-1] = g.tri_color * lam[:, None]
+        colour[-1] = self._sky.astype(np.float32) / 255.0
+        factor = 1.0 - self._tex_contrast[:, None] * np.linspace(0.0, 1.0, _LEVELS, dtype=np.float32)
+        table = colour[:, None, :] * factor[:, :, None] * 255.0 + 0.5
+        return table.astype(np.uint8).reshape(-1, 3)
 
-    def _texture(self, code: np.ndarray, tri: np.ndarray, P: np.ndarray) -> np.ndarray:
-        """Brightness factor in [1 - contrast, 1] per hit (n,) of triangles ``tri`` with pattern
-        ``code``; P (n, 3) the hit points, metres, world ENU."""
-        Q = P * np.take(self._tex_inv_period, tri)[:, None]  # position in cells
-        val = np.empty(len(code), dtype=np.float32)
-        present = np.flatnonzero(np.bincount(code, minlength=4))
+    def _texture_level(self, code: np.ndarray, tri: np.ndarray, cells: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
+        """Texture level in 0.._LEVELS - 1 per hit (n,) of triangles ``tri`` with pattern
+        ``code``; ``cells`` are the integer cell coordinates (int32 (n,) per world axis) of the
+        hit points, ``floor(p / period_m)``."""
+        ix, iy, iz = cells
+        top = _LEVELS - 1
+        present = [c for c in np.flatnonzero(np.bincount(code, minlength=4)) if c != 0]
+        levels = {}
         for c in present:
-            sel = slice(None) if len(present) == 1 else np.flatnonzero(code == c)
-            q = Q[sel]
-            t = tri[sel]
             if c == 1:  # stripes across the axis
-                val[sel] = np.floor(np.take_along_axis(q, np.take(self._tex_axis, t)[:, None], axis=1)[:, 0]) % 2.0
+                levels[c] = (np.choose(np.take(self._tex_axis, tri), (ix, iy, iz)) & 1) * top
             elif c == 2:  # 3D checker
-                val[sel] = np.floor(q).sum(axis=1) % 2.0
-            else:  # value noise: a fixed random value per cell, periodic over 32 cells, shifted per seed
-                cells = np.floor(q).astype(np.int32) + np.take(self._tex_offset, t, axis=0)
-                cells &= _NOISE_N - 1
-                val[sel] = np.take(self._noise, (cells[:, 0] * _NOISE_N + cells[:, 1]) * _NOISE_N + cells[:, 2])
-        return 1.0 - np.take(self._tex_contrast, tri) * val
+                levels[c] = ((ix + iy + iz) & 1) * top
+            else:  # value noise: a fixed random level per cell, periodic over 32 cells, shifted per seed
+                mask = _NOISE_N - 1
+                idx = ((ix & mask) << 10) | ((iy & mask) << 5) | (iz & mask)
+                idx += np.take(self._tex_shift, tri)
+                idx &= _NOISE_N**3 - 1
+                levels[c] = np.take(self._noise, idx)
+        if len(levels) == 1:
+            return next(iter(levels.values()))
+        return np.choose(code - 1, [levels.get(c, levels[present[0]]) for c in (1, 2, 3)])
 
     def annotate(self, result: RenderResult) -> FrameAnnotation:
         """Ground truth for the simulated VLM: ids, depth and the instances present in the image."""
