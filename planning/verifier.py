@@ -23,14 +23,20 @@ The obstacle rule and its defaults are documented in :mod:`planning.verifier_con
 *feasible* when its viewing ray passes at least ``r`` from every obstacle point ``Y_j`` (the
 back-projection of obstacle pixel ``j``, through the pixel centre). That holds iff the angle
 between the rays exceeds ``beta_j = asin(r / |Y_j|)``; every ray within ``beta_j`` of obstacle
-``j`` meets the image inside the disc of radius :func:`cone_radius_px` around ``j`` (about
-``fx * r / z_j``, larger off-axis), so "outside every obstacle's disc" is a sufficient pixel test.
-It is evaluated with one distance transform per group of obstacles of similar radius (each group
-dilated by its largest radius, coarser grids for large radii with their worst-case rounding
-subtracted), and the chosen pixel is re-checked exactly against every obstacle disc. Because the
+``j`` meets the normalized image plane inside the disc of radius ``tan(psi_j + beta_j) -
+tan(psi_j)`` around ``j``'s image (``psi_j`` its off-axis angle; :func:`cone_radius_px`, about
+``fx * r / z_j`` pixels, larger off-axis), so "outside every obstacle's disc" is a sufficient
+pixel test. Distances on the normalized plane make the test exact for non-square pixels too.
+The target pixel is checked exactly against every obstacle disc; when it fails, a conservative
+feasibility map of the ROI is built (one distance transform per class of obstacles of similar
+radius, each dilated by its class's largest radius, coarser grids for large radii with their
+worst-case rounding subtracted), its nearest feasible pixel of the component is re-checked
+exactly and then pulled back toward the target along the line joining them, by bisection with
+the exact test (the map is a few pixels conservative; this recovers most of it). Because the
 whole ray clears every obstacle, the returned goal -- wherever the gating puts it on the ray --
 and the straight path to it from the camera are at least ``r`` from every obstacle surface
-point visible in the depth image. A refined pixel must also have a depth reading.
+point visible in the depth image. A refined pixel must also have a depth reading and must not
+be an obstacle itself.
 Skipped refinement still checks ``p``: if its ray is not clear the candidate is rejected.
 
 Conventions: pixels ``(u, v)`` with integer values at pixel centres (see
@@ -75,9 +81,7 @@ _MAX_DEPTH = float(np.finfo(np.float32).max)
 _SLACK_EPS_PX = 1e-3
 #: Exact re-checks of refined candidates before giving up (a failure would be a bug; logged).
 _MAX_EXACT_RECHECKS = 8
-#: Most distance transforms (radius groups) per slack map.
-_MAX_GROUPS = 8
-#: Ratio between the depth edges of the bands in which obstacles are collected.
+#: Ratio between the depth edges of the bands in which exact obstacles are collected.
 _BAND_RATIO = 1.2
 
 
@@ -347,16 +351,6 @@ class _Obstacles:
     def empty(self) -> bool:
         return self.rows.size == 0
 
-    def reachable(self, box: tuple[int, int, int, int]) -> "_Obstacles":
-        """The obstacles whose clearance region can reach ``box`` (half-open rows, columns)."""
-        if self.empty:
-            return self
-        r0, r1, c0, c1 = box
-        d_row = np.maximum(np.maximum(r0 - self.rows, self.rows - (r1 - 1)), 0)
-        d_col = np.maximum(np.maximum(c0 - self.cols, self.cols - (c1 - 1)), 0)
-        keep = (d_row <= self.fy * self.rho) & (d_col <= self.fx * self.rho)
-        return _Obstacles(self.rows[keep], self.cols[keep], self.rho[keep], self.fx, self.fy)
-
     def slack_at(self, u: float, v: float) -> float:
         """``min_j (dist((u, v), j) - fx * rho_j)`` in column pixels; inf with no obstacle."""
         if self.empty:
@@ -379,39 +373,51 @@ def _rho_scalar(tan2: float, range2: float, clearance_m: float) -> float:
     return r * (1.0 + tan2) / den if den > 0.0 else math.inf
 
 
-def _gather_obstacles(
-    depth: np.ndarray, camera: PinholeCamera, box: tuple[int, int, int, int], threshold_m: float, clearance_m: float
-) -> _Obstacles:
-    """Obstacle pixels (valid depth < ``threshold_m``) whose clearance region reaches ``box``.
-
-    ``box = (r0, r1, c0, c1)`` is half-open in image rows and columns. Obstacles are collected
-    in depth bands. A band is searched only in the box grown by the largest cone radius its
-    depths can have inside the search window (the radius grows with the off-axis angle and
-    shrinks with range; the window is shrunk to a fixed point from the whole image, each step
-    valid because obstacles outside the previous window were already too far), so far bands are
-    searched in small windows and no obstacle outside a window can reach the box.
-    """
-    fx, fy = camera.fx, camera.fy
-    empty = _Obstacles(np.zeros(0, np.intp), np.zeros(0, np.intp), np.zeros(0), fx, fy)
+def _nearest_obstacle_depth(depth: np.ndarray, threshold_m: float) -> float | None:
+    """Smallest valid depth below ``threshold_m`` in the whole image, or None without obstacles."""
     # Largest float32 strictly below the threshold: inRange is inclusive, the rule is "< T".
     upper = float(np.nextafter(np.float32(threshold_m), np.float32(0.0)))
     if upper < _TINY_DEPTH:
-        return empty
-    h, w = depth.shape
+        return None
     obstacle_mask = cv2.inRange(depth, _TINY_DEPTH, upper)  # 0 / 255; NaN and inf are outside
     if cv2.countNonZero(obstacle_mask) == 0:
-        return empty
-    z_min = cv2.minMaxLoc(depth, obstacle_mask)[0]
-    r0, r1, c0, c1 = box
+        return None
+    return float(cv2.minMaxLoc(depth, obstacle_mask)[0])
 
-    rows_all, cols_all, rho_all = [], [], []
+
+def _depth_bands(
+    depth: np.ndarray,
+    camera: PinholeCamera,
+    box: tuple[int, int, int, int],
+    threshold_m: float,
+    z_min: float | None,
+    clearance_m: float,
+    band_ratio: float,
+):
+    """Depth bands of the obstacles that can reach ``box``, nearest last.
+
+    Yields ``(lo, hi, window, rho_max)``: the band holds valid depths in ``[lo, hi]`` (float32
+    edges, together exactly the obstacle rule ``0 < z < threshold_m``), ``window = (r0, r1, c0,
+    c1)`` is the only part of the image where its obstacles can reach ``box``, and ``rho_max``
+    bounds the normalized cone radius of every obstacle of the band inside the window (inf when
+    unbounded). The window is the box grown by ``fy * rho_max`` rows and ``fx * rho_max``
+    columns, shrunk to a fixed point from the whole image: the radius grows with the off-axis
+    angle and shrinks with range, and obstacles outside a window were already out of reach.
+    ``z_min`` is :func:`_nearest_obstacle_depth` (None: no obstacle, nothing is yielded).
+    """
+    if z_min is None:
+        return
+    upper = float(np.nextafter(np.float32(threshold_m), np.float32(0.0)))
+    h, w = depth.shape
+    fx, fy = camera.fx, camera.fy
+    r0, r1, c0, c1 = box
     hi = upper
     while True:
-        lo_edge = hi / _BAND_RATIO
+        lo_edge = hi / band_ratio
         last = lo_edge <= z_min
         lo = _TINY_DEPTH if last else float(np.nextafter(np.float32(lo_edge), np.float32(np.inf)))
         z_lo2 = max(lo, z_min) ** 2  # range >= z-depth >= this band's nearest depth
-        window = (0, h, 0, w)
+        window, rho_max = (0, h, 0, w), math.inf
         for _ in range(4):
             rho_max = _rho_scalar(_tan2_max(camera, *window), z_lo2, clearance_m)
             if not math.isfinite(rho_max):
@@ -421,84 +427,138 @@ def _gather_obstacles(
             if shrunk == window:
                 break
             window = shrunk
-        wr0, wr1, wc0, wc1 = window
-        idx = np.flatnonzero(cv2.inRange(depth[wr0:wr1, wc0:wc1], lo, hi) != 0)
-        if idx.size:
-            rr, cc = np.divmod(idx, wc1 - wc0)
-            rows = rr + wr0
-            cols = cc + wc0
-            z = depth[rows, cols].astype(np.float64)
-            xn = (cols - camera.cx) / fx
-            yn = (rows - camera.cy) / fy
-            tan2 = xn * xn + yn * yn
-            rho = _rho_from_squares(tan2, z * z * (1.0 + tan2), clearance_m)
-            # The cone image lies within fx * rho columns and fy * rho rows of the obstacle.
-            d_row = np.maximum(np.maximum(r0 - rows, rows - (r1 - 1)), 0)
-            d_col = np.maximum(np.maximum(c0 - cols, cols - (c1 - 1)), 0)
-            keep = (d_row <= fy * rho) & (d_col <= fx * rho)
-            rows_all.append(rows[keep])
-            cols_all.append(cols[keep])
-            rho_all.append(rho[keep])
+            rho_max = _rho_scalar(_tan2_max(camera, *window), z_lo2, clearance_m)
+        yield lo, hi, window, rho_max
         if last:
-            break
+            return
         hi = float(np.nextafter(np.float32(lo), np.float32(0.0)))
+
+
+def _gather_obstacles(
+    depth: np.ndarray,
+    camera: PinholeCamera,
+    box: tuple[int, int, int, int],
+    threshold_m: float,
+    z_min: float | None,
+    clearance_m: float,
+) -> _Obstacles:
+    """Every obstacle pixel (valid depth < ``threshold_m``) whose clearance region reaches
+    ``box``, with its exact cone radius (see :func:`_depth_bands` for the search windows)."""
+    fx, fy = camera.fx, camera.fy
+    rows_all, cols_all, rho_all = [], [], []
+    r0, r1, c0, c1 = box
+    for lo, hi, (wr0, wr1, wc0, wc1), _ in _depth_bands(depth, camera, box, threshold_m, z_min, clearance_m, _BAND_RATIO):
+        idx = np.flatnonzero(cv2.inRange(depth[wr0:wr1, wc0:wc1], lo, hi) != 0)
+        if idx.size == 0:
+            continue
+        rr, cc = np.divmod(idx, wc1 - wc0)
+        rows = rr + wr0
+        cols = cc + wc0
+        z = depth[rows, cols].astype(np.float64)
+        xn = (cols - camera.cx) / fx
+        yn = (rows - camera.cy) / fy
+        tan2 = xn * xn + yn * yn
+        rho = _rho_from_squares(tan2, z * z * (1.0 + tan2), clearance_m)
+        # The cone image lies within fx * rho columns and fy * rho rows of the obstacle.
+        d_row = np.maximum(np.maximum(r0 - rows, rows - (r1 - 1)), 0)
+        d_col = np.maximum(np.maximum(c0 - cols, cols - (c1 - 1)), 0)
+        keep = (d_row <= fy * rho) & (d_col <= fx * rho)
+        rows_all.append(rows[keep])
+        cols_all.append(cols[keep])
+        rho_all.append(rho[keep])
     if not rows_all:
-        return empty
+        return _Obstacles(np.zeros(0, np.intp), np.zeros(0, np.intp), np.zeros(0), fx, fy)
     return _Obstacles(np.concatenate(rows_all), np.concatenate(cols_all), np.concatenate(rho_all), fx, fy)
 
 
-def _slack_map(obstacles: _Obstacles, box: tuple[int, int, int, int], shape: tuple[int, int], bin_ratio: float) -> np.ndarray:
-    """Lower bound of ``min_j (dist(q, j) - fx rho_j)`` for every pixel ``q`` of ``box``.
+_CROSS_3 = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
 
-    Column-pixel units (see :class:`_Obstacles`). Obstacles are grouped so radii within a
-    group differ by at most ``bin_ratio``; each group is dilated by its largest radius through
-    one exact Euclidean distance transform on a grid whose rows are scaled by ``fx / fy``
-    (isotropic in the normalized image plane) with cells of ``s`` column pixels (1 below 24 px,
-    2 below 96 px, else 4); the worst-case cell rounding is subtracted. The ratio is widened so
-    that there are at most ``_MAX_GROUPS`` groups.
+
+def _slack_map(
+    depth: np.ndarray,
+    camera: PinholeCamera,
+    box: tuple[int, int, int, int],
+    threshold_m: float,
+    z_min: float | None,
+    clearance_m: float,
+    radius_ratio: float,
+) -> np.ndarray:
+    """Lower bound of the clearance slack ``min_j (dist(q, j) - fx rho_j)`` for every pixel
+    ``q`` of ``box`` that is not itself an obstacle, in column pixels (see :class:`_Obstacles`).
+
+    The exact cone radius ``rho`` of every obstacle pixel of the search window (the box grown
+    by the largest radius any obstacle can have, as in :func:`_depth_bands`) is split into
+    classes ``[rho_0 g^k, rho_0 g^(k+1))`` with ``g = radius_ratio``; each class is dilated by
+    its upper edge through one exact Euclidean distance transform of the class's boundary pixels
+    (those with a 4-neighbour outside the class: the class pixel nearest to any pixel outside
+    the class is always one of them). The transform runs on a grid whose rows are scaled by
+    ``fx / fy`` (isotropic on the normalized image plane) with cells of ``s`` column pixels (1
+    below 24 px of radius, 2 below 96 px, else 4); the worst-case offset of two points within
+    their cells is subtracted. Values at obstacle pixels of the box are meaningless: callers
+    exclude them.
     """
     r0, r1, c0, c1 = box
     slack = np.full((r1 - r0, c1 - c0), np.inf, dtype=np.float32)
-    if obstacles.empty:
+    if z_min is None:
         return slack
-    rho = obstacles.rho
-    if not np.all(np.isfinite(rho)):
+    h, w = depth.shape
+    fx, fy = camera.fx, camera.fy
+    # One window for every obstacle: the nearest depth's band window contains all the others.
+    # Shrink it while the nearest obstacle inside it is farther than the one it was sized for:
+    # obstacles left outside are then out of reach (their depth is at least that nearest one).
+    upper = float(np.nextafter(np.float32(threshold_m), np.float32(0.0)))
+    while True:
+        *_, (_, _, (wr0, wr1, wc0, wc1), _) = _depth_bands(depth, camera, box, threshold_m, z_min, clearance_m, math.inf)
+        zw = depth[wr0:wr1, wc0:wc1]
+        obst = cv2.inRange(zw, _TINY_DEPTH, upper)
+        if cv2.countNonZero(obst) == 0:
+            return slack
+        z_in = float(cv2.minMaxLoc(zw, obst)[0])
+        if z_in <= z_min:
+            break
+        z_min = z_in
+    xn2 = (((np.arange(wc0, wc1) - camera.cx) / fx) ** 2).astype(np.float32)
+    yn2 = (((np.arange(wr0, wr1) - camera.cy) / fy) ** 2).astype(np.float32)
+    tan2 = yn2[:, None] + xn2[None, :]
+    r = np.float32(clearance_m)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        zz = np.where(obst != 0, zw, np.float32(np.inf))  # non-obstacles: infinite range, rho 0
+        den = np.sqrt(np.maximum(zz * zz * (1.0 + tan2) - r * r, 0.0)) - np.sqrt(tan2) * r
+        rho = np.where(den > 0.0, r * (1.0 + tan2) / den, np.float32(np.inf)).astype(np.float32)
+    rho_hi = float(rho[obst != 0].max())
+    if not math.isfinite(rho_hi):
         slack[:] = -np.inf
         return slack
-    h, w = shape
-    fx, fy = obstacles.fx, obstacles.fy
+    # float32 rounding of rho: classes are widened by a relative 1e-5 (and never below 0).
+    rho *= np.float32(1.0 + 1e-5)
+    rho_lo = float(rho[obst != 0].min())
     aspect = fx / fy
-    rho_lo = max(float(rho.min()), 1e-12)
-    # At most _MAX_GROUPS distance transforms: widen the ratio when the radii span a lot.
-    ratio = max(bin_ratio, (float(rho.max()) / rho_lo) ** (1.0 / _MAX_GROUPS) * (1.0 + 1e-9))
-    group = np.floor(np.log(np.maximum(rho, rho_lo) / rho_lo) / math.log(ratio)).astype(np.intp)
-    order = np.argsort(group, kind="stable")
-    group_sorted = group[order]
-    starts = np.flatnonzero(np.r_[True, group_sorted[1:] != group_sorted[:-1]])
-    ends = np.r_[starts[1:], group_sorted.size]
-    for a, b in zip(starts, ends):
-        sel = order[a:b]
-        rho_g = float(rho[sel].max())
-        radius = fx * rho_g
+    edge_lo = rho_lo
+    while edge_lo <= rho_hi * (1.0 + 1e-5):
+        edge_hi = edge_lo * radius_ratio
+        radius = fx * edge_hi
+        pr, pc = int(math.ceil(fy * edge_hi)), int(math.ceil(fx * edge_hi))
+        sr0, sr1 = max(wr0, r0 - pr), min(wr1, r1 + pr)
+        sc0, sc1 = max(wc0, c0 - pc), min(wc1, c1 + pc)
+        cls = cv2.inRange(rho[sr0 - wr0 : sr1 - wr0, sc0 - wc0 : sc1 - wc0], edge_lo, edge_hi)
+        edge_lo = float(np.nextafter(np.float32(edge_hi), np.float32(np.inf)))
+        if cv2.countNonZero(cls) == 0:
+            continue
+        edge = cv2.subtract(cls, cv2.erode(cls, _CROSS_3))
+        rr, cc = np.divmod(np.flatnonzero(edge != 0), sc1 - sc0)
         s = 1 if radius < 24.0 else (2 if radius < 96.0 else 4)
         # Cell offsets differ by at most s - 1 along columns (integer) and, with scaled rows,
         # by less than s along rows (s - 1 when the scale is exactly 1).
         row_off = s - 1.0 if aspect == 1.0 else float(s)
         loss = math.hypot(s - 1.0, row_off)
-        pr, pc = int(math.ceil(fy * rho_g)), int(math.ceil(fx * rho_g))
-        sr0, sr1 = max(0, r0 - pr), min(h, r1 + pr)
-        sc0, sc1 = max(0, c0 - pc), min(w, c1 + pc)
         n_rows = int(math.floor((sr1 - 1 - sr0) * aspect / s)) + 1
         n_cols = (sc1 - 1 - sc0) // s + 1
         grid = np.ones((n_rows, n_cols), dtype=np.uint8)
-        grid[
-            np.floor((obstacles.rows[sel] - sr0) * aspect / s).astype(np.intp), (obstacles.cols[sel] - sc0) // s
-        ] = 0
+        grid[np.floor(rr * aspect / s).astype(np.intp), cc // s] = 0
         dt = cv2.distanceTransform(grid, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
         iy = np.floor((np.arange(r0, r1) - sr0) * aspect / s).astype(np.intp)
         ix = (np.arange(c0, c1) - sc0) // s
-        group_slack = s * dt[np.ix_(iy, ix)] - (loss + radius)
-        np.minimum(slack, group_slack, out=slack)
+        np.minimum(slack, s * dt[np.ix_(iy, ix)] - (loss + radius), out=slack)
     return slack
 
 
@@ -616,12 +676,12 @@ class Verifier:
             note = None  # refinement runs; mode decided below
             reference = d
         threshold = cfg.obstacle_threshold_m(reference)
+        z_min = _nearest_obstacle_depth(depth, threshold)
+        r_m = cfg.clearance_radius_m
         target_depth = d if has_reading else _NAN
 
         if note is not None:  # refinement skipped: p' = p, but its ray must still be clear
-            point_box = (row, row + 1, col, col + 1)
-            obstacles = _gather_obstacles(depth, cam, point_box, threshold, cfg.clearance_radius_m)
-            slack = obstacles.slack_at(u, v)
+            slack = _gather_obstacles(depth, cam, _pixel_box(u, v), threshold, z_min, r_m).slack_at(u, v)
             if not slack > _SLACK_EPS_PX:
                 return self._reject(
                     candidate,
@@ -637,24 +697,23 @@ class Verifier:
         comp, note = self._component(candidate, roi, row, col)
         component_size = int(np.count_nonzero(comp))
         geometric_only = note is not RefinementNote.SEMANTIC
-        obstacles = _gather_obstacles(depth, cam, roi, threshold, cfg.clearance_radius_m)
-
-        slack_p = obstacles.reachable(_pixel_box(u, v)).slack_at(u, v)
+        slack_p = _gather_obstacles(depth, cam, _pixel_box(u, v), threshold, z_min, r_m).slack_at(u, v)
         if slack_p > _SLACK_EPS_PX:  # already feasible: stays put
             return self._accept(candidate, (u, v), min(d, cfg.d_max_m), note, geometric_only, component_size, d, threshold, slack_p)
 
         r0, r1, c0, c1 = roi
-        slack_map = _slack_map(obstacles, roi, (h, w), cfg.radius_bin_ratio)
+        slack_map = _slack_map(depth, cam, roi, threshold, z_min, r_m, cfg.radius_class_ratio)
         roi_depth = depth[r0:r1, c0:c1]
         with np.errstate(invalid="ignore"):
-            allowed = comp & (roi_depth > 0.0) & np.isfinite(roi_depth)
+            # Candidates need a reading and must not be obstacles themselves (depth >= T).
+            allowed = comp & (roi_depth >= threshold) & np.isfinite(roi_depth)
         rr, cc = np.nonzero(allowed & (slack_map > _SLACK_EPS_PX))
         if rr.size:
             dist2 = (cc + c0 - u) ** 2 + (rr + r0 - v) ** 2
             order = np.argsort(dist2, kind="stable")[:_MAX_EXACT_RECHECKS]
             for k in order:
                 qr, qc = int(rr[k] + r0), int(cc[k] + c0)
-                near_line = obstacles.reachable(_segment_box(u, v, qc, qr))
+                near_line = _gather_obstacles(depth, cam, _segment_box(u, v, qc, qr), threshold, z_min, r_m)
                 slack_q = near_line.slack_at(float(qc), float(qr))
                 if slack_q > _SLACK_EPS_PX:
                     qr, qc, slack_q = _pull_toward_target(near_line, allowed, roi, (u, v), (qr, qc), slack_q)

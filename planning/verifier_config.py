@@ -97,11 +97,11 @@ class VerifierConfig:
     connectivity : int
         Pixel connectivity of the connected components of the semantic mask, 4 or 8. 4 (the
         default) never joins two regions that touch only at a corner.
-    radius_bin_ratio : float
-        Obstacles are grouped into bins whose clearance radii differ by at most this ratio; each
-        bin is dilated by its largest radius (one distance transform per bin, at most 8 bins:
-        the ratio widens when the radii span more). Larger is faster and more conservative; it
-        never makes the check less safe. Must be > 1.
+    radius_class_ratio : float
+        The feasibility map groups obstacle pixels into classes whose clearance radii differ by
+        at most this ratio; each class is dilated by its largest radius (one distance transform
+        per class). Larger is faster and more conservative (the exact check and the pull toward
+        the target recover most of it); it never makes the check less safe. Must be > 1.
     """
 
     tau: float = 0.5
@@ -113,7 +113,7 @@ class VerifierConfig:
     foreground_margin_m: float = 1.0
     reject_no_reading: bool = False
     connectivity: int = 4
-    radius_bin_ratio: float = 1.1
+    radius_class_ratio: float = 1.25
 
     def __post_init__(self) -> None:
         def finite(name: str) -> float:
@@ -143,9 +143,9 @@ class VerifierConfig:
             raise VerifierConfigError(f"reject_no_reading must be a bool, got {self.reject_no_reading!r}")
         if self.connectivity not in (4, 8):
             raise VerifierConfigError(f"connectivity must be 4 or 8, got {self.connectivity!r}")
-        if finite("radius_bin_ratio") <= 1.0:
-            raise VerifierConfigError(f"radius_bin_ratio must be > 1, got {self.radius_bin_ratio}")
-        for name in ("tau", "clearance_radius_m", "d_max_m", "sigma_theta", "obstacle_depth_m", "radius_bin_ratio"):
+        if finite("radius_class_ratio") <= 1.0:
+            raise VerifierConfigError(f"radius_class_ratio must be > 1, got {self.radius_class_ratio}")
+        for name in ("tau", "clearance_radius_m", "d_max_m", "sigma_theta", "obstacle_depth_m", "radius_class_ratio"):
             object.__setattr__(self, name, float(getattr(self, name)))
         object.__setattr__(self, "foreground_margin_m", margin)
 

@@ -175,7 +175,7 @@ def assert_safe(result, cand: CandidateGoal, config: VerifierConfig) -> None:
         ("foreground_margin_m", -1.0),
         ("reject_no_reading", 1),
         ("connectivity", 6),
-        ("radius_bin_ratio", 1.0),
+        ("radius_class_ratio", 1.0),
     ],
 )
 def test_config_rejects_bad_field(field, value):
@@ -520,7 +520,7 @@ def test_property_goal_clears_every_visible_obstacle_by_r():
     configs = [
         VerifierConfig(roi_px=32),
         VerifierConfig(roi_px=48, obstacle_depth_m=3.0, foreground_margin_m=0.5, tau=0.3),
-        VerifierConfig(roi_px=24, clearance_radius_m=0.35, connectivity=8, radius_bin_ratio=1.5),
+        VerifierConfig(roi_px=24, clearance_radius_m=0.35, connectivity=8, radius_class_ratio=1.5),
     ]
     stats = {"accepted": 0, "moved": 0, "rejected": 0, "skipped": 0}
     for scene in range(150):
