@@ -208,6 +208,7 @@ class MpcQp:
             eps_rel=cfg.qp_eps_rel,
             max_iter=cfg.qp_max_iter,
             rho=cfg.qp_rho,
+            adaptive_rho=int(cfg.qp_adaptive_rho),
             adaptive_rho_interval=cfg.qp_adaptive_rho_interval,
             check_termination=cfg.qp_check_termination,
             polishing=cfg.qp_polish,
@@ -332,6 +333,10 @@ class MpcQp:
             iterations=int(info.iter),
             solve_time_s=float(info.solve_time),
         )
+
+    def reset_rho(self) -> None:
+        """Set OSQP's step size back to the configured ``qp_rho`` (after a failed solve)."""
+        self._solver.update_settings(rho=self.config.qp_rho)
 
     def shift(self, z: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Shift a primal/dual pair one knot forward (last knot/input repeated)."""

@@ -17,7 +17,7 @@ iteration:
    ``d(pbar_k) + grad_k . (p_k - pbar_k) + s_k >= d_safe`` for knots 1..N (knot 0 is the
    measured state, pinned, never softened); the speed norm is cut by the half-space at the
    previous direction plus cutting planes kept from earlier solves; OSQP is updated in place and
-   warm-started from the shifted previous primal/dual pair. If the true speed norm of the
+   warm-started from the shifted previous primal (its last dual iterate is kept). If the true speed norm of the
    result exceeds the limit by more than ``speed_tolerance_rel`` a cut is added at the violating
    knots and the QP is solved again (at most ``max_speed_refinements`` times).
 4. **Check.** The inputs are clipped to their (exact) bounds, rolled out with the exact model,
@@ -319,9 +319,9 @@ class Planner:
         """Forget the previous plan (the next step cold-starts)."""
         L = self.layout
         self._prev_u: np.ndarray | None = None
-        self._prev_y: np.ndarray | None = None
         self._prev_s = np.zeros(L.N)
         self._cuts: np.ndarray | None = None  # (N, K, 3)
+        self._qp_healthy = False
         self._guide: np.ndarray | None = None  # (n, 3) world ENU
         self._guide_goal: np.ndarray | None = None
         self._guide_attempt_t: float | None = None
@@ -421,9 +421,14 @@ class Planner:
         plan = None
         slack_max = 0.0
         n_outer = max(1, c.cold_start_iterations) if cold and self._qp is not None else 1
+        # Duals: OSQP keeps its last dual iterate, which we reuse unshifted. Shifting them one
+        # knot (like the primal) measured worse: at rest against an obstacle it moves the
+        # terminal multiplier onto knot N - 1 and costs hundreds of iterations.
         y_warm = None
-        if not cold and self._prev_y is not None and self._qp is not None:
-            y_warm = self._prev_y[self._qp.shift_y]
+        if self._qp is not None and not self._qp_healthy:
+            # the last solve failed: its dual iterate and adapted rho are not a warm start
+            y_warm = np.zeros(self._qp.m)
+            self._qp.reset_rho()
         s_warm = np.zeros(N) if cold else np.concatenate([self._prev_s[1:], self._prev_s[-1:]])
         knots_query = (d_all[2 : N + 2], g_all[2 : N + 2])
         z_init = None
@@ -440,6 +445,7 @@ class Planner:
             iterations += sol[2]
             solves += sol[3]
             status, z, y = sol[0], sol[1], sol[4]
+            self._qp_healthy = status is SolveStatus.SOLVED
             if status is not SolveStatus.SOLVED or z is None:
                 break
             u_bar = np.clip(z[self._idx_u], -self._u_max, self._u_max)
@@ -452,7 +458,6 @@ class Planner:
             if ok:
                 plan = (X, U, d_knots)
                 slack_max = float(np.max(z[self._idx_s], initial=0.0))
-                self._prev_y = y
                 self._prev_s = np.maximum(z[self._idx_s], 0.0)
             else:
                 status = SolveStatus.UNSAFE
@@ -471,7 +476,6 @@ class Planner:
             d_knots, _ = _query(field, X[1:, 0:3] + origin)
             plan, fallback = (X, U, d_knots), Fallback.BRAKE
         if fallback is not Fallback.NONE:
-            self._prev_y = None
             self._prev_s = np.zeros(N)
             logger.info("planner fallback %s (status %s)", fallback.value, status.value)
         X, U, d_knots = plan

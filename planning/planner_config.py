@@ -84,6 +84,8 @@ class PlannerConfig:
         vehicle, so absolute tolerances do not depend on where in the world it flies)
     qp_max_iter : OSQP iteration cap; hitting it counts as a non-converged solve
     qp_rho : OSQP initial ADMM step
+    qp_adaptive_rho : let OSQP adapt rho during a solve (rho is reset to ``qp_rho`` before
+        every solve, so an adapted value never carries over to the next problem)
     qp_adaptive_rho_interval : OSQP iterations between rho updates (0 = OSQP's automatic)
     qp_check_termination : OSQP iterations between termination checks
     qp_polish : OSQP solution polishing
@@ -126,6 +128,7 @@ class PlannerConfig:
     qp_eps_rel: float = 1e-3
     qp_max_iter: int = 1000
     qp_rho: float = 1.0
+    qp_adaptive_rho: bool = True
     qp_adaptive_rho_interval: int = 25
     qp_check_termination: int = 5
     qp_polish: bool = False
