@@ -64,6 +64,7 @@ __all__ = [
     "adjust_goal",
     "ClosedLoopLog",
     "ProblemSnapshot",
+    "ShiftedField",
     "run_closed_loop",
 ]
 
@@ -258,8 +259,10 @@ def adjust_goal(
     return pts[int(np.argmax(dd))].copy(), True
 
 
-class _ShiftedField:
-    """A field seen from a frame translated by ``origin`` (for the NLP callback)."""
+class ShiftedField:
+    """A :class:`DistanceField` seen from a frame translated to ``origin`` (3,), world ENU:
+    ``query(points)`` answers for ``points + origin``. The planner poses its problems in the
+    vehicle-centred frame; this hands the reference NLP the same view of the map."""
 
     def __init__(self, field: DistanceField, origin: np.ndarray) -> None:
         self._field, self._origin = field, origin
@@ -662,7 +665,7 @@ class Planner:
         K = L.speed_cuts
         iterations, solves = 0, 0
         if self._nlp is not None:
-            sol = self._nlp.solve(th, _ShiftedField(field, origin), z_warm)
+            sol = self._nlp.solve(th, ShiftedField(field, origin), z_warm)
             ok = sol.converged and np.all(np.isfinite(sol.z))
             return (SolveStatus.SOLVED if ok else SolveStatus.NOT_CONVERGED), sol.z, sol.iterations, 1, None
         bound = th[L.th_speed_bound]

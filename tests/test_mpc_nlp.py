@@ -11,7 +11,7 @@ import pytest
 from planning.analytic_field import AnalyticField, HalfSpace, VerticalCylinder, obstacle_scene
 from planning.mpc_model import MpcFormulation
 from planning.mpc_nlp import FieldCallback, MpcNlp, _FieldHolder
-from planning.planner import Planner, _ShiftedField
+from planning.planner import Planner, ShiftedField
 from planning.planner_config import PlannerConfig
 from planning.trajectory import VehicleState
 
@@ -54,7 +54,7 @@ def test_nlp_meets_the_exact_speed_norm_and_clearance():
     planner.step(state, goal, field)
     prob = planner.last_problem
     nlp = MpcNlp(planner.formulation)
-    sol = nlp.solve(prob.theta, _ShiftedField(field, prob.origin), prob.z_init)
+    sol = nlp.solve(prob.theta, ShiftedField(field, prob.origin), prob.z_init)
     assert sol.converged, sol.status
     L = nlp.layout
     z = sol.z
@@ -102,7 +102,7 @@ def test_fast_path_and_reference_agree_on_the_same_problems():
     rti_diffs = []
     for scene, prob in problems:
         z_fast, _ = tight.converge(prob, scene.field, max_iterations=30, tol=1e-6)
-        ref = nlp.solve(prob.theta, _ShiftedField(scene.field, prob.origin), z_fast)
+        ref = nlp.solve(prob.theta, ShiftedField(scene.field, prob.origin), z_fast)
         assert ref.converged, ref.status
         du = np.abs(z_fast[L.idx_u[0]] - ref.z[L.idx_u[0]]) / u_max
         assert du.max() <= 0.02, (scene.kind, scene.seed, du)
