@@ -9,22 +9,29 @@ iteration:
    the nearest point with that clearance: Newton steps along the field gradient
    (``g += (target - d) grad``), and if that fails within ``goal_search_max_m``, a line search
    back along the segment toward the vehicle. ``PlanResult.goal_adjusted`` says so.
-2. **Linearization point.** The previous plan's inputs shifted by one knot, rolled out from the
+2. **Attractor.** If the straight segment from the vehicle to the goal keeps ``d_safe``, the
+   progress terms pull toward the goal. Otherwise the front-end (:mod:`planning.guide_path`, a
+   clearance-aware grid search run when the goal changes or the path is blocked) supplies a
+   path and the attractor is the point ``guide_lookahead_m`` ahead on it: a linearized-distance
+   MPC alone stops at a wall it could fly around (Fast-Planner pairs its optimizer with a search
+   front-end for the same reason). The yaw term always uses the goal itself.
+3. **Linearization point.** The previous plan's inputs shifted by one knot, rolled out from the
    *measured* state with the exact model (so it is dynamically consistent even after a
    disturbance). On the first step (or after :meth:`Planner.reset`) the vehicle coasts
    (zero inputs) and ``cold_start_iterations`` QPs are solved in sequence instead of one.
-3. **One QP.** Field distance and gradient at the linearized knots give
+4. **One QP.** Field distance and gradient at the linearized knots give
    ``d(pbar_k) + grad_k . (p_k - pbar_k) + s_k >= d_safe`` for knots 1..N (knot 0 is the
    measured state, pinned, never softened); the speed norm is cut by the half-space at the
    previous direction plus cutting planes kept from earlier solves; OSQP is updated in place and
-   warm-started from the shifted previous primal (its last dual iterate is kept). If the true speed norm of the
-   result exceeds the limit by more than ``speed_tolerance_rel`` a cut is added at the violating
-   knots and the QP is solved again (at most ``max_speed_refinements`` times).
-4. **Check.** The inputs are clipped to their (exact) bounds, rolled out with the exact model,
+   warm-started from the shifted previous primal (its last dual iterate is kept). If the true
+   speed norm of the result exceeds the limit by more than ``speed_tolerance_rel`` a cut is
+   added at the violating knots and the QP is solved again (at most ``max_speed_refinements``
+   times). After a failed solve the next one starts from zero duals and the configured rho.
+5. **Check.** The inputs are clipped to their (exact) bounds, rolled out with the exact model,
    and the plan is accepted only if the solve converged, the speed norm is within tolerance, and
    the field's true clearance over the braking horizon stays above
    ``min(d_safe, d(p_0)) - safety_tolerance_m``.
-5. **Fallback.** Otherwise the shifted previous plan is used if it passes the same check, and
+6. **Fallback.** Otherwise the shifted previous plan is used if it passes the same check, and
    else a braking plan (maximum deceleration along -v, yaw held). A step always returns a
    command.
 
@@ -374,7 +381,7 @@ class Planner:
         x0[3:6] = state.v
         x0[6] = state.yaw
 
-        # 2. linearization point (before the goal: one field query serves both)
+        # linearization point first: one field query serves it, the goal check and the attractor
         cold = self._prev_u is None
         if cold:
             u_bar = np.zeros((N, NU))
@@ -388,7 +395,7 @@ class Planner:
         d_all, g_all = _query(field, pts)
         d0 = float(d_all[1])
 
-        # 1. goal
+        # goal check, attractor, yaw reference
         goal_clear = c.d_safe_m + c.goal_clearance_margin_m
         goal_used, adjusted = adjust_goal(
             goal, origin, field, goal_clear, c.goal_search_max_m, goal_query=(float(d_all[0]), g_all[0])

@@ -138,6 +138,17 @@ def test_yaw_reference_is_unwrapped_near_the_current_yaw(planner):
     assert yaw.max() <= ref + 0.01 and yaw[-1] == pytest.approx(ref, abs=0.02)
 
 
+def test_explicit_yaw_reference_replaces_the_bearing_and_is_unwrapped(planner):
+    planner.reset()
+    p = np.array([0.0, 0.0, 1.5])
+    goal = p + np.array([0.1, 0.0, 0.0])  # inside the hold radius: the bearing would be ignored
+    res = planner.step(state_at(p, yaw=3.0), goal, free_field(), yaw_ref=-3.0)
+    assert res.command.yaw_rate > 0.0  # the short way, +0.28 rad
+    assert res.trajectory.yaw[-1] == pytest.approx(3.0 + (2 * np.pi - 6.0), abs=0.02)
+    with pytest.raises(PlannerInputError, match="yaw_ref must be finite"):
+        planner.step(state_at(p, yaw=3.0), goal, free_field(), yaw_ref=float("nan"))
+
+
 def test_yaw_is_held_near_the_goal(planner):
     planner.reset()
     p = np.array([1.0, 1.0, 1.0])
