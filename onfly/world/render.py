@@ -112,7 +112,8 @@ class RenderResult:
 #: Value noise: one random brightness level per cubic cell, from a fixed table of 32^3 cells
 #: (the pattern repeats every 32 cells along each axis); each seed rolls the table by its own
 #: shift.
-_NOISE_N = 32
+_NOISE_BITS = 5
+_NOISE_N = 1 << _NOISE_BITS
 #: Texture brightness levels: stripes and checker use the two ends, noise all of them.
 _LEVELS = 16
 
@@ -248,7 +249,7 @@ class Renderer:
                 levels[c] = ((ix + iy + iz) & 1) * top
             else:  # value noise: a fixed random level per cell, periodic over 32 cells, shifted per seed
                 mask = _NOISE_N - 1
-                idx = ((ix & mask) << 10) | ((iy & mask) << 5) | (iz & mask)
+                idx = ((ix & mask) << (2 * _NOISE_BITS)) | ((iy & mask) << _NOISE_BITS) | (iz & mask)
                 idx += np.take(self._tex_shift, tri)
                 idx &= _NOISE_N**3 - 1
                 levels[c] = np.take(self._noise, idx)
