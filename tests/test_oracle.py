@@ -60,6 +60,8 @@ def test_carrot_runs_ahead_by_the_lookahead_and_never_back():
     back = pilot._carrot(np.array([1.0, 0.0, 1.5]))
     assert back[1] >= 1.9
     # the end of the reference is the last carrot
+    for y in np.arange(0.5, 9.0, 0.5):
+        pilot._carrot(np.array([10.0, y, 1.5]))
     np.testing.assert_allclose(pilot._carrot(np.array([10.0, 9.0, 1.5])), [10, 10, 1.5], atol=1e-9)
 
 
