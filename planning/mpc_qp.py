@@ -12,18 +12,26 @@ Everything the QP needs is generated **once**, from the CasADi functions of the 
 The maps ``Mq, MA, Ml, Mu`` are the (constant) Jacobians of those CasADi expressions with
 respect to ``theta``, evaluated once into ``scipy.sparse`` matrices. The hot path is four
 sparse mat-vecs in NumPy, one in-place OSQP ``update(q, l, u, Ax)`` (same sparsity), a warm
-start from the shifted previous primal/dual pair, and ``solve()``: no CasADi call.
+start and ``solve()``: no CasADi call.
+
+Scaling. OSQP's own Ruiz equilibration re-runs on every matrix update and costs more than the
+KKT refactorization, so the problem is equilibrated **once** here (modified Ruiz on the KKT
+matrix at a representative ``theta``), the diagonal scalings are folded into the affine maps,
+and OSQP runs with ``scaling=0``. The rows that change hold unit vectors (gradients, speed
+directions), so one scaling fits every step. :meth:`MpcQp.solve` returns the unscaled ``z, y``.
 
 Constraint rows (in this order): dynamics (7 (N+1), equalities, knot 0 pinned to ``x0``),
-linearized clearance (N), linearized speed (N), then one identity row for every entry of
-``z`` with a finite bound (inputs, velocities, slacks).
+linearized clearance (N), speed cuts (N K, knot-major), then one identity row for every entry
+of ``z`` with a finite bound (inputs, velocities, slacks).
 
-The speed norm is linearized: row ``k`` is the half-space ``speed_dir_k . v_k <= bound_k``,
-which is tangent to the speed ball at ``bound_k * speed_dir_k``. The caller chooses the
-direction (the previous plan's velocity) and re-linearizes about the new solution whenever
-the true norm exceeds the bound by more than the configured tolerance
-(:class:`planning.planner.Planner` does this), so the accepted plan never exceeds the norm by
-more than 1 %. The per-axis box ``|v_i| <= bound`` keeps every other direction bounded.
+Speed. Each knot has K half-spaces ``n_kj . v_k <= bound_k`` with unit ``n_kj``: each is
+implied by ``||v_k|| <= bound_k``, so together they are an outer polyhedral approximation that
+the caller tightens where needed: slot 0 is the tangent at the previous plan's velocity
+direction, the other slots are cutting planes added at the directions of violating solutions
+(:class:`planning.planner.Planner` re-solves until the true norm is within 1 % of the bound).
+Cuts never cycle (the set only shrinks toward the ball), unlike re-linearizing a single tangent,
+which we measured to alternate between two solutions. The per-axis box ``|v_i| <= bound`` keeps
+every direction bounded.
 """
 
 from __future__ import annotations
@@ -36,7 +44,7 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
-from planning.mpc_model import NU, NX, MpcFormulation
+from planning.mpc_model import NX, MpcFormulation
 
 __all__ = ["MpcQp", "QpSolution", "QpBuildError"]
 
@@ -181,8 +189,6 @@ class MpcQp:
         u0[self._u_inf] = _INF
         self._l0, self._u0 = l0, u0
 
-        self._build_shift_maps(bounded, n_dyn)
-
         # --- fixed equilibration, computed once (OSQP's own scaling would re-run on every
         # matrix update and cost more than the factorization; the rows that change hold unit
         # vectors whose magnitude does not change, so one scaling fits every step)
@@ -248,31 +254,6 @@ class MpcQp:
             speed_bound=np.full(L.N, self.config.v_max_mps),
         )
 
-    def _build_shift_maps(self, bounded: np.ndarray, n_dyn: int) -> None:
-        """Index maps taking a solution at step t to a warm start at step t+1 (one knot on)."""
-        L = self.layout
-        N = L.N
-        shift_z = np.arange(L.n_z)
-        idx_x, idx_u, idx_s = L.idx_x, L.idx_u, L.idx_s
-        shift_z[idx_x[:-1].ravel()] = idx_x[1:].ravel()
-        shift_z[idx_x[-1]] = idx_x[-1]
-        shift_z[idx_u[:-1].ravel()] = idx_u[1:].ravel()
-        shift_z[idx_s[:-1]] = idx_s[1:]
-        self.shift_z = shift_z
-        # rows: dynamics blocks of 7 per knot, clearance N, speed N, bounded z entries
-        shift_y = np.arange(self.m)
-        dyn_rows = np.arange(n_dyn).reshape(N + 1, NX)
-        shift_y[dyn_rows[:-1].ravel()] = dyn_rows[1:].ravel()
-        base = n_dyn
-        for per_knot in (1, L.speed_cuts):
-            rows = base + np.arange(N * per_knot)
-            shift_y[rows[:-per_knot]] = rows[per_knot:]
-            base += N * per_knot
-        pos_of_z = {int(zi): base + j for j, zi in enumerate(bounded)}
-        for j, zi in enumerate(bounded):
-            shift_y[base + j] = pos_of_z.get(int(shift_z[zi]), base + j)
-        self.shift_y = shift_y
-
     # ------------------------------------------------------------------ hot path
     def constraint_matrix(self, theta: np.ndarray) -> sp.csc_matrix:
         """``A(theta)`` as a CSC matrix (m, n), the sparsity OSQP was set up with."""
@@ -337,10 +318,6 @@ class MpcQp:
     def reset_rho(self) -> None:
         """Set OSQP's step size back to the configured ``qp_rho`` (after a failed solve)."""
         self._solver.update_settings(rho=self.config.qp_rho)
-
-    def shift(self, z: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Shift a primal/dual pair one knot forward (last knot/input repeated)."""
-        return z[self.shift_z], y[self.shift_y]
 
     def objective(self, z: np.ndarray, theta: np.ndarray) -> float:
         """``1/2 z'Pz + q(theta)'z`` (the QP objective without the theta-only constant)."""

@@ -181,20 +181,6 @@ def test_warm_start_from_the_shifted_solution_saves_iterations(qp):
     np.testing.assert_allclose(warm.z, cold.z, atol=5e-3)
 
 
-def test_shift_maps_move_every_knot_one_step(qp):
-    L = qp.layout
-    z = np.arange(L.n_z, dtype=float)
-    y = np.arange(qp.m, dtype=float)
-    zs, ys = qp.shift(z, y)
-    np.testing.assert_array_equal(zs[L.idx_x[:-1]], z[L.idx_x[1:]])
-    np.testing.assert_array_equal(zs[L.idx_x[-1]], z[L.idx_x[-1]])
-    np.testing.assert_array_equal(zs[L.idx_u[:-1]], z[L.idx_u[1:]])
-    np.testing.assert_array_equal(zs[L.idx_s[:-1]], z[L.idx_s[1:]])
-    # dynamics rows of knot k take the duals of knot k + 1
-    np.testing.assert_array_equal(ys[: NX * L.N], y[NX : NX * (L.N + 1)])
-    assert ys.min() >= 0 and ys.max() < qp.m
-
-
 def test_sparsity_is_fixed_by_construction(qp):
     rng = np.random.default_rng(4)
     L = qp.layout
