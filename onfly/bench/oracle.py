@@ -196,8 +196,11 @@ class OraclePilot:
             "frames": self._frames,
             "fallbacks": dict(self._fallbacks),
             "min_predicted_clearance_m": None if not math.isfinite(self._min_pred_clearance) else self._min_pred_clearance,
-            "plan_ms_mean": float(np.mean(self._plan_ms)) if self._plan_ms else 0.0,
-            "esdf_ms_mean": float(np.mean(self._esdf_ms)) if self._esdf_ms else 0.0,
+            # wall-clock figures (machine dependent, unlike everything else in a record)
+            "timing_ms": {
+                "plan_mean": float(np.mean(self._plan_ms)) if self._plan_ms else 0.0,
+                "esdf_mean": float(np.mean(self._esdf_ms)) if self._esdf_ms else 0.0,
+            },
         }
 
 
