@@ -14,8 +14,9 @@ in the embedded world, print its metrics, and write a rerun recording with the c
 the plans, raw and verified goals, and the agents' text on the timeline.
 
 examples:
-  onfly run --task urban_block/obj-01
-  onfly run --scene urban_block --task obj-01 --vlm sim:noisy --seed 2 --json out.json
+  onfly run --task urban_block-o01
+  onfly run --scene urban_block --task o01 --vlm sim:noisy --seed 2 --json out.json
+  onfly run --task villa-p03 --method oracle --rrd runs/oracle.rrd
   onfly run --scene villa --instruction "fly to the pool edge next to the ladder" --goal-object "pool edge"
 """
 
@@ -26,12 +27,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--task", help="task id (with or without the 'scene/' prefix); see `onfly tasks list`")
     p.add_argument("--instruction", help="your own instruction instead of a task's")
     p.add_argument("--goal-object", help="with --instruction: the scene object whose box is the goal (for metrics)")
-    p.add_argument("--method", default="onfly", help="OnFly variant (default: onfly; ablations: onfly_no_planner, ...)")
+    p.add_argument(
+        "--method",
+        default="onfly",
+        help="a registered method (default: onfly; ablations such as onfly_no_planner; 'oracle' checks world and planner)",
+    )
     p.add_argument("--vlm", default="sim:nominal", help="sim:<preset> | http:<url>[#model] | transformers:<dir> (default: sim:nominal)")
     p.add_argument("--seed", type=int, default=0, help="episode seed (default 0)")
     p.add_argument("--time-limit-s", type=float, default=70.0, help="episode limit (paper: 70 s)")
-    p.add_argument("--width", type=int, default=640, help="camera width in pixels (90 x 60 deg FOV; default 640)")
-    p.add_argument("--height", type=int, default=427, help="camera height in pixels (default 427)")
+    p.add_argument("--width", type=int, default=320, help="camera width in pixels, 90 x 60 deg FOV (default 320, as the benchmark)")
+    p.add_argument("--height", type=int, default=214, help="camera height in pixels (default 214)")
+    p.add_argument("--frame-period-s", type=float, default=0.5, help="seconds between camera frames (default 0.5, as the benchmark)")
     p.add_argument("--config", type=Path, help="TOML with a [pilot] table of PilotConfig overrides")
     p.add_argument("--json", type=Path, help="write the episode summary as JSON here")
     p.add_argument("--rrd", type=Path, help="rerun recording path (default runs/<task>-s<seed>.rrd)")
@@ -43,13 +49,13 @@ def _resolve_task(args):
     from onfly.bench.tasks import load_tasks
 
     tasks = load_tasks()
-    want = args.task if "/" in args.task or not args.scene else f"{args.scene}/{args.task}"
-    matches = [t for t in tasks if t.task_id == want or t.task_id == args.task]
+    wanted = {args.task}
     if args.scene:
-        matches = [t for t in matches if t.scene == args.scene]
+        wanted.add(f"{args.scene}-{args.task}")
+    matches = [t for t in tasks if t.task_id in wanted and (not args.scene or t.scene == args.scene)]
     if not matches:
         near = sorted(t.task_id for t in tasks if (not args.scene or t.scene == args.scene))[:12]
-        raise ValueError(f"no task {want!r}; some valid ids: {', '.join(near)} (all: `onfly tasks list`)")
+        raise ValueError(f"no task {args.task!r}; some valid ids: {', '.join(near)} (all: `onfly tasks list`)")
     return matches[0]
 
 
@@ -57,6 +63,7 @@ def run(args: argparse.Namespace) -> int:
     from onfly.bench.episode import EpisodeConfig, run_episode
     from onfly.bench.metrics import GoalRegion
     from onfly.bench.onfly_method import ABLATIONS, OnFlyMethod, ablation_config
+    from onfly.bench.registry import make_method, method_names
     from onfly.bench.tasks import object_bounds
     from onfly.pilot import PilotConfig
     from onfly.viz import RerunRecorder
@@ -64,8 +71,8 @@ def run(args: argparse.Namespace) -> int:
     from planning.camera import PinholeCamera
     from planning.trajectory import VehicleState
 
-    if args.method not in ABLATIONS:
-        raise ValueError(f"--method must be one of {sorted(ABLATIONS)}, got {args.method!r}")
+    if args.method not in method_names():
+        raise ValueError(f"--method must be one of {method_names()}, got {args.method!r}")
     camera = PinholeCamera.from_fov(args.width, args.height, 90.0, 60.0)
     if args.task:
         task = _resolve_task(args)
@@ -73,19 +80,28 @@ def run(args: argparse.Namespace) -> int:
             task.scene, camera=camera, initial_state=VehicleState(0.0, task.start.position_m, [0, 0, 0], task.start.yaw_rad)
         )
         instruction, goal, ref_m, label = task.instruction, task.goal_region, (task.reference.path_length_m if task.reference else 0.0), task.task_id
+        privileged = task.privileged_goal()
     elif args.instruction:
         if not args.scene or not args.goal_object:
             raise ValueError("--instruction needs --scene and --goal-object (the object whose box scores the episode)")
         world = World.from_scene(args.scene, camera=camera)
         lo, hi = object_bounds(world.scene, args.goal_object)
         goal = GoalRegion((lo + hi) / 2, (hi - lo) / 2)
-        instruction, ref_m, label = args.instruction, 0.0, f"{world.scene.name}-custom"
+        instruction, label = args.instruction, f"{world.scene.name}-custom"
         ref_m = float(goal.distance(world.state.p))
+        privileged = None
     else:
         raise ValueError("give --task ID, or --scene S --instruction TEXT --goal-object NAME")
 
-    base = PilotConfig.from_toml(args.config) if args.config else PilotConfig()
-    method = OnFlyMethod(args.vlm, ablation_config(args.method, base), name=args.method)
+    if args.method in ABLATIONS:
+        base = PilotConfig.from_toml(args.config) if args.config else PilotConfig()
+        method = OnFlyMethod(args.vlm, ablation_config(args.method, base), name=args.method)
+    else:
+        if args.config:
+            raise ValueError("--config holds PilotConfig overrides; it applies to the OnFly variants only")
+        method = make_method(args.method, args.vlm, args.seed)
+        if getattr(method, "privileged", False) and privileged is None:
+            raise ValueError(f"method {args.method!r} needs a task's ground truth: use --task")
     rrd_path = None if args.no_rrd else (args.rrd or Path("runs") / f"{label.replace('/', '-')}-s{args.seed}.rrd")
     recorder = RerunRecorder(rrd_path) if rrd_path else None
     writer = None
@@ -97,21 +113,27 @@ def run(args: argparse.Namespace) -> int:
 
     def observe(step):
         nonlocal n_events
+        pilot = getattr(step.method, "pilot", None)
+        esdf = pilot.esdf if pilot is not None else getattr(step.method, "esdf", None)
+        events = pilot.events if pilot is not None else []
         if step.obs is not None:
             if recorder:
                 recorder.log_frame(step.obs)
-                recorder.log_map(step.t_s, step.method.pilot.esdf.occupied_points())
+                if esdf is not None:
+                    recorder.log_map(step.t_s, esdf.occupied_points())
             if writer:
                 writer.write(step.obs)
         if recorder:
             recorder.log_state(step.state)
             if step.output.trajectory is not None:
                 recorder.log_plan(step.t_s, step.output.trajectory)
-            recorder.log_pilot_events(step.method.pilot.events)
+            if privileged is not None and step.t_s == 0.0:
+                recorder.log_goal(0.0, "task_region", goal.center, color=(255, 0, 255))
+            recorder.log_pilot_events(events)
         if writer:
-            for ev in step.method.pilot.events[n_events:]:
+            for ev in events[n_events:]:
                 writer.event(ev.kind, ev.data, t_s=ev.t_s)
-            n_events = len(step.method.pilot.events)
+            n_events = len(events)
 
     try:
         result = run_episode(
@@ -122,8 +144,9 @@ def run(args: argparse.Namespace) -> int:
             reference_path_m=ref_m,
             seed=args.seed,
             error_model=args.vlm,
-            config=EpisodeConfig(time_limit_s=args.time_limit_s),
+            config=EpisodeConfig(time_limit_s=args.time_limit_s, frame_period_s=args.frame_period_s),
             observer=observe,
+            privileged=privileged,
         )
     finally:
         if recorder:
