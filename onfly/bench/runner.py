@@ -7,7 +7,9 @@ and writes into an output folder:
   (config hash, method, task, kind, run index, seed, metrics, end and failure reason, VLM calls
   and their charged latency, simulated and wall seconds, the method's own summary);
 - ``summary.json`` and ``summary.md``: SR / OSR / CR / FT / NE / SPL per method and per method
-  and task kind, the error model and the realtime factor (simulated s / wall s);
+  and task kind, the error model and the realtime factor (simulated s / wall s of the episodes;
+  ``realtime_factor_cpu`` divides by their CPU time instead, which a shared machine does not
+  distort);
 - ``config.json``: the resolved config and the hash of each method's part.
 
 Episodes are keyed by ``(config hash, method, task, run index)``: an interrupted run started
@@ -344,6 +346,7 @@ def run_job(job: EpisodeJob) -> dict:
     camera = PinholeCamera.from_fov(int(w["width_px"]), int(w["height_px"]), float(w["hfov_deg"]), float(w["vfov_deg"]))
     start = VehicleState(0.0, task.start.position_m.copy(), np.zeros(3), float(task.start.yaw_rad))
     world = World(_scene(task.scene), camera=camera, render_config=RenderConfig(threads=int(w["render_threads"])), initial_state=start)
+    cpu0 = time.process_time()
     factory = get_factory(job.method)
     method = factory(job.vlm, job.seed, **{k: (dict(v) if isinstance(v, dict) else v) for k, v in job.options.items()})
     result = run_episode(
@@ -357,6 +360,7 @@ def run_job(job: EpisodeJob) -> dict:
         config=EpisodeConfig(**job.episode),
         privileged=task.privileged_goal(),
     )
+    cpu_s = time.process_time() - cpu0
     rec = result.to_dict()
     clearance = world.collision.clearance(result.trace.positions)
     return _jsonable(
@@ -375,6 +379,7 @@ def run_job(job: EpisodeJob) -> dict:
             "end_reason": rec.pop("end_reason"),
             "failure": _failure(result.end_reason, result.metrics),
             "min_clearance_m": float(clearance.min()),
+            "cpu_s": cpu_s,
             **rec,
         }
     )
@@ -410,9 +415,12 @@ def _block(recs: list[dict]) -> dict:
     s = summarize(_metrics(r) for r in recs)
     sim = sum(r["sim_s"] for r in recs)
     wall = sum(r["wall_s"] for r in recs)
+    cpu = sum(r.get("cpu_s", 0.0) for r in recs)
     s["realtime_factor"] = sim / wall if wall > 0 else None
+    s["realtime_factor_cpu"] = sim / cpu if cpu > 0 else None
     s["sim_s"] = sim
     s["wall_s"] = wall
+    s["cpu_s"] = cpu
     clear = [r["min_clearance_m"] for r in recs if r.get("min_clearance_m") is not None]
     s["min_clearance_m"] = min(clear) if clear else None
     s["failures"] = {}
@@ -445,12 +453,14 @@ def summarize_records(records: Iterable[dict], *, error_model: str, name: str = 
         methods[m] = block
     sim = sum(r["sim_s"] for r in recs)
     wall = sum(r["wall_s"] for r in recs)
+    cpu = sum(r.get("cpu_s", 0.0) for r in recs)
     return _jsonable(
         {
             "name": name,
             "error_model": error_model,
             "episodes": len(recs),
             "realtime_factor": sim / wall if wall > 0 else None,
+            "realtime_factor_cpu": sim / cpu if cpu > 0 else None,
             "methods": methods,
         }
     )
