@@ -7,12 +7,16 @@ handed back by :meth:`AgentRuntime.poll` once it has *landed*:
   clock (:class:`onfly.world.clock.SimClock`) reaches ``submit time + latency``; the latency is
   the outcome's ``latency_s`` (the simulated VLM's modelled latency, a real backend's wall time).
 - :class:`ThreadRuntime` (onboard): the call runs on a worker thread per kind and lands when it
-  finishes.
+  finishes. With ``honour_modelled_latency=True`` (onboard *simulation*: a simulated VLM that
+  answers at once but models a latency) a finished call lands only once the runtime's clock
+  reaches ``submit time + outcome.latency_s``, so the flight sees the modelled hardware's delay
+  in wall time exactly as the virtual clock charges it in the benchmark.
 """
 
 from __future__ import annotations
 
 import concurrent.futures as cf
+import math
 import time
 from dataclasses import dataclass
 from typing import Any, Callable, Protocol
@@ -74,11 +78,32 @@ class ClockRuntime:
         return out
 
 
-class ThreadRuntime:
-    """Agent calls on worker threads (one per kind, so kinds never queue behind each other)."""
+def _modelled_latency_s(outcome: Any) -> float:
+    """The outcome's ``latency_s`` when it is a finite number >= 0, else 0 (land at once)."""
+    latency = getattr(outcome, "latency_s", None)
+    try:
+        latency = float(latency)
+    except (TypeError, ValueError):
+        return 0.0
+    return latency if math.isfinite(latency) and latency >= 0 else 0.0
 
-    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
+
+class ThreadRuntime:
+    """Agent calls on worker threads (one per kind, so kinds never queue behind each other).
+
+    Parameters
+    ----------
+    clock : seconds, monotonic (the pilot's clock)
+    honour_modelled_latency : False (default): a call lands as soon as its thread finishes.
+        True: it lands at ``max(finish, submit + outcome.latency_s)`` on ``clock``, and its
+        kind stays busy until then (for a simulated VLM whose answers are instant but whose
+        modelled latency must pass in wall time). A call that raised lands at once. Never use
+        it with a real backend: its ``latency_s`` is the wall time already spent.
+    """
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic, *, honour_modelled_latency: bool = False) -> None:
         self._clock = clock
+        self.honour_modelled_latency = bool(honour_modelled_latency)
         self._pools: dict[str, cf.ThreadPoolExecutor] = {}
         self._running: dict[str, tuple[cf.Future, float]] = {}
 
@@ -92,16 +117,35 @@ class ThreadRuntime:
         self._running[kind] = (pool.submit(fn), self.now_s())
 
     def busy(self, kind: str) -> bool:
-        fut = self._running.get(kind)
-        return fut is not None and not fut[0].done()
+        """True from submission until the call has landed (been returned by :meth:`poll`)."""
+        return kind in self._running
+
+    def wait_finished(self, kind: str, timeout_s: float) -> bool:
+        """Block up to ``timeout_s`` until the running ``kind`` call has finished computing (it
+        may still wait for its modelled latency before landing). True if none is running or it
+        finished. For shutdown and tests; the pilot never calls it."""
+        entry = self._running.get(kind)
+        if entry is None:
+            return True
+        done, _ = cf.wait([entry[0]], timeout=timeout_s)
+        return bool(done)
+
+    def _due(self, fut: cf.Future, submitted_s: float, now_s: float) -> bool:
+        if not fut.done():
+            return False
+        if not self.honour_modelled_latency or fut.exception() is not None:
+            return True
+        return now_s >= submitted_s + _modelled_latency_s(fut.result())
 
     def poll(self) -> list[Landed]:
+        """Calls that have landed since the last poll (each returned once)."""
         out = []
+        now = self.now_s()
         for kind, (fut, t0) in list(self._running.items()):
-            if fut.done():
+            if self._due(fut, t0, now):
                 del self._running[kind]
                 exc = fut.exception()
-                out.append(Landed(kind, exc if exc is not None else fut.result(), t0, self.now_s()))
+                out.append(Landed(kind, exc if exc is not None else fut.result(), t0, now))
         return out
 
     def close(self) -> None:
