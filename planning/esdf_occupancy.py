@@ -331,6 +331,8 @@ def shift_array(a: np.ndarray, shift: np.ndarray, fill) -> np.ndarray:
     shift : int array (3,), voxels the window moved (new origin minus old origin)
     """
     out = np.full(a.shape, fill, dtype=a.dtype)
+    if any(abs(int(s)) >= n for s, n in zip(shift, a.shape)):
+        return out  # moved by a whole window or more: nothing overlaps
     src, dst = [], []
     for s, n in zip(shift, a.shape):
         s = int(s)

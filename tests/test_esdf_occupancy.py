@@ -35,6 +35,14 @@ def test_shift_array_moves_content_and_fills():
     np.testing.assert_array_equal(shift_array(a, np.zeros(3, int), 0), a)
 
 
+
+def test_shift_array_by_more_than_the_window_is_all_fill():
+    # regression: a first frame far from the map's initial origin shifted by more than the
+    # window and numpy failed to broadcast (found by the benchmark oracle)
+    a = np.arange(24, dtype=float).reshape(2, 3, 4)
+    for shift in ([5, 0, 0], [0, -3, 0], [0, 0, 4], [-7, 9, 1]):
+        np.testing.assert_array_equal(shift_array(a, np.array(shift), -1.0), np.full(a.shape, -1.0))
+
 def test_origin_puts_centre_in_middle_voxel():
     occ = RollingOccupancy(EsdfConfig(size_m=(4.0, 4.0, 2.0)))
     o = occ.origin_for_center([1.234, -0.55, 0.05])
