@@ -9,6 +9,8 @@ Entity layout (world ENU, metres; timeline ``sim_time`` in seconds):
 - ``world/goal/raw`` the VLM pixel lifted at its own depth, ``world/goal/verified`` the goal
   the planner got
 - ``log/agents`` decisions, monitoring statuses, memory contents, task events (text)
+- ``metrics/...`` scalar time series (e.g. ``onfly replay``'s clearance, slack and latency
+  per frame), one entity per name
 
 Recordings are written to an ``.rrd`` file (``rerun rrd verify FILE`` checks one; ``rerun FILE``
 opens it).
@@ -112,6 +114,15 @@ class RerunRecorder:
     def log_text(self, t_s: float, text: str, level: str = "INFO") -> None:
         self._time(t_s)
         self.rec.log("log/agents", rr.TextLog(text, level=level))
+
+    def log_scalars(self, t_s: float, values) -> None:
+        """Scalar time series: ``{name: value}`` logged at ``metrics/<name>``; non-finite
+        values are skipped (a plot gap, not a spike)."""
+        self._time(t_s)
+        for name, value in values.items():
+            v = float(value)
+            if np.isfinite(v):
+                self.rec.log(f"metrics/{name}", rr.Scalars(v))
 
     def log_pilot_events(self, events) -> None:
         """Log the pilot events not yet logged (``onfly.pilot.PilotEvent`` list)."""
