@@ -95,25 +95,6 @@ class _PlannerCache:
 _PLANNERS = _PlannerCache()
 
 
-def _recenter_in_hops(esdf: EsdfMap, center_m: np.ndarray) -> None:
-    """Move a fresh map's window to ``center_m`` in hops shorter than the window.
-
-    Works around planning.esdf_occupancy.shift_array failing when one shift exceeds the window
-    size (a first frame far from the map's initial origin); the map is empty, so hops are free.
-    """
-    lo, hi = esdf.bounds_world
-    here = (lo + hi) / 2
-    hop = 0.4 * float(np.min(hi - lo))
-    while True:
-        d = center_m - here
-        n = float(np.linalg.norm(d))
-        if n <= hop:
-            break
-        here = here + d * (hop / n)
-        esdf.recenter(here)
-    esdf.recenter(center_m)
-
-
 class OraclePilot:
     """Privileged method: follows the reference waypoints with the ESDF + MPC (module docstring)."""
 
@@ -156,7 +137,6 @@ class OraclePilot:
         self.goal_point = self.path[-1].copy()
         self._progress = 0
         self.esdf = EsdfMap(self.esdf_config)
-        _recenter_in_hops(self.esdf, start)
         if self._planner is None:
             self.planner = _PLANNERS.get(self.planner_config)
         else:
