@@ -65,6 +65,7 @@ __all__ = [
     "format_summary",
     "BenchResult",
     "EPISODES_FILE",
+    "with_overrides",
 ]
 
 log = logging.getLogger(__name__)

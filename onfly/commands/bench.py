@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from onfly.bench.runner import BenchConfig, format_summary, run_bench, with_overrides
@@ -52,25 +53,23 @@ def build_config(args) -> BenchConfig:
         changes.update(kinds=(args.kind,), task_ids=None, scenes=None, count=None)
     elif args.count is not None:
         changes.update(count=args.count, task_ids=None, scenes=None, kinds=None)
-    from dataclasses import replace
-
     if changes:
         cfg = replace(cfg, **changes)
     return with_overrides(cfg, runs=args.runs, seed=args.seed, vlm=args.vlm, workers=args.workers)
 
 
 def run(args) -> int:
-    try:
-        cfg = build_config(args)
-    except TypeError as exc:  # pragma: no cover - defensive
-        raise CliError(str(exc)) from None
+    cfg = build_config(args)
+    if args.ray is not None and not args.ray.strip():
+        raise CliError("--ray needs a cluster address or 'local'")
     out = Path(args.out) if args.out else Path("runs") / "bench" / cfg.name
     t0 = time.perf_counter()
     res = run_bench(cfg, out, ray_address=args.ray, progress=not args.no_progress)
     print(format_summary(res.summary))
     print(
         f"\n{res.ran} episodes run, {res.skipped} already done (resumed), wall {time.perf_counter() - t0:.1f} s, "
-        f"realtime factor {res.summary.get('realtime_factor') or float('nan'):.2f}; results in {out}"
+        f"realtime factor {res.summary.get('realtime_factor') or float('nan'):.2f} "
+        f"(per CPU second {res.summary.get('realtime_factor_cpu') or float('nan'):.2f}); results in {out}"
     )
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
