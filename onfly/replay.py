@@ -432,17 +432,24 @@ def _jsonable(x: Any) -> Any:
 
 
 class _Backend:
-    """The replay's VLM backend and whatever it owns (a temporary checkpoint for ``tiny``)."""
+    """The replay's VLM backend and whatever it owns (a temporary checkpoint for ``tiny``).
 
-    def __init__(self, spec: str, seed: int) -> None:
+    A backend passed in by the caller is used as is and not closed here.
+    """
+
+    def __init__(self, spec: str, seed: int, backend: VlmBackend | None = None) -> None:
         self._tmp: tempfile.TemporaryDirectory | None = None
-        self.spec = spec
-        self.simulated = spec.strip().lower().startswith("sim:")
-        self.backend = make_replay_backend(spec, seed=seed, _owner=self)
+        self._owned = backend is None
+        self.backend = make_replay_backend(spec, seed=seed, _owner=self) if backend is None else backend
+        self.spec = spec if backend is None else str(getattr(backend, "name", type(backend).__name__))
+        from vlm.sim import SimulatedVlm
+
+        self.simulated = isinstance(self.backend, SimulatedVlm)
 
     def close(self) -> None:
         try:
-            self.backend.close()
+            if self._owned:
+                self.backend.close()
         finally:
             if self._tmp is not None:
                 self._tmp.cleanup()
@@ -665,7 +672,9 @@ def _state(obs: Observation, prev: Observation | None, prev_v: np.ndarray, prev_
     return VehicleState(obs.t_s, obs.position, v, obs.yaw, yaw_rate)
 
 
-def replay(source, config: ReplayConfig = ReplayConfig(), recorder=None, progress: bool = True) -> ReplayReport:
+def replay(
+    source, config: ReplayConfig = ReplayConfig(), recorder=None, progress: bool = True, *, backend: VlmBackend | None = None
+) -> ReplayReport:
     """Replay ``source`` open loop through ESDF, planner and (with an instruction) the agents.
 
     Parameters
@@ -676,6 +685,8 @@ def replay(source, config: ReplayConfig = ReplayConfig(), recorder=None, progres
     recorder : optional :class:`onfly.viz.RerunRecorder`; gets frames, map, logged path, plans,
         goals, VLM / verifier pixels, agent text and per-frame scalars
     progress : show a tqdm progress bar on stderr
+    backend : a VLM backend object to use instead of building one from ``config.vlm``
+        (used only with an instruction; the caller keeps ownership and closes it)
 
     Raises
     ------
@@ -686,7 +697,7 @@ def replay(source, config: ReplayConfig = ReplayConfig(), recorder=None, progres
     samples: dict[str, list[float]] = {name: [] for name in STAGES}
     esdf = EsdfMap(config.esdf)
     planner = Planner(config.planner)
-    owner = _Backend(config.vlm, config.seed) if config.instruction is not None else None
+    owner = _Backend(config.vlm, config.seed, backend) if config.instruction is not None else None
     frames: list[FrameResult] = []
     agents: _Agents | None = None
     speeds: list[float] = []
@@ -824,7 +835,7 @@ def _report(source, config, frames, frames_read, speeds, agents, owner, samples,
         duration_s=frames[-1].t_s - frames[0].t_s,
         goal_mode=config.goal_mode,
         instruction=config.instruction,
-        vlm=config.vlm if owner is not None else None,
+        vlm=owner.spec if owner is not None else None,
         vlm_latency=None if owner is None else ("modelled" if owner.simulated else "measured"),
         latency_ms=latency,
         path_clearance_min_m=float(clear.min()),

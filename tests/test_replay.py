@@ -220,6 +220,60 @@ def test_simulated_vlm_refuses_frames_without_annotations():
         replay(_track(), config, progress=False)
 
 
+class PointingVlm:
+    """A fake backend: always points at ``uv``, always says CONTINUE, no features, no
+    decomposition (the deterministic splitter takes over)."""
+
+    name = "fake:pointing"
+
+    def __init__(self, uv):
+        self.uv = uv
+        self.closed = False
+
+    def complete(self, messages, images=(), **kw):
+        from vlm.prompts import DecisionPrompt, MonitorPrompt, parse_prompt
+        from vlm.types import CallStatus, VlmResponse
+
+        prompt = parse_prompt(messages)
+        if isinstance(prompt, DecisionPrompt):
+            return VlmResponse(CallStatus.OK, f'{{"point_2d": [{self.uv[0]}, {self.uv[1]}]}}', latency_s=0.25)
+        if isinstance(prompt, MonitorPrompt):
+            return VlmResponse(CallStatus.OK, "CONTINUE", latency_s=0.5)
+        return VlmResponse(CallStatus.ERROR, error="no decomposition here", latency_s=0.1)
+
+    def features(self, image):
+        return None
+
+    def close(self):
+        self.closed = True
+
+
+def test_verifier_moves_a_pixel_on_a_near_obstacle_and_the_report_counts_it():
+    # left half of the image 1 m away (near field: an obstacle), right half 5 m away; the VLM
+    # points into the left half, the geometric-only refinement moves it clear to the right
+    def frame(i):
+        obs = _obs(0.5 * i, 0.1 * i, 5.0, i)
+        obs.depth_m[:, :16] = 1.0
+        return obs
+
+    backend = PointingVlm((8.0, 12.0))
+    config = ReplayConfig(goal_mode="agents", instruction="fly to the far wall", vlm="http:unused")
+    report = replay(ListSource(frame(i) for i in range(3)), config, progress=False, backend=backend)
+    assert not backend.closed  # the caller's backend stays open
+    assert report.vlm == "fake:pointing" and report.vlm_latency == "measured"
+    assert report.subtasks == ("fly to the far wall",) and report.decomposition_source == "fallback"
+    assert report.decisions == 3 and report.goals_accepted == 3
+    v = report.verifier
+    assert (v.candidates, v.accepted, v.moved) == (3, 3, 3)
+    assert v.refinement_notes == {"no_features": 3}
+    for d in report.decision_log:
+        assert d.pixel_uv == (8.0, 12.0) and d.refined_uv[0] > 16.0  # off the near half
+        assert d.pixel_shift_px == pytest.approx(math.hypot(d.refined_uv[0] - 8.0, d.refined_uv[1] - 12.0))
+    assert v.pixel_shift_max_px == max(d.pixel_shift_px for d in report.decision_log)
+    assert report.latency_ms["decision_vlm"].median_ms == pytest.approx(250.0)
+    assert report.monitor_calls == 1 and report.monitor_statuses == {"CONTINUE": 1}  # t = 0.5 only (period 2 s)
+
+
 # -- verifier statistics -------------------------------------------------------------------------
 
 
