@@ -13,7 +13,8 @@ verifier-free path of the real pilot:
   reference's end, the free point next to the goal region;
 - :class:`planning.planner.Planner` plans to it;
 - it declares the task done when the vehicle is within ``done_radius_m`` of the goal region
-  and slower than ``done_speed_mps``.
+  (or 0.3 m beyond the reference's end, if that lies farther out) and slower than
+  ``done_speed_mps``.
 """
 
 from __future__ import annotations
@@ -135,6 +136,8 @@ class OraclePilot:
             wp = np.vstack([start, wp])
         self.path, self.arc = _resample(wp, self.config.path_step_m)
         self.goal_point = self.path[-1].copy()
+        # a reference that ends farther out than done_radius_m still ends the episode there
+        self._done_gap_m = max(self.config.done_radius_m, float(self.region.distance(self.goal_point)) + 0.3)
         self._progress = 0
         self.esdf = EsdfMap(self.esdf_config)
         if self._planner is None:
@@ -161,7 +164,7 @@ class OraclePilot:
         self._steps += 1
         gap = float(self.region.distance(state.p))
         speed = float(np.linalg.norm(state.v))
-        if gap <= self.config.done_radius_m and speed <= self.config.done_speed_mps:
+        if gap <= self._done_gap_m and speed <= self.config.done_speed_mps:
             return MethodStep(None, True, {"goal_gap_m": gap})
         carrot = self._carrot(state.p)
         plan = self.planner.step(state, carrot, self.esdf)
