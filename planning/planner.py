@@ -455,7 +455,7 @@ class Planner:
             iterations += sol[2]
             solves += sol[3]
             status, z, y = sol[0], sol[1], sol[4]
-            self._qp_healthy = status is SolveStatus.SOLVED
+            self._qp_healthy = status in (SolveStatus.SOLVED, SolveStatus.UNSAFE)
             if status is not SolveStatus.SOLVED or z is None:
                 break
             u_bar = np.clip(z[self._idx_u], -self._u_max, self._u_max)
@@ -667,7 +667,12 @@ class Planner:
         return z
 
     def _solve(self, th, z_warm, y_warm, field, origin):
-        """Solve with speed refinement. Returns (status, z, iterations, solves, y)."""
+        """Solve with speed refinement. Returns ``(status, z, iterations, solves, y)``.
+
+        ``z`` is None when the solver failed; with ``UNSAFE`` (speed still above tolerance after
+        ``max_speed_refinements``) it is the last solution, which :meth:`converge` keeps
+        iterating from and :meth:`step` rejects.
+        """
         c, L = self.config, self.layout
         K = L.speed_cuts
         iterations, solves = 0, 0
@@ -697,7 +702,7 @@ class Planner:
             self._cuts[bad, slot, :] = V[bad] / speed[bad, None]
             th[L.th_speed_dir] = self._cuts.ravel()
             z_warm, y_warm = sol.z, sol.y
-        return SolveStatus.UNSAFE, None, iterations, solves, None
+        return SolveStatus.UNSAFE, sol.z, iterations, solves, sol.y
 
     def _check(self, X, U, origin, field, d0, bound):
         """Speed within tolerance everywhere; clearance over the braking horizon."""
