@@ -347,6 +347,23 @@ def make_episode(rng: np.random.Generator, cfg: BenchMemoryConfig) -> Episode:
     return Episode(t_s=t, position=position, yaw=np.angle(np.exp(1j * yaw)), path_xy=np.array(corners), length_m=total)
 
 
+def make_episodes(cfg: BenchMemoryConfig) -> list[tuple[Episode, np.random.Generator, np.random.Generator]]:
+    """``cfg.episodes`` seeded episodes, each with its world and sensor-noise generators.
+
+    Raises :class:`BenchConfigError` when an episode has fewer monitoring calls than ``cfg.calls``.
+    """
+    out = []
+    for e, child in enumerate(np.random.SeedSequence(cfg.seed).spawn(cfg.episodes)):
+        world_rng, path_rng, noise_rng = (np.random.default_rng(s) for s in child.spawn(3))
+        episode = make_episode(path_rng, cfg)
+        n_calls = (len(episode.t_s) - 1) // cfg.frames_per_call
+        if n_calls < cfg.calls:
+            raise BenchConfigError(f"episode {e} ({episode.length_m:.1f} m) has {n_calls} monitoring calls, fewer "
+                                   f"than calls={cfg.calls}; lengthen the path or lower --calls")
+        out.append((episode, world_rng, noise_rng))
+    return out
+
+
 # -- memory schedules ------------------------------------------------------------------------------
 
 
@@ -648,6 +665,7 @@ def run_benchmark(cfg: BenchMemoryConfig, *, model_path: str | Path | None = Non
     from vlm.backend_transformers import TransformersBackend, TransformersBackendConfig
 
     say = progress or (lambda _msg: None)
+    episodes = make_episodes(cfg)
     camera = PinholeCamera.from_fov(cfg.image_width_px, cfg.image_height_px, 90.0, 60.0)
     with tempfile.TemporaryDirectory(prefix="bench_memory_") as tmp:
         if model_path is None:
@@ -673,12 +691,8 @@ def run_benchmark(cfg: BenchMemoryConfig, *, model_path: str | Path | None = Non
 
         mem: dict[str, list[MemoryCall]] = {s: [] for s in MEMORY_STRATEGIES}
         model: list[ModelCall] = []
-        root = np.random.SeedSequence(cfg.seed)
-        episode_lengths = []
         image_tokens = None
-        for e, child in enumerate(root.spawn(cfg.episodes)):
-            world_rng, path_rng, noise_rng = (np.random.default_rng(s) for s in child.spawn(3))
-            episode = make_episode(path_rng, cfg)
+        for e, (episode, world_rng, noise_rng) in enumerate(episodes):
             world = make_world(world_rng, episode.path_xy)
             t0 = time.perf_counter()
             images = render_episode(episode, world, camera, e, noise_rng)
@@ -690,15 +704,11 @@ def run_benchmark(cfg: BenchMemoryConfig, *, model_path: str | Path | None = Non
             for s in MEMORY_STRATEGIES:
                 mem[s].extend(calls[s])
             n_calls = len(calls["hybrid"])
-            if n_calls < cfg.calls:
-                raise BenchConfigError(f"episode {e} has {n_calls} monitoring calls, fewer than calls={cfg.calls}; "
-                                       f"lengthen the path or lower --calls")
             windows = {s: calls[s][-cfg.calls:] for s in MEMORY_STRATEGIES}
             t0 = time.perf_counter()
             model.extend(run_model_calls(specs, windows, backends, sims, cfg))
             say(f"episode {e}: {n_calls} monitoring calls, model calls {n_calls - cfg.calls}..{n_calls - 1} "
                 f"of {len(streams)} streams in {time.perf_counter() - t0:.1f} s")
-            episode_lengths.append(episode.length_m)
         for b in backends.values():
             b.close()
 
@@ -708,7 +718,7 @@ def run_benchmark(cfg: BenchMemoryConfig, *, model_path: str | Path | None = Non
         **dataclasses.asdict(cfg),
         "image_size": [cfg.image_width_px, cfg.image_height_px],
         "model": model_desc,
-        "episode_lengths_m": [round(x, 2) for x in episode_lengths],
+        "episode_lengths_m": [round(ep.length_m, 2) for ep, _, _ in episodes],
         "monitoring_calls_per_episode": [sum(1 for c in mem["hybrid"] if c.episode == e) for e in range(cfg.episodes)],
         "memory": dataclasses.asdict(MemoryConfig(slots=cfg.slots)),
         "subtask": SUBTASK,
