@@ -80,7 +80,7 @@ from planning.verifier import CandidateGoal, VerifiedGoal, Verifier, VerifierCon
 from vlm.decompose import decompose_detailed
 from vlm.feature_cache import FeatureCache
 from vlm.parsing import CoordFormat
-from vlm.types import CallStatus, VisionFeatures, VlmBackend, VlmImage
+from vlm.types import VisionFeatures, VlmBackend, VlmImage
 
 __all__ = [
     "GOAL_MODES",
@@ -431,6 +431,10 @@ def _jsonable(x: Any) -> Any:
 # -- backends -----------------------------------------------------------------------------------
 
 
+def _is_tiny(spec: str) -> bool:
+    return spec.partition(":")[0].strip().lower() == TINY_PREFIX
+
+
 class _Backend:
     """The replay's VLM backend and whatever it owns (a temporary checkpoint for ``tiny``).
 
@@ -440,15 +444,23 @@ class _Backend:
     def __init__(self, spec: str, seed: int, backend: VlmBackend | None = None) -> None:
         self._tmp: tempfile.TemporaryDirectory | None = None
         self._owned = backend is None
-        self.backend = make_replay_backend(spec, seed=seed, _owner=self) if backend is None else backend
-        self.spec = spec if backend is None else str(getattr(backend, "name", type(backend).__name__))
+        if backend is None:
+            if _is_tiny(spec):
+                self._tmp = tempfile.TemporaryDirectory(prefix="onfly-tiny-vlm-")
+            try:
+                backend = make_replay_backend(spec, seed=seed, tiny_dir=self._tmp.name if self._tmp else None)
+            except BaseException:
+                self.close()
+                raise
+        self.backend = backend
+        self.spec = spec if self._owned else str(getattr(backend, "name", type(backend).__name__))
         from vlm.sim import SimulatedVlm
 
-        self.simulated = isinstance(self.backend, SimulatedVlm)
+        self.simulated = isinstance(backend, SimulatedVlm)
 
     def close(self) -> None:
         try:
-            if self._owned:
+            if self._owned and getattr(self, "backend", None) is not None:
                 self.backend.close()
         finally:
             if self._tmp is not None:
@@ -456,30 +468,28 @@ class _Backend:
                 self._tmp = None
 
 
-def make_replay_backend(spec: str, *, seed: int = 0, _owner: _Backend | None = None) -> VlmBackend:
-    """:func:`vlm.factory.make_backend` plus ``tiny[:family]`` (a tiny random-weight model
-    written to a temporary directory, removed when the owning replay ends).
+def make_replay_backend(spec: str, *, seed: int = 0, tiny_dir: str | Path | None = None) -> VlmBackend:
+    """:func:`vlm.factory.make_backend`, plus ``tiny[:family]``: a tiny random-weight Qwen model
+    (:func:`vlm.tiny_models.build_tiny_vlm`) written to ``tiny_dir`` and loaded in-process.
 
     Raises
     ------
-    ValueError : a bad spec (lists the valid forms)
+    ValueError : a bad spec (lists the valid forms), or ``tiny`` without ``tiny_dir``
     vlm.types.VlmError : a backend that cannot be reached or loaded
     """
     from vlm.factory import make_backend
 
-    kind, _, rest = spec.partition(":")
-    if kind.strip().lower() != TINY_PREFIX:
+    if not _is_tiny(spec):
         return make_backend(spec, seed=seed)
     from vlm.tiny_models import TINY_FAMILIES, build_tiny_vlm
 
-    family = rest.strip() or TINY_FAMILIES[0]
+    family = spec.partition(":")[2].strip() or TINY_FAMILIES[0]
     if family not in TINY_FAMILIES:
         raise ValueError(f"bad VLM backend spec {spec!r}: tiny model family must be one of {TINY_FAMILIES}")
-    tmp = tempfile.TemporaryDirectory(prefix="onfly-tiny-vlm-")
-    if _owner is not None:
-        _owner._tmp = tmp
-    log.info("building a tiny random-weight %s model in %s (its answers are garbage)", family, tmp.name)
-    path = build_tiny_vlm(tmp.name, family=family, seed=seed)
+    if tiny_dir is None:
+        raise ValueError(f"VLM backend spec {spec!r} needs a directory to write the tiny model to (tiny_dir)")
+    log.info("building a tiny random-weight %s model in %s (its answers are garbage)", family, tiny_dir)
+    path = build_tiny_vlm(tiny_dir, family=family, seed=seed)
     return make_backend(f"transformers:{path}")
 
 

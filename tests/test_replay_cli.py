@@ -95,6 +95,7 @@ def test_not_a_recording_is_one_line(tmp_path, capsys):
         (["--intrinsics", "585,585,320"], "--intrinsics (fx,fy,cx,cy) must be 4"),
         (["--depth-topic", "/depth"], "option(s) depth_topic do not apply to a tum source"),
         (["--vlm", "gpt4"], "vlm must be a backend spec"),
+        (["--instruction", "go", "--vlm", "tiny:llama"], "tiny model family must be one of"),
     ],
 )
 def test_bad_options_are_one_line(capsys, extra, match):
@@ -106,6 +107,14 @@ def test_simulated_vlm_on_a_real_recording_is_one_line(capsys):
         capsys, ["replay", str(KITCHEN), "--instruction", "fly to the kettle", "--vlm", "sim:perfect", "--no-progress"], "annotations"
     )
     assert "--vlm http:URL" in line and "--vlm tiny" in line
+
+
+def test_unreachable_vlm_server_is_one_line(capsys):
+    _one_line_error(
+        capsys,
+        ["replay", str(KITCHEN), "--instruction", "fly to the kettle", "--vlm", "http:127.0.0.1:9", "--no-progress"],
+        "VLM backend 'http:127.0.0.1:9': connection refused",
+    )
 
 
 def _tiny_ros1_bag(path: Path) -> Path:
