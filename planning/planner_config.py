@@ -11,13 +11,18 @@ documented choice:
   at the default limits (0.6 / 0.6), so every plan can brake inside its own horizon.
 - The acceleration limit is **per axis** (``|a_i| <= a_max_mps2``, the convention of
   Fast-Planner's feasibility check); the speed limit is on the **norm** ``||v|| <= v_max_mps``
-  (exact in the NLP, linearized with re-linearization in the QP, see :mod:`planning.mpc_qp`).
+  (exact in the NLP; in the QP an outer polyhedral approximation, the tangent at the previous
+  direction plus cutting planes added until the true norm is within ``speed_tolerance_rel``,
+  see :mod:`planning.mpc_qp`).
 - Cost weights (dimensionless ratios; only their ratios matter): the stage progress weight pulls
   every knot toward the goal, the terminal weights make the plan end at rest on the goal,
   ``w_accel`` / ``w_jerk`` keep commands small and smooth, ``w_yaw`` is the paper's
   ``lambda_psi``, and the slack weights (exact L1 penalty plus a small quadratic for
   conditioning) are large enough that the clearance constraint only gives way when it is
-  infeasible.
+  infeasible (the L1 weight exceeds the clearance multipliers the progress terms create for
+  goals within ~20 m).
+- OSQP: eps 1e-3 (the fast path's real-time iteration; tighter tolerances cost hundreds of
+  ADMM iterations on this problem), rho 1.0 with adaptive updates every 25 iterations.
 """
 
 from __future__ import annotations
