@@ -4,14 +4,27 @@ Run it in one terminal and point a companion (``onfly fly --connect ...``, MAVSD
 at it. Like PX4 SITL, the default URL sends to the companion's port on localhost
 (``udpout:127.0.0.1:14540``); the companion listens there (``udpin:127.0.0.1:14540``).
 
-The embedded world's camera (``--scene`` / ``--camera``) is not wired in yet: the world package
-was not part of the code base when this command was written. The vehicle flies without a camera.
+Without ``--scene`` / ``--task`` the vehicle is a point mass without a camera (fast; for link
+and rule tests). With them it flies in the embedded world: the world's vehicle dynamics
+(benchmark limits), exact collisions against the scene (a collision disarms it) and, with
+``--camera tcp://127.0.0.1:PORT``, its camera served to the companion at ``--camera-rate-hz``
+(default 2 Hz at 320 x 214, 90 x 60 deg, as the benchmark). It starts on the ground below the
+scene's (or the task's) start pose; the companion takes off. Telemetry positions are in the
+scene's world frame.
+
+examples:
+  onfly sim-vehicle
+  onfly sim-vehicle --mavlink udpin:127.0.0.1:14550 --task urban_block-o01 --camera tcp://127.0.0.1:5600
+  onfly sim-vehicle --autopilot ardupilot --scene villa --camera tcp://127.0.0.1:5600 --json vehicle.json
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import threading
 import time
+from pathlib import Path
 
 from onfly.cli import CliError
 from onfly.mavlink.link import LinkError, MavlinkLink
@@ -23,39 +36,137 @@ DESCRIPTION = __doc__
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("--mavlink", default="udpout:127.0.0.1:14540", metavar="URL",
                         help="vehicle link: udpout:HOST:PORT (default, like PX4 SITL), udpin:, tcpin:, tcp:")
     parser.add_argument("--autopilot", choices=("px4", "ardupilot"), default="px4", help="which autopilot's rules to follow")
     parser.add_argument("--system-id", type=int, default=1, help="MAVLink system id of the vehicle (default 1)")
     parser.add_argument("--telemetry-rate-hz", type=float, default=50.0, help="LOCAL_POSITION_NED and attitude rate")
     parser.add_argument("--duration-s", type=float, default=None, help="stop after this many seconds (default: until Ctrl-C)")
+    parser.add_argument("--scene", help="fly in this embedded-world scene (name or file); see `onfly scenes`")
+    parser.add_argument("--task", help="start below this benchmark task's start pose (implies its scene); see `onfly tasks list`")
+    parser.add_argument("--camera", metavar="tcp://127.0.0.1:PORT", help="serve the world camera here (needs --scene or --task)")
+    parser.add_argument("--camera-rate-hz", type=float, default=2.0, help="camera frames per second (default 2, as the benchmark)")
+    parser.add_argument("--width", type=int, default=320, help="camera width in pixels, 90 x 60 deg FOV (default 320)")
+    parser.add_argument("--height", type=int, default=214, help="camera height in pixels (default 214)")
+    parser.add_argument("--until-landed", action="store_true", help="exit once the vehicle has flown, landed and disarmed")
+    parser.add_argument("--json", type=Path, help="write the vehicle's ground truth (collisions, events, trace) here at exit")
 
 
-def run(args: argparse.Namespace) -> int:
+def _task(task_id: str):
+    from onfly.bench.tasks import load_tasks
+
+    tasks = load_tasks()
+    match = [t for t in tasks if t.task_id == task_id]
+    if not match:
+        near = sorted(t.task_id for t in tasks)[:10]
+        raise CliError(f"no task {task_id!r}; some valid ids: {', '.join(near)} (all: `onfly tasks list`)")
+    return match[0]
+
+
+def build_world_model(args: argparse.Namespace):
+    """The embedded-world model of ``--scene`` / ``--task`` (None without either)."""
+    if args.scene is None and args.task is None:
+        if args.camera:
+            raise CliError("--camera needs --scene or --task (the camera is the embedded world's)")
+        return None, None
+    from onfly.mavlink.sim_world import WorldVehicleModel
+    from onfly.world.scene import SceneFormatError
+    from planning.camera import PinholeCamera
+
+    task = _task(args.task) if args.task else None
+    if task is not None and args.scene and args.scene != task.scene:
+        raise CliError(f"task {task.task_id} is in scene {task.scene!r}, not {args.scene!r}")
+    if args.width <= 0 or args.height <= 0:
+        raise CliError(f"--width and --height must be positive, got {args.width} x {args.height}")
+    camera = PinholeCamera.from_fov(args.width, args.height, 90.0, 60.0)
+    try:
+        if task is not None:
+            model = WorldVehicleModel.from_scene(task.scene, position_m=task.start.position_m, yaw_rad=task.start.yaw_rad, camera=camera)
+        else:
+            model = WorldVehicleModel.from_scene(args.scene, camera=camera)
+    except (SceneFormatError, FileNotFoundError, KeyError, ValueError) as exc:
+        raise CliError(f"cannot build the world of {args.task or args.scene!r}: {exc}") from exc
+    return model, task
+
+
+def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
+    """Serve until ``--duration-s``, ``--until-landed``, Ctrl-C, or ``stop`` (for in-process use)."""
     try:
         config = SimVehicleConfig(autopilot=args.autopilot, system_id=args.system_id, telemetry_rate_hz=args.telemetry_rate_hz)
     except ValueError as exc:
         raise CliError(str(exc)) from exc
     if args.duration_s is not None and not args.duration_s > 0:
         raise CliError(f"--duration-s must be positive, got {args.duration_s}")
+    if not args.camera_rate_hz > 0:
+        raise CliError(f"--camera-rate-hz must be positive, got {args.camera_rate_hz}")
+    model, task = build_world_model(args)
+    server = None
+    if args.camera:
+        from onfly.mavlink.camera_channel import FrameChannelError, FrameServer, parse_tcp_url
+
+        try:
+            host, port = parse_tcp_url(args.camera)
+            server = FrameServer(model.observe, host=host, port=port, rate_hz=args.camera_rate_hz)
+        except (FrameChannelError, OSError) as exc:
+            raise CliError(f"cannot serve the camera on {args.camera}: {exc}") from exc
     try:
         link = MavlinkLink(args.mavlink, config.system_id, config.component_id)
         link.connect()
     except LinkError as exc:
+        if server is not None:
+            server.stop()
         raise CliError(str(exc)) from exc
-    vehicle = SimMavlinkVehicle(link, config)
-    print(f"onfly sim-vehicle: {args.autopilot} vehicle (system {config.system_id}) on {args.mavlink}; no camera (embedded world not wired in)")
+    vehicle = SimMavlinkVehicle(link, config, model=model)
+    where = "point mass, no camera" if model is None else f"scene {model.world.scene.name}" + (f", task {task.task_id}" if task else "")
+    cam = f"; camera {server.url} at {args.camera_rate_hz:g} Hz" if server is not None else ""
+    print(f"onfly sim-vehicle: {args.autopilot} vehicle (system {config.system_id}) on {args.mavlink}; {where}{cam}", flush=True)
     t0 = time.monotonic()
     last_mode = None
-    with vehicle:
-        try:
-            while args.duration_s is None or time.monotonic() - t0 < args.duration_s:
-                mode = (vehicle.mode_name, vehicle.armed)
-                if mode != last_mode:
+    flown = False
+    landed_at = None
+    trace = []
+    if server is not None:
+        server.start()
+    try:
+        with vehicle:
+            try:
+                while args.duration_s is None or time.monotonic() - t0 < args.duration_s:
+                    if stop is not None and stop.is_set():
+                        break
+                    mode = (vehicle.mode_name, vehicle.armed)
                     p = vehicle.position_enu()
-                    print(f"t={time.monotonic() - t0:7.2f} s  mode {mode[0]:<14} armed={mode[1]!s:<5} p_enu=({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}) m")
-                    last_mode = mode
-                time.sleep(0.1)
-        except KeyboardInterrupt:
-            print("onfly sim-vehicle: stopped")
+                    t = time.monotonic() - t0
+                    trace.append([round(t, 3), *(round(float(x), 4) for x in p)])
+                    if mode != last_mode:
+                        print(f"t={t:7.2f} s  mode {mode[0]:<14} armed={mode[1]!s:<5} p_enu=({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}) m", flush=True)
+                        last_mode = mode
+                    flown = flown or (vehicle.armed and not vehicle.model.on_ground)
+                    if args.until_landed and flown and not vehicle.armed:
+                        if landed_at is None:
+                            landed_at = t
+                        elif t - landed_at >= 2.0 * config.heartbeat_period_s:  # let the companion see it disarmed
+                            print(f"t={t:7.2f} s  landed and disarmed: exiting", flush=True)
+                            break
+                    time.sleep(0.1)
+            except KeyboardInterrupt:
+                print("onfly sim-vehicle: stopped")
+    finally:
+        if server is not None:
+            server.stop()
+    if model is not None and model.collision is not None:
+        c = model.collision
+        print(f"COLLISION with {c.object_name!r} at t={c.t_s:.2f} s (vehicle time)")
+    if args.json:
+        summary = {
+            "autopilot": args.autopilot,
+            "task": task.task_id if task else None,
+            "world": model.summary() if model is not None else None,
+            "vehicle_events": [{"t_s": t - t0, "text": e} for t, e in vehicle.events],
+            "setpoints_received": vehicle.setpoints_received,
+            "frames_served": server.frames_sent if server is not None else 0,
+            "trace_t_x_y_z": trace,
+        }
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(summary, indent=1))
     return 0

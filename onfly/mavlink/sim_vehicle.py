@@ -30,12 +30,19 @@ COMMAND_LONG addressed to it gets a COMMAND_ACK; unknown commands are UNSUPPORTE
 
 Dynamics
 --------
-The embedded world's vehicle (``onfly/world/vehicle.py``) was not committed when this was
-written, so :class:`PointMassModel` is a minimal internal model: a point mass under a cascaded
-P (position) / P (velocity) controller with velocity and acceleration feed-forward, speed,
-acceleration and yaw-rate limits, a ground plane at z = 0, and a tilt derived from the
-commanded acceleration (for a realistic attitude quaternion). State is ENU internally;
-NED/FRD appear only at the MAVLink boundary through :mod:`onfly.mavlink.frames`.
+Two models behind one interface (``p``, ``v``, ``a``, ``yaw``, ``yaw_rate``, ``on_ground``,
+``step(dt, target, armed)``, ``R_enu_flu()``; optionally ``crashed``):
+
+- :class:`PointMassModel` (default, no scene): a point mass under a cascaded P (position) /
+  P (velocity) controller with velocity and acceleration feed-forward, speed, acceleration and
+  yaw-rate limits, a ground plane at z = 0, and a tilt derived from the commanded acceleration
+  (for a realistic attitude quaternion).
+- :class:`onfly.mavlink.sim_world.WorldVehicleModel` (``model=``): the embedded world's
+  vehicle, exact collisions against a scene and its camera. A model that reports ``crashed``
+  makes the vehicle disarm (``crashed: ...`` event).
+
+State is ENU internally; NED/FRD appear only at the MAVLink boundary through
+:mod:`onfly.mavlink.frames`.
 
 Fault injection for tests: :meth:`SimMavlinkVehicle.set_link_cut` (drop all traffic both ways)
 and :meth:`SimMavlinkVehicle.set_odometry_frozen` (keep re-sending the last position sample with
@@ -209,15 +216,20 @@ class SimMavlinkVehicle:
     """The simulated autopilot serving one :class:`~onfly.mavlink.link.Link` from its own thread.
 
     ``clock`` is the real monotonic clock by default (the vehicle runs in wall time like real
-    hardware). Read-only observers for tests: :attr:`model`, :attr:`armed`, :attr:`custom_mode`,
-    :attr:`events` (``(t_s, text)``), :attr:`setpoints_received`.
+    hardware). ``model`` replaces the internal :class:`PointMassModel` (e.g. a
+    :class:`~onfly.mavlink.sim_world.WorldVehicleModel`; ``config.initial_position_m`` and the
+    config's limits and gains then do not apply: the model has its own). Read-only observers for
+    tests: :attr:`model`, :attr:`armed`, :attr:`custom_mode`, :attr:`events` (``(t_s, text)``),
+    :attr:`setpoints_received`.
     """
 
-    def __init__(self, link: Link, config: SimVehicleConfig = SimVehicleConfig(), clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self, link: Link, config: SimVehicleConfig = SimVehicleConfig(), clock: Callable[[], float] = time.monotonic, model=None
+    ) -> None:
         self.link = link
         self.c = config
         self.clock = clock
-        self.model = PointMassModel(config)
+        self.model = model if model is not None else PointMassModel(config)
         self.px4 = config.autopilot == "px4"
         self.armed = False
         self.custom_mode = px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["loiter"]) if self.px4 else ARDUCOPTER_MODE["stabilize"]
@@ -372,6 +384,10 @@ class SimMavlinkVehicle:
         with self._lock:
             self._apply_rules(t)
             self.model.step(dt, self._target, self.armed)
+            if self.armed and getattr(self.model, "crashed", False):
+                self.armed = False
+                hit = getattr(self.model, "collision", None)
+                self._event(f"crashed{'' if hit is None else f' into {hit.object_name!r}'}: disarmed")
             if self._landing() and self.model.on_ground and self.armed:
                 self.armed = False
                 self._event("landed and disarmed")

@@ -1,0 +1,158 @@
+"""``onfly fly``: fly an instruction onboard, through a MAVLink autopilot (PX4 or ArduPilot).
+
+The companion side of a real flight: connects to the autopilot, engages it (PX4 offboard or
+ArduPilot guided), takes off, runs the OnFly pilot at 10 Hz on the camera's newest frame and
+the autopilot's odometry, and when the pilot declares its STOP holds and hands the hover back to the
+autopilot (or lands). Every failsafe event is written with its time and cause to the
+``--json`` summary. See ``onfly/onboard.py`` for phases and failsafes.
+
+Without hardware, fly against ``onfly sim-vehicle`` (the embedded world as a MAVLink vehicle):
+
+  onfly sim-vehicle --mavlink udpin:127.0.0.1:14550 --task urban_block-o01 --camera tcp://127.0.0.1:5600 &
+  onfly fly --connect udpout:127.0.0.1:14550 --camera tcp://127.0.0.1:5600 --task urban_block-o01 --vlm sim:perfect
+
+More examples:
+  onfly fly --connect udpin:0.0.0.0:14540 --camera realsense --vlm http://127.0.0.1:8000#Qwen2.5-VL-3B \\
+            --instruction "fly through the gate, then stop next to the red van"
+  onfly fly --connect serial:/dev/ttyTHS1:921600 --autopilot ardupilot --camera runs/log1 --instruction "..."
+
+--camera takes tcp://HOST:PORT (a simulated vehicle's camera), realsense (pip install
+onfly[realsense]) or a recording (OnFly log, TUM folder, ROS bag) played at real time.
+With a simulated VLM (--vlm sim:...) each answer lands after its modelled latency on the wall
+clock (--modelled-latency auto), as the benchmark charges it on its virtual clock.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+from onfly.cli import CliError
+
+NAME = "fly"
+HELP = "fly an instruction onboard through a MAVLink autopilot (PX4 offboard / ArduPilot guided)"
+DESCRIPTION = __doc__
+
+log = logging.getLogger(__name__)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
+    p.add_argument("--connect", required=True, metavar="URL", help="autopilot link: udpin:HOST:PORT, udpout:, tcp:, serial:DEV[:BAUD]")
+    p.add_argument("--instruction", help="the instruction to fly")
+    p.add_argument("--task", help="a benchmark task id: its instruction, take-off height and (in the summary) its metrics")
+    p.add_argument("--autopilot", choices=("px4", "ardupilot"), default="px4", help="PX4 offboard (default) or ArduPilot guided")
+    p.add_argument("--vlm", default="sim:nominal", help="sim:<preset> | http:<url>[#model] | transformers:<dir> (default sim:nominal)")
+    p.add_argument("--seed", type=int, default=0, help="seed of a simulated VLM (default 0)")
+    p.add_argument("--camera", help="tcp://HOST:PORT | realsense | a recording path (default: none, the pilot holds)")
+    p.add_argument("--config", type=Path, help="TOML with a [pilot] table of PilotConfig overrides")
+    p.add_argument("--modelled-latency", choices=("auto", "on", "off"), default="auto",
+                   help="land each VLM answer after its modelled latency (auto: on for sim: backends)")
+    p.add_argument("--system-id", type=int, default=1, help="MAVLink system id of the vehicle (default 1)")
+    p.add_argument("--takeoff-alt-m", type=float, default=None, help="climb this far above the engage position (default 1.5, or the task's start height)")
+    p.add_argument("--time-limit-s", type=float, default=70.0, help="mission time limit after the start (paper: 70 s)")
+    p.add_argument("--hold-s", type=float, default=2.0, help="hold after the STOP before --on-finish (default 2 s)")
+    p.add_argument("--on-finish", choices=("hold", "land"), default="hold",
+                   help="hold: hand the hover back to the autopilot (default); land: straight down where the pilot stopped")
+    p.add_argument("--json", type=Path, help="write the flight summary (failsafes, events, metrics, trace) here")
+
+
+def _task(task_id: str):
+    from onfly.bench.tasks import load_tasks
+
+    tasks = load_tasks()
+    match = [t for t in tasks if t.task_id == task_id]
+    if not match:
+        near = sorted(t.task_id for t in tasks)[:10]
+        raise CliError(f"no task {task_id!r}; some valid ids: {', '.join(near)} (all: `onfly tasks list`)")
+    return match[0]
+
+
+def run(args: argparse.Namespace) -> int:
+    from onfly.mavlink.autopilot import OffboardConfig, make_session
+    from onfly.mavlink.bridge import BridgeConfig, BridgeError, MavlinkBridge
+    from onfly.mavlink.link import LinkError
+    from onfly.onboard import GroundTruth, OnboardConfig, OnboardFlight, pose_source
+    from onfly.pilot import OnFlyPilot, PilotConfig
+    from onfly.readers.realtime import MonotonicClock
+    from onfly.runtime import ThreadRuntime
+    from onfly.sources.camera import CameraError, open_camera
+    from vlm.factory import make_backend
+
+    task = _task(args.task) if args.task else None
+    if task is None and not args.instruction:
+        raise CliError("give --instruction TEXT or --task ID")
+    instruction = args.instruction or task.instruction
+    takeoff = args.takeoff_alt_m if args.takeoff_alt_m is not None else (float(task.start.position_m[2]) if task else 1.5)
+    try:
+        config = OnboardConfig(
+            takeoff_alt_m=takeoff, time_limit_s=args.time_limit_s, hold_after_finish_s=args.hold_s, on_finish=args.on_finish
+        )
+        pilot_config = PilotConfig.from_toml(args.config) if args.config else PilotConfig()
+        bridge_config = BridgeConfig(target_system=args.system_id, source_system=args.system_id)
+        offboard = OffboardConfig(takeoff_alt_m=max(takeoff, 0.5))
+    except ValueError as exc:
+        raise CliError(str(exc)) from exc
+    honour = args.modelled_latency == "on" or (args.modelled_latency == "auto" and args.vlm.strip().lower().startswith("sim:"))
+    ground_truth = None
+    if task is not None:
+        ground_truth = GroundTruth(task.goal_region, task.reference.path_length_m if task.reference else 0.0, task_id=task.task_id)
+
+    clock = MonotonicClock()
+    backend = make_backend(args.vlm, seed=args.seed)  # ValueError names the valid specs
+    runtime = ThreadRuntime(clock.now_s, honour_modelled_latency=honour)
+    print(f"onfly fly: building the pilot (planner set-up) ...", flush=True)
+    pilot = OnFlyPilot(pilot_config, backend, runtime)
+    try:
+        bridge = MavlinkBridge.from_url(args.connect, bridge_config, clock=clock.now_s)
+        bridge.start()
+    except (LinkError, BridgeError, OSError) as exc:
+        runtime.close()
+        raise CliError(f"cannot open the autopilot link {args.connect}: {exc}") from exc
+    camera = None
+    try:
+        if args.camera:
+            try:
+                camera = open_camera(args.camera, clock=clock, pose_source=pose_source(bridge)).start()
+            except CameraError as exc:
+                raise CliError(str(exc)) from exc
+        else:
+            print("onfly fly: no --camera: the pilot gets no frames and will hold", flush=True)
+        session = make_session(args.autopilot, bridge, offboard)
+        flight = OnboardFlight(bridge, session, pilot, camera, instruction, config, clock=clock, ground_truth=ground_truth)
+        print(f"onfly fly: {args.autopilot} on {args.connect}; vlm {args.vlm} (modelled latency {'on' if honour else 'off'}); "
+              f"camera {args.camera or 'none'}; instruction: {instruction}", flush=True)
+        try:
+            summary = flight.run()
+        except BridgeError as exc:
+            raise CliError(f"could not fly: {exc}") from exc
+    finally:
+        bridge.stop()
+        if camera is not None:
+            camera.close()
+        runtime.close()
+        backend.close()
+
+    print(f"end        {summary.end_reason}   pilot finished {summary.finished}   flight {summary.flight_time_s:.1f} s   take-off {summary.takeoff_s:.1f} s")
+    if summary.metrics:
+        m = summary.metrics
+        print(f"task       {m['task']}   success {m['success']}   NE {m['navigation_error_m']:.2f} m   path {m['path_length_m']:.1f} m   SPL {m['spl']:.2f}")
+    active = [f for f in summary.failsafes if not f["cleared"]]
+    print(f"failsafes  {len(active)} raised: " + (", ".join(f"{f['cause']}@{f['t_s']:.2f}s" for f in active[:8]) or "none"))
+    print(f"loop       ticks {summary.loop['ticks']}  overruns {summary.loop['overruns']}  tick p95 {summary.loop['tick_ms_p95']:.0f} ms  "
+          f"camera frames {summary.camera.get('received', 0)}")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        out = {"connect": args.connect, "vlm": args.vlm, "seed": args.seed, "camera": args.camera, "honour_modelled_latency": honour,
+               "onboard_config": config.__dict__, **summary.to_dict()}
+        args.json.write_text(json.dumps(out, indent=1, default=str))
+    return 0 if summary.end_reason in ("finished", "time_limit") else 1
+
+
+if __name__ == "__main__":  # pragma: no cover
+    from onfly.cli import main
+
+    sys.exit(main(["fly", *sys.argv[1:]]))

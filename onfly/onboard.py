@@ -1,0 +1,542 @@
+"""Onboard flight: the OnFly pilot flying a real (or simulated) autopilot through MAVLink.
+
+:class:`OnboardFlight` wires four parts that already exist, each on its own thread where it
+must never wait for the others:
+
+- the :class:`~onfly.mavlink.bridge.MavlinkBridge` (receiver + 20 Hz setpoint streamer),
+  engaged by an :class:`~onfly.mavlink.autopilot.AutopilotSession` (PX4 offboard or
+  ArduPilot guided) that also watches for a pilot takeover;
+- a :class:`~onfly.sources.camera.CameraFeed` (newest frame, never blocks);
+- the :class:`~onfly.pilot.OnFlyPilot` over a :class:`~onfly.runtime.ThreadRuntime`, so VLM
+  calls run on worker threads and land when done (or, for a simulated VLM, after its modelled
+  latency: ``honour_modelled_latency``);
+- this loop, driven by a :class:`~onfly.readers.realtime.PlaybackClock` (monotonic by
+  default, injectable): one pilot tick every ``control_period_s`` (10 Hz); between ticks it
+  only waits for the next deadline.
+
+Phases
+------
+1. **connect**: wait for the autopilot's HEARTBEAT and telemetry; ask for telemetry rates.
+2. **engage**: the autopilot session (PX4: stream, arm, OFFBOARD; ArduPilot: GUIDED, arm,
+   NAV_TAKEOFF to ``takeoff_alt_m``).
+3. **takeoff** (PX4): climb straight up by ``takeoff_alt_m`` on a rate-limited straight-line
+   plan (the planner's speed, acceleration and yaw-rate limits) until within
+   ``takeoff_tolerance_m`` and nearly at rest.
+4. **mission**: ``pilot.begin(instruction, t)``, then ``pilot.tick(t, state, frame)`` each
+   period with the bridge's ENU state and the newest camera frame; each new plan goes to
+   :meth:`MavlinkBridge.set_trajectory`. Ends when the pilot finishes (its stable STOP), at
+   ``time_limit_s``, on a takeover, or when the link stays lost for ``link_lost_abort_s``.
+5. **finish**: hold (the pilot's hold plans keep streaming) for ``hold_after_finish_s``, then
+   ``on_finish``: ``"hold"`` (default) stops streaming so the autopilot's own hover takes over
+   (PX4 leaves OFFBOARD for AUTO.LOITER after COM_OF_LOSS_T; ArduPilot holds after its guided
+   timeout); ``"land"`` hands the vehicle to the autopilot's landing (PX4 AUTO.LAND, ArduPilot
+   LAND) and waits for the disarm. Landing is straight down where the pilot stopped, which is
+   next to its goal object: in the embedded world a landing beside the red van of
+   ``urban_block-o01`` touched a parked car, hence not the default.
+
+Failsafes (every one lands in the summary with its time and cause)
+------------------------------------------------------------------
+================================  ==========================================================
+condition                         reaction
+================================  ==========================================================
+stale odometry (bridge)           the streamer holds position; the pilot is not ticked with a
+                                  state it cannot trust (its VLM calls keep running)
+link lost (bridge)                the streamer stops commanding motion (the autopilot's own
+                                  loss failsafe holds); the pilot pauses; the flight ends after
+                                  ``link_lost_abort_s``
+VLM timeout / garbage / raising   reported to the bridge (keep the last verified goal); the
+                                  pilot drops a goal not refreshed for ``goal_timeout_s`` and
+                                  holds; the bridge holds after ``vlm_hold_after_s`` of silence
+planner failure (braking plan)    reported: the bridge brakes until a plan succeeds
+pilot takeover (mode change)      the session releases the bridge: no motion command, ever;
+                                  the pilot keeps running (logging) for
+                                  ``observe_after_takeover_s``
+================================  ==========================================================
+
+A mode change the companion itself commands (the landing hand-over) shows in the bridge's log
+as a ``pilot_takeover`` event too (the session's watch cannot tell who switched); the summary
+marks failsafe events after the hand-over with ``after_handover: true``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from onfly.mavlink.autopilot import ARDUCOPTER_MODE, PX4_AUTO_SUB, PX4_MAIN, AutopilotSession, Px4Offboard
+from onfly.mavlink.bridge import BridgeError, MavlinkBridge
+from onfly.mavlink.failsafe import FailsafeCause
+from onfly.mavlink.link import mavlink2
+from onfly.pilot import OnFlyPilot, PilotMode
+from onfly.readers.realtime import MonotonicClock, PlaybackClock
+from onfly.sources.camera import CameraFeed
+from planning.frames import make_transform
+from planning.planner import Fallback
+from planning.straight_line import straight_line_plan
+from planning.trajectory import VehicleState
+
+__all__ = ["OnboardConfig", "OnboardConfigError", "OnboardFlight", "FlightSummary", "GroundTruth", "pose_source"]
+
+log = logging.getLogger(__name__)
+_M = mavlink2
+
+#: failsafe causes after which the bridge's state cannot be trusted for planning
+_UNTRUSTED = (FailsafeCause.LINK_LOST, FailsafeCause.HEARTBEAT_LOST, FailsafeCause.ODOMETRY_STALE)
+END_REASONS = ("finished", "time_limit", "takeover", "link_lost", "interrupted", "bridge_stopped")
+
+
+class OnboardConfigError(ValueError):
+    """Invalid onboard configuration (names the field)."""
+
+
+@dataclass(frozen=True)
+class OnboardConfig:
+    """Timing and behaviour of an onboard flight (seconds, metres, on the loop's clock).
+
+    Attributes
+    ----------
+    control_period_s : pilot tick period (10 Hz)
+    connect_timeout_s : wait for the autopilot's heartbeat and telemetry
+    takeoff_alt_m : climb this far above the engage position before the mission (PX4: in
+        offboard; ArduPilot: NAV_TAKEOFF altitude above home); 0 skips the PX4 climb
+    takeoff_tolerance_m : the climb is done within this of the target height ...
+    takeoff_speed_tolerance_mps : ... and below this speed
+    takeoff_timeout_s : give up the climb (and hold) after this long
+    time_limit_s : the mission ends (and the vehicle holds) this long after ``begin``
+    hold_after_finish_s : hold after the pilot's STOP before ``on_finish``
+    on_finish : ``"hold"`` (default: stop streaming; the autopilot's own hover takes over) or
+        ``"land"`` (hand over to the autopilot's landing, straight down where the vehicle
+        stopped: only where the ground below is clear; the goal is often next to an object)
+    land_timeout_s : wait this long for the disarm after commanding the landing
+    observe_after_takeover_s : after a takeover, keep the pilot running (no commands) this long
+    link_lost_abort_s : a link lost for this long ends the flight
+    """
+
+    control_period_s: float = 0.1
+    connect_timeout_s: float = 15.0
+    takeoff_alt_m: float = 1.5
+    takeoff_tolerance_m: float = 0.15
+    takeoff_speed_tolerance_mps: float = 0.15
+    takeoff_timeout_s: float = 30.0
+    time_limit_s: float = 70.0
+    hold_after_finish_s: float = 2.0
+    on_finish: str = "hold"
+    land_timeout_s: float = 30.0
+    observe_after_takeover_s: float = 5.0
+    link_lost_abort_s: float = 10.0
+
+    def __post_init__(self) -> None:
+        positive = ("control_period_s", "connect_timeout_s", "takeoff_tolerance_m", "takeoff_speed_tolerance_mps",
+                    "takeoff_timeout_s", "time_limit_s", "land_timeout_s", "link_lost_abort_s")
+        for name in positive:
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
+                raise OnboardConfigError(f"OnboardConfig.{name} must be positive, got {v!r}")
+        for name in ("takeoff_alt_m", "hold_after_finish_s", "observe_after_takeover_s"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and np.isfinite(v) and v >= 0):
+                raise OnboardConfigError(f"OnboardConfig.{name} must be >= 0, got {v!r}")
+        if self.on_finish not in ("land", "hold"):
+            raise OnboardConfigError(f"OnboardConfig.on_finish must be 'land' or 'hold', got {self.on_finish!r}")
+
+
+@dataclass(frozen=True, eq=False)
+class GroundTruth:
+    """What a benchmark task knows about success (for the summary only; never shown to the
+    pilot): the goal region, the reference path length and the success radius."""
+
+    goal: Any  # onfly.bench.metrics.GoalRegion
+    reference_path_m: float
+    success_radius_m: float = 5.0
+    task_id: str = ""
+
+
+@dataclass(frozen=True, eq=False)
+class FlightSummary:
+    """Everything one onboard flight did (JSON-able through :meth:`to_dict`).
+
+    Times are seconds on the loop's clock relative to the mission start (``begin``); negative
+    times happened before it (connect, engage, take-off).
+    """
+
+    instruction: str
+    autopilot: str
+    end_reason: str
+    finished: bool
+    flight_time_s: float
+    takeoff_s: float
+    final_position_m: list
+    failsafes: list
+    events: list
+    pilot: dict
+    camera: dict
+    loop: dict
+    metrics: dict | None
+    trace_t_x_y_z: list = field(repr=False, default_factory=list)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def pose_source(bridge: MavlinkBridge):
+    """``() -> T_world_body (4, 4)`` from the bridge's newest position and attitude, or None
+    (for cameras without a pose of their own, e.g. a RealSense)."""
+
+    def pose() -> np.ndarray | None:
+        state, R = bridge.state(), bridge.reader.attitude()
+        if state is None or R is None:
+            return None
+        return make_transform(R, state.p)
+
+    return pose
+
+
+class OnboardFlight:
+    """One onboard flight (see the module docstring).
+
+    Parameters
+    ----------
+    bridge : a started :class:`MavlinkBridge` built with ``clock=clock.now_s``
+    session : the autopilot session over ``bridge`` (``make_session``)
+    pilot : the :class:`OnFlyPilot` (its runtime on the same clock)
+    camera : a started :class:`CameraFeed`, or None (the pilot then flies blind: it holds)
+    instruction : the task instruction
+    config : OnboardConfig
+    clock : :class:`PlaybackClock` driving the loop (monotonic by default)
+    ground_truth : optional :class:`GroundTruth` for benchmark metrics in the summary
+    """
+
+    def __init__(
+        self,
+        bridge: MavlinkBridge,
+        session: AutopilotSession,
+        pilot: OnFlyPilot,
+        camera: CameraFeed | None,
+        instruction: str,
+        config: OnboardConfig = OnboardConfig(),
+        clock: PlaybackClock | None = None,
+        ground_truth: GroundTruth | None = None,
+    ) -> None:
+        if not isinstance(instruction, str) or not instruction.strip():
+            raise OnboardConfigError("instruction must be a non-empty string")
+        self.bridge = bridge
+        self.session = session
+        self.pilot = pilot
+        self.camera = camera
+        self.instruction = instruction
+        self.config = config
+        self.clock = clock if clock is not None else MonotonicClock()
+        self.ground_truth = ground_truth
+        self.autopilot = "px4" if isinstance(session, Px4Offboard) else "ardupilot"
+        self.events: list[dict] = []
+        self.t_begin_s: float | None = None
+        self.t_finished_s: float | None = None
+        self.t_handover_s: float | None = None
+        self.t_takeover_s: float | None = None
+        self.crash_suspected = False
+        self._t_start = self.clock.now_s()
+        self._next_s = self._t_start
+        self._trace: list[tuple[float, np.ndarray]] = []
+        self._n_events = 0
+        self._pending_obs = None
+        self._ticks = 0
+        self._paused_ticks = 0
+        self._overruns = 0
+        self._tick_ms: list[float] = []
+        self._link_lost_since: float | None = None
+        self.pilot_ticks_after_takeover = 0
+
+    # -- public -----------------------------------------------------------------------------
+    def run(self) -> FlightSummary:
+        """Fly the whole flight; returns its summary. Engagement errors propagate (the session
+        has already stopped the stream); every later problem ends the flight safely."""
+        cfg = self.config
+        self._event("connect", {})
+        self.bridge.wait_for_vehicle(cfg.connect_timeout_s)
+        self.bridge.wait_for_state(cfg.connect_timeout_s)
+        self.bridge.request_message_intervals()
+        self._event("engage", {"autopilot": self.autopilot})
+        self.session.engage()
+        self._event("engaged", {"position_m": self.bridge.state().p.tolist()})
+        end = "finished"
+        try:
+            if self.autopilot == "px4" and cfg.takeoff_alt_m > 0:
+                end = self._takeoff()
+            if end == "finished":
+                end = self._mission()
+            self._finish(end)
+        except KeyboardInterrupt:
+            end = "interrupted"
+            self._event("interrupted", {})
+            if not self.bridge.released:
+                self.bridge.set_trajectory(None)  # hold where we are; the caller stops the bridge
+        return self._summary(end)
+
+    # -- phases -----------------------------------------------------------------------------
+    def _wait_next(self) -> float:
+        """Wait for the next tick deadline; returns its time. A late tick re-anchors the grid."""
+        period = self.config.control_period_s
+        self._next_s += period
+        now = self.clock.now_s()
+        if now > self._next_s:
+            self._overruns += 1
+            self._next_s = now
+        else:
+            self.clock.sleep_until_s(self._next_s)
+        return self.clock.now_s()
+
+    def _trusted_state(self, t_s: float) -> VehicleState | None:
+        state = self.bridge.state()
+        active = self.bridge.failsafe.active()
+        if FailsafeCause.LINK_LOST in active or FailsafeCause.HEARTBEAT_LOST in active:
+            if self._link_lost_since is None:
+                self._link_lost_since = t_s
+        else:
+            self._link_lost_since = None
+        if state is None or any(c in active for c in _UNTRUSTED):
+            return None
+        return state
+
+    def _takeoff(self) -> str:
+        cfg = self.config
+        p0 = self.bridge.state().p.copy()
+        target = p0 + np.array([0.0, 0.0, cfg.takeoff_alt_m])
+        t0 = self.clock.now_s()
+        self._event("takeoff", {"target_m": target.tolist()})
+        pc = self.pilot.config.planner
+        while True:
+            t = self._wait_next()
+            if self.bridge.released:
+                self._on_takeover(t)
+                return "takeover"
+            state = self._trusted_state(t)
+            if state is None:
+                if self._link_lost_since is not None and t - self._link_lost_since > cfg.link_lost_abort_s:
+                    return "link_lost"
+                continue
+            if abs(state.p[2] - target[2]) <= cfg.takeoff_tolerance_m and np.linalg.norm(state.v) <= cfg.takeoff_speed_tolerance_mps:
+                self._event("takeoff_done", {"position_m": state.p.tolist(), "duration_s": t - t0})
+                return "finished"
+            if t - t0 > cfg.takeoff_timeout_s:
+                self._event("takeoff_timeout", {"position_m": state.p.tolist()})
+                self.bridge.set_trajectory(None)
+                return "time_limit"
+            self.bridge.set_trajectory(
+                straight_line_plan(
+                    state, target, v_max_mps=pc.v_max_mps, a_max_mps2=pc.a_max_mps2, yaw_rate_max_rps=pc.yaw_rate_max_rps,
+                    dt_s=pc.dt_s, steps=pc.horizon_steps, yaw_ref=state.yaw,
+                )
+            )
+
+    def _mission(self) -> str:
+        cfg = self.config
+        t = self.clock.now_s()
+        self.t_begin_s = t
+        self.pilot.begin(self.instruction, t)
+        self._event("begin", {"instruction": self.instruction})
+        takeover_at = None
+        while True:
+            t = self._wait_next()
+            if not self.bridge.running:
+                return "bridge_stopped"
+            if self.bridge.released and takeover_at is None:
+                takeover_at = t
+                self._on_takeover(t)
+            if takeover_at is not None and t - takeover_at >= cfg.observe_after_takeover_s:
+                return "takeover"
+            if t - self.t_begin_s >= cfg.time_limit_s:
+                self._event("time_limit", {"limit_s": cfg.time_limit_s})
+                return "takeover" if takeover_at is not None else "time_limit"
+            finished = self._tick(t, commanding=takeover_at is None)
+            if finished:
+                self.t_finished_s = t
+                self._event("mission_end", {"position_m": self._trace[-1][1].tolist() if self._trace else None})
+                return "takeover" if takeover_at is not None else "finished"
+            if self._link_lost_since is not None and t - self._link_lost_since > cfg.link_lost_abort_s:
+                self._event("link_lost_abort", {"lost_for_s": t - self._link_lost_since})
+                return "link_lost"
+
+    def _tick(self, t: float, commanding: bool) -> bool:
+        """One pilot period; True when the pilot has finished."""
+        obs = self.camera.latest() if self.camera is not None else None
+        if obs is not None:
+            self._pending_obs = obs
+        state = self._trusted_state(t)
+        if state is None:
+            self._paused_ticks += 1
+            return False
+        obs, self._pending_obs = self._pending_obs, None
+        w0 = time.perf_counter()
+        tick = self.pilot.tick(t, state, obs)
+        self._tick_ms.append((time.perf_counter() - w0) * 1e3)
+        self._ticks += 1
+        if not commanding:
+            self.pilot_ticks_after_takeover += 1
+        self._trace.append((t, state.p.copy()))
+        self._report_pilot_events(t)
+        if tick.plan is not None:
+            braking = tick.plan.fallback is Fallback.BRAKE
+            self.bridge.failsafe.report_planner(t, ok=not braking, detail="planner fell back to braking" if braking else "")
+        if commanding and tick.trajectory is not None:
+            self.bridge.set_trajectory(tick.trajectory)
+        return bool(tick.finished)
+
+    def _report_pilot_events(self, t: float) -> None:
+        """Feed the pilot's new events to the bridge's failsafe monitor (VLM health)."""
+        fs = self.bridge.failsafe
+        events = self.pilot.events
+        for ev in events[self._n_events :]:
+            d = ev.data
+            if ev.kind == "decision":
+                if d.get("goal_world") is not None:
+                    fs.report_vlm_ok(t)
+                elif d.get("status") == "timeout":
+                    fs.report_vlm_failure(t, FailsafeCause.VLM_TIMEOUT, f"decision: {d.get('reason', '')}")
+                elif d.get("status") == "error" or str(d.get("reason", "")).startswith("parse"):
+                    fs.report_vlm_failure(t, FailsafeCause.VLM_GARBAGE, f"decision: {d.get('reason', '')}")
+            elif ev.kind == "monitor":
+                if d.get("status") is not None:
+                    fs.report_vlm_ok(t)
+                elif d.get("reason") == "memory too short":
+                    continue  # no call was made
+                elif str(d.get("reason", "")).startswith("call timeout"):
+                    fs.report_vlm_failure(t, FailsafeCause.VLM_TIMEOUT, f"monitor: {d.get('reason', '')}")
+                else:
+                    fs.report_vlm_failure(t, FailsafeCause.VLM_GARBAGE, f"monitor: {d.get('reason', '')}")
+            elif ev.kind == "agent_error":
+                fs.report_vlm_failure(t, FailsafeCause.VLM_GARBAGE, f"{d.get('kind')} call raised: {d.get('error')}")
+                self._event("agent_error", d, t)
+            elif ev.kind in ("goal_timeout", "lost", "resumed", "advanced", "finished", "decomposition"):
+                self._event(f"pilot_{ev.kind}", d, ev.t_s)
+        self._n_events = len(events)
+
+    def _on_takeover(self, t: float) -> None:
+        self.t_takeover_s = t
+        status = self.bridge.status()
+        disarmed = status is not None and not status.armed
+        # The autopilot disarmed mid-mission: from the companion's view, a crash (or a kill switch).
+        self.crash_suspected = disarmed and self.t_begin_s is not None and self.t_finished_s is None and self.t_handover_s is None
+        self._event("takeover", {"reason": self.bridge.release_reason, "armed": None if status is None else status.armed})
+
+    def _finish(self, end: str) -> None:
+        cfg = self.config
+        if self.bridge.released or end in ("link_lost", "bridge_stopped"):
+            return
+        self._event("hold", {"s": cfg.hold_after_finish_s})
+        t_hold = self.clock.now_s()
+        while self.clock.now_s() - t_hold < cfg.hold_after_finish_s:
+            t = self._wait_next()
+            if self.bridge.released:
+                self._on_takeover(t)
+                return
+            if self.t_begin_s is not None:
+                self._tick(t, commanding=True)  # a finished pilot plans to its hold point
+        if cfg.on_finish == "hold":
+            self._event("handover_hold", {})
+            self.t_handover_s = self.clock.now_s()
+            self.bridge.stop_streaming()
+            return
+        self.t_handover_s = self.clock.now_s()
+        self.bridge.release("mission finished: landing handed to the autopilot")
+        if self.autopilot == "px4":
+            params = (_M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, PX4_MAIN["auto"], PX4_AUTO_SUB["land"])
+        else:
+            params = (_M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, ARDUCOPTER_MODE["land"])
+        try:
+            self.bridge.command(_M.MAV_CMD_DO_SET_MODE, params)
+        except BridgeError as exc:
+            self._event("land_failed", {"error": str(exc)})
+            return
+        self._event("land", {})
+        t_land = self.clock.now_s()
+        while True:
+            t = self._wait_next()
+            status = self.bridge.status()
+            if status is not None and not status.armed:
+                state = self.bridge.state()
+                self._event("landed", {"duration_s": t - t_land, "position_m": None if state is None else state.p.tolist()})
+                return
+            if t - t_land > cfg.land_timeout_s:
+                self._event("land_timeout", {"timeout_s": cfg.land_timeout_s})
+                return
+            if FailsafeCause.HEARTBEAT_LOST in self.bridge.failsafe.active():
+                self._event("land_unconfirmed", {"why": "vehicle heartbeat lost during the landing"})
+                return
+
+    # -- records ----------------------------------------------------------------------------
+    def _rel(self, t: float) -> float:
+        base = self.t_begin_s if self.t_begin_s is not None else self._t_start
+        return round(float(t - base), 4)
+
+    def _event(self, kind: str, data: dict, t_s: float | None = None) -> None:
+        t = self.clock.now_s() if t_s is None else t_s
+        self.events.append({"t_abs_s": float(t), "kind": kind, "data": data})
+        log.info("onboard %s: %s", kind, data)
+
+    def _summary(self, end: str) -> FlightSummary:
+        p = self.pilot
+        for e in self.events:
+            e["t_s"] = self._rel(e.pop("t_abs_s"))
+        failsafes = []
+        for e in self.bridge.failsafe.events:
+            d = e.as_dict()
+            d["t_s"] = self._rel(d["t_s"])
+            d["after_handover"] = self.t_handover_s is not None and e.t_s >= self.t_handover_s
+            failsafes.append(d)
+        t_end = self.t_finished_s
+        trace = [(t, x) for t, x in self._trace if t_end is None or t <= t_end]
+        metrics = None
+        if self.ground_truth is not None and trace and self.t_begin_s is not None:
+            from onfly.bench.metrics import EpisodeTrace, episode_metrics
+
+            times = np.array([self.t_begin_s] + [t for t, _ in trace]) - self.t_begin_s
+            pos = np.vstack([trace[0][1]] + [x for _, x in trace])
+            finished = self.t_finished_s is not None and end == "finished"
+            m = episode_metrics(
+                EpisodeTrace(times, pos, stopped_by_method=finished and not self.crash_suspected, collided=self.crash_suspected),
+                self.ground_truth.goal,
+                self.ground_truth.reference_path_m,
+                self.ground_truth.success_radius_m,
+            )
+            metrics = {"task": self.ground_truth.task_id, **asdict(m)}
+        kinds: dict[str, int] = {}
+        for e in p.events:
+            kinds[e.kind] = kinds.get(e.kind, 0) + 1
+        ticks = np.array(self._tick_ms) if self._tick_ms else np.zeros(1)
+        state = self.bridge.state()
+        return FlightSummary(
+            instruction=self.instruction,
+            autopilot=self.autopilot,
+            end_reason=end,
+            finished=p.mode is PilotMode.FINISHED,
+            flight_time_s=float((self.t_finished_s or (trace[-1][0] if trace else self._t_start)) - (self.t_begin_s or self._t_start)),
+            takeoff_s=float(next((e["data"]["duration_s"] for e in self.events if e["kind"] == "takeoff_done"), 0.0)),
+            final_position_m=[] if state is None else state.p.tolist(),
+            failsafes=failsafes,
+            events=self.events,
+            pilot={
+                "mode": p.mode.value,
+                "subtasks": list(p.tasks.subtasks) if p.tasks else [],
+                "subtask_index": p.tasks.index if p.tasks else 0,
+                "event_counts": kinds,
+                "planner_fallbacks": dict(p.planner_fallbacks),
+                "ticks_after_takeover": self.pilot_ticks_after_takeover,
+            },
+            camera={} if self.camera is None else self.camera.stats(),
+            loop={
+                "ticks": self._ticks,
+                "paused_ticks": self._paused_ticks,
+                "overruns": self._overruns,
+                "tick_ms_mean": float(ticks.mean()),
+                "tick_ms_p95": float(np.percentile(ticks, 95)),
+                "tick_ms_max": float(ticks.max()),
+                "setpoints_sent": len(self.bridge.sent),
+                "bridge_errors": list(self.bridge.errors[-10:]),
+            },
+            metrics=metrics,
+            trace_t_x_y_z=[[self._rel(t), *map(float, x)] for t, x in self._trace],
+        )
