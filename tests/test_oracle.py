@@ -89,8 +89,8 @@ def test_oracle_needs_its_privileged_goal_and_valid_options():
 def test_registry_builds_the_oracle_and_lists_valid_names():
     assert get_factory("oracle") is make_oracle
     assert isinstance(make_method("oracle", "sim:nominal", 0), OraclePilot)
-    with pytest.raises(UnknownMethodError, match=r"unknown method 'typefly'; registered methods: .*oracle"):
-        get_factory("typefly")
+    with pytest.raises(UnknownMethodError, match=r"unknown method 'no_such_method'; registered methods: .*oracle"):
+        get_factory("no_such_method")
     with pytest.raises(ValueError, match="already registered"):
         register("oracle", lambda vlm, seed, **o: None)
     with pytest.raises(ValueError, match="without commas"):
