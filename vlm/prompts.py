@@ -1,4 +1,8 @@
-"""Versioned prompt templates for the decision agent, the monitoring agent and decomposition.
+"""Versioned prompt templates: OnFly's agents, decomposition, and the baselines' prompts.
+
+Templates: ``decision``, ``monitor`` and ``decompose`` (OnFly); ``typefly`` (a skill program
+over a detector's scene description), ``pivot`` (numbered arrows drawn on the image) and
+``spf`` (a point and a travel distance) for the baselines of the paper's Table II.
 
 The texts live in ``vlm/prompts/<name>.txt`` (package data). File format: lines starting with
 ``##`` are comments, one of them ``## version: <name>/v<k>``; a line ``[section]`` starts a
@@ -51,10 +55,22 @@ __all__ = [
     "status_schema",
     "subtasks_schema",
     "TEMPLATE_NAMES",
+    "SceneObject",
+    "build_typefly_prompt",
+    "build_pivot_prompt",
+    "build_spf_prompt",
+    "TypeflyPrompt",
+    "PivotPrompt",
+    "SpfPrompt",
+    "pivot_schema",
+    "spf_schema",
+    "SPF_MAX_DEPTH_M",
 ]
 
 IMAGE_PLACEHOLDER = "<image>"
-TEMPLATE_NAMES = ("decision", "monitor", "decompose")
+TEMPLATE_NAMES = ("decision", "monitor", "decompose", "typefly", "pivot", "spf")
+#: the largest travel distance the ``spf`` template asks for, metres (its text says "1 to 10")
+SPF_MAX_DEPTH_M = 10
 _VERSION_RE = re.compile(r"^##\s*version:\s*(\S+)\s*$")
 _SECTION_RE = re.compile(r"^\[([a-z_]+)\]\s*$")
 
@@ -208,6 +224,130 @@ def build_decompose_prompt(instruction: str) -> tuple[list[ChatMessage], list[Vl
     return messages, []
 
 
+@dataclass(frozen=True)
+class SceneObject:
+    """One detection as a TypeFly-style scene description writes it.
+
+    Attributes
+    ----------
+    name : str, the detector's name for it (e.g. ``"red van"``)
+    label : str, its class (e.g. ``"van"``)
+    x, y : float, box centre as fractions of the image width and height, in [0, 1]
+    w, h : float, box size as fractions of the image width and height, in [0, 1]
+    """
+
+    name: str
+    label: str
+    x: float
+    y: float
+    w: float
+    h: float
+
+    def __post_init__(self) -> None:
+        for f in ("name", "label"):
+            text = getattr(self, f)
+            if not isinstance(text, str) or not _OBJECT_WORD_RE.fullmatch(" ".join(text.split())):
+                raise PromptError(f"SceneObject.{f} must be words (letters, digits, spaces, - ' . /), got {text!r}")
+            object.__setattr__(self, f, " ".join(text.split()))
+        for f in ("x", "y", "w", "h"):
+            v = getattr(self, f)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and 0.0 <= v <= 1.0):
+                raise PromptError(f"SceneObject.{f} must be a fraction in [0, 1], got {v!r}")
+
+    def text(self) -> str:
+        return f"{self.name} [{self.label}] x={self.x:.2f} y={self.y:.2f} w={self.w:.2f} h={self.h:.2f}"
+
+
+_OBJECT_WORD_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9 '/.-]*")
+_OBJECT_ITEM_RE = re.compile(
+    r"(?P<name>[A-Za-z0-9][A-Za-z0-9 '/.-]*?) \[(?P<label>[A-Za-z0-9][A-Za-z0-9 '/.-]*)\] "
+    r"x=(?P<x>[0-9.]+) y=(?P<y>[0-9.]+) w=(?P<w>[0-9.]+) h=(?P<h>[0-9.]+)"
+)
+_HISTORY_SEP = " | "
+
+
+def build_typefly_prompt(
+    instruction: str, image: VlmImage, objects: Sequence[SceneObject], history: Sequence[str] = ()
+) -> tuple[list[ChatMessage], list[VlmImage]]:
+    """TypeFly-style planning prompt: instruction, frame, detector scene description, skill log.
+
+    Parameters
+    ----------
+    instruction : str, the whole navigation instruction
+    image : VlmImage, the current camera frame
+    objects : the detector's detections of this frame (written in order)
+    history : executed skills with their outcome, oldest first (e.g. ``"find red van: found"``);
+        each item is put on one line and must not contain ``" | "``
+    """
+    image = _check_image(image, "image")
+    tpl = load_template("typefly")
+    objs = list(objects)
+    if not all(isinstance(o, SceneObject) for o in objs):
+        raise PromptError("objects must be SceneObject values")
+    items = [_one_line(h, f"history[{i}]") for i, h in enumerate(history)]
+    if any(_HISTORY_SEP.strip() in h for h in items):
+        raise PromptError("history items must not contain '|'")
+    w, h = image.size
+    user = tpl.render(
+        "user",
+        instruction=_one_line(instruction, "instruction"),
+        width=w,
+        height=h,
+        objects="; ".join(o.text() for o in objs) if objs else "none",
+        history=_HISTORY_SEP.join(items) if items else "none",
+    )
+    return [ChatMessage("system", tpl.render("system")), ChatMessage("user", user)], [image]
+
+
+def build_pivot_prompt(
+    instruction: str, image: VlmImage, arrows: Sequence[tuple[int, float, float]], n_pick: int
+) -> tuple[list[ChatMessage], list[VlmImage]]:
+    """PIVOT-style prompt: ``image`` already shows the numbered arrows; their endpoints are
+    written as text too (what a reader of the drawn labels sees).
+
+    Parameters
+    ----------
+    instruction : str
+    image : VlmImage, the frame with the arrows drawn on it
+    arrows : (label, u, v) per arrow: its number (distinct positive ints) and endpoint pixel
+        inside the image; written rounded
+    n_pick : int >= 1, how many arrows to choose at most
+    """
+    image = _check_image(image, "image")
+    tpl = load_template("pivot")
+    w, h = image.size
+    if isinstance(n_pick, bool) or not isinstance(n_pick, int) or n_pick < 1:
+        raise PromptError(f"n_pick must be an int >= 1, got {n_pick!r}")
+    parts, labels = [], set()
+    for a in arrows:
+        try:
+            label, u, v = int(a[0]), float(a[1]), float(a[2])
+        except (TypeError, ValueError, IndexError):
+            raise PromptError(f"arrows must be (label, u, v), got {a!r}") from None
+        if label < 1 or label in labels:
+            raise PromptError(f"arrow labels must be distinct positive ints, got {label}")
+        if not (math.isfinite(u) and math.isfinite(v) and -0.5 <= u < w - 0.5 and -0.5 <= v < h - 0.5):
+            raise PromptError(f"arrow {label} endpoint ({u}, {v}) is outside the {w}x{h} image")
+        labels.add(label)
+        parts.append(f"{label}: ({min(max(round(u), 0), w - 1)}, {min(max(round(v), 0), h - 1)})")
+    if not parts:
+        raise PromptError("a PIVOT prompt needs at least one arrow")
+    user = tpl.render(
+        "user", instruction=_one_line(instruction, "instruction"), count=len(parts), width=w, height=h,
+        arrows="; ".join(parts), n_pick=n_pick,
+    )  # fmt: skip
+    return [ChatMessage("system", tpl.render("system")), ChatMessage("user", user)], [image]
+
+
+def build_spf_prompt(instruction: str, image: VlmImage) -> tuple[list[ChatMessage], list[VlmImage]]:
+    """See-Point-Fly-style prompt: point where to fly and how far (0 = the goal is reached)."""
+    image = _check_image(image, "image")
+    tpl = load_template("spf")
+    w, h = image.size
+    user = tpl.render("user", instruction=_one_line(instruction, "instruction"), width=w, height=h)
+    return [ChatMessage("system", tpl.render("system")), ChatMessage("user", user)], [image]
+
+
 # ---------------------------------------------------------------------------------------------
 # reading prompts back
 
@@ -239,6 +379,37 @@ class DecomposePrompt:
     instruction: str
 
 
+@dataclass(frozen=True)
+class TypeflyPrompt:
+    """Fields of a TypeFly planning prompt (``objects`` as written, rounded to 2 decimals)."""
+
+    version: str
+    instruction: str
+    image_size: tuple[int, int]
+    objects: tuple[SceneObject, ...]
+    history: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class PivotPrompt:
+    """Fields of a PIVOT prompt: ``arrows`` as written, ``(label, u, v)`` integer pixels."""
+
+    version: str
+    instruction: str
+    image_size: tuple[int, int]
+    arrows: tuple[tuple[int, int, int], ...]
+    n_pick: int
+
+
+@dataclass(frozen=True)
+class SpfPrompt:
+    """Fields of a See-Point-Fly prompt."""
+
+    version: str
+    instruction: str
+    image_size: tuple[int, int]
+
+
 def _template_regex(tpl: PromptTemplate, section: str, fields: Mapping[str, str]) -> re.Pattern:
     """A regex matching a rendered section, with named groups for ``fields``."""
     pattern = re.escape(tpl.sections[section])
@@ -247,7 +418,9 @@ def _template_regex(tpl: PromptTemplate, section: str, fields: Mapping[str, str]
     return re.compile(pattern)
 
 
-def parse_prompt(messages: Sequence[ChatMessage]) -> DecisionPrompt | MonitorPrompt | DecomposePrompt | None:
+def parse_prompt(
+    messages: Sequence[ChatMessage],
+) -> DecisionPrompt | MonitorPrompt | DecomposePrompt | TypeflyPrompt | PivotPrompt | SpfPrompt | None:
     """Which template built ``messages`` and with what values; None for any other chat."""
     if len(messages) != 2 or messages[0].role != "system" or messages[1].role != "user":
         return None
@@ -280,7 +453,57 @@ def parse_prompt(messages: Sequence[ChatMessage]) -> DecisionPrompt | MonitorPro
         if m is None:
             return None
         return DecomposePrompt(version=tpl.version, instruction=m.group("instruction"))
+    for name, reader in (("typefly", _read_typefly), ("pivot", _read_pivot), ("spf", _read_spf)):
+        tpl = load_template(name)
+        if system == tpl.render("system"):
+            return reader(tpl, user)
     return None
+
+
+def _read_typefly(tpl: PromptTemplate, user: str) -> TypeflyPrompt | None:
+    fields_ = {"instruction": r"[^\n]+", "width": r"\d+", "height": r"\d+", "objects": r"[^\n]+", "history": r"[^\n]+"}
+    m = _template_regex(tpl, "user", fields_).fullmatch(user)
+    if m is None:
+        return None
+    objects: list[SceneObject] = []
+    if m.group("objects") != "none":
+        for item in m.group("objects").split("; "):
+            om = _OBJECT_ITEM_RE.fullmatch(item)
+            if om is None:
+                return None
+            try:
+                objects.append(SceneObject(om.group("name"), om.group("label"), *(float(om.group(k)) for k in "xywh")))
+            except (PromptError, ValueError):
+                return None
+    history = () if m.group("history") == "none" else tuple(m.group("history").split(_HISTORY_SEP))
+    return TypeflyPrompt(
+        tpl.version, m.group("instruction"), (int(m.group("width")), int(m.group("height"))), tuple(objects), history
+    )
+
+
+def _read_pivot(tpl: PromptTemplate, user: str) -> PivotPrompt | None:
+    fields_ = {"instruction": r"[^\n]+", "count": r"\d+", "width": r"\d+", "height": r"\d+", "arrows": r"[^\n]+", "n_pick": r"\d+"}
+    m = _template_regex(tpl, "user", fields_).fullmatch(user)
+    if m is None:
+        return None
+    arrows = []
+    for item in m.group("arrows").split("; "):
+        am = re.fullmatch(r"(\d+): \((\d+), (\d+)\)", item)
+        if am is None:
+            return None
+        arrows.append((int(am.group(1)), int(am.group(2)), int(am.group(3))))
+    if len(arrows) != int(m.group("count")) or int(m.group("n_pick")) < 1:
+        return None
+    return PivotPrompt(
+        tpl.version, m.group("instruction"), (int(m.group("width")), int(m.group("height"))), tuple(arrows), int(m.group("n_pick"))
+    )
+
+
+def _read_spf(tpl: PromptTemplate, user: str) -> SpfPrompt | None:
+    m = _template_regex(tpl, "user", {"instruction": r"[^\n]+", "width": r"\d+", "height": r"\d+"}).fullmatch(user)
+    if m is None:
+        return None
+    return SpfPrompt(tpl.version, m.group("instruction"), (int(m.group("width")), int(m.group("height"))))
 
 
 def count_placeholders(messages: Sequence[ChatMessage]) -> int:
@@ -334,6 +557,31 @@ def status_schema() -> dict:
         "type": "object",
         "properties": {"status": {"type": "string", "enum": ["CONTINUE", "STOP", "LOST"]}},
         "required": ["status"],
+        "additionalProperties": False,
+    }
+
+
+def pivot_schema() -> dict:
+    """Schema of a PIVOT answer: ``{"arrows": [3, 5]}`` or ``{"stop": true}``."""
+    return {
+        "type": "object",
+        "properties": {
+            "arrows": {"type": "array", "items": {"type": "integer", "minimum": 1}},
+            "stop": {"type": "boolean"},
+        },
+        "additionalProperties": False,
+    }
+
+
+def spf_schema() -> dict:
+    """Schema of a See-Point-Fly answer ``{"point_2d": [x, y], "depth": d}`` (d in 0..10 m)."""
+    return {
+        "type": "object",
+        "properties": {
+            "point_2d": {"type": "array", "items": {"type": "integer", "minimum": 0}, "minItems": 2, "maxItems": 2},
+            "depth": {"type": "integer", "minimum": 0, "maximum": SPF_MAX_DEPTH_M},
+        },
+        "required": ["point_2d", "depth"],
         "additionalProperties": False,
     }
 

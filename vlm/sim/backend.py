@@ -1,5 +1,8 @@
 """SimulatedVlm: a :class:`vlm.types.VlmBackend` that answers OnFly's prompts from annotations.
 
+It also answers the baselines' prompts (``typefly``, ``pivot``, ``spf`` templates) with the same
+preset error model; the rules are in :mod:`vlm.sim.error_model` ("Baseline prompts").
+
 It recognises the prompt with :func:`vlm.prompts.parse_prompt` (the same text a real model
 reads), looks only at each image's :class:`vlm.types.FrameAnnotation`, and answers in the text
 formats a real model uses. The error model, the latency model and the randomness are stated in
@@ -19,31 +22,41 @@ import numpy as np
 
 from vlm.decompose import split_instruction
 from vlm.prompts import (
+    SPF_MAX_DEPTH_M,
     DecisionPrompt,
     DecomposePrompt,
     MonitorPrompt,
+    PivotPrompt,
     PromptError,
+    SceneObject,
+    SpfPrompt,
+    TypeflyPrompt,
     parse_prompt,
     prompt_segments,
 )
 from vlm.sim.error_model import ErrorModel, ErrorModelError, LatencyModel, get_preset
 from vlm.sim.features import keyed_rng, synthetic_features
-from vlm.sim.grounding import Region, anchor_pixel, exploration_point, ground, region_of, visible_regions
+from vlm.sim.grounding import Region, anchor_pixel, exploration_point, ground, region_of, visible_regions, words
 from vlm.types import (
     CallStatus,
     ChatMessage,
     FrameAnnotation,
     Usage,
+    VisibleObject,
     VisionFeatures,
     VlmImage,
     VlmResponse,
 )
 
-__all__ = ["SimulatedVlm", "Perception"]
+__all__ = ["SimulatedVlm", "Perception", "LegTarget"]
 
 log = logging.getLogger(__name__)
 
 _STATUSES = ("CONTINUE", "STOP", "LOST")
+#: words by which a leg of an instruction refers back to the previous leg's target
+_BACK_REFERENCES = frozenset({"it", "there", "them", "that", "this"})
+#: the TypeFly sim's exploration move after a full find turn without the target, metres
+TYPEFLY_EXPLORE_M = 3.0
 
 
 @dataclass(frozen=True)
@@ -63,6 +76,24 @@ class Perception:
     perceived: bool
     small: bool = False
     far: bool = False
+
+
+@dataclass(frozen=True)
+class LegTarget:
+    """What a memoryless baseline prompt aims at in one frame (rule in :mod:`vlm.sim.error_model`).
+
+    Attributes
+    ----------
+    leg : int, index of the instruction leg being pursued (``split_instruction`` order)
+    perception : Perception of that leg's target, or None (explore)
+    final : bool, ``leg`` is the last leg
+    reached : bool, the final leg's target is perceived within the stop distance (stop)
+    """
+
+    leg: int
+    perception: Perception | None
+    final: bool
+    reached: bool
 
 
 class SimulatedVlm:
@@ -145,6 +176,12 @@ class SimulatedVlm:
             text = self._decide(prompt, images[0], structured)
         elif isinstance(prompt, MonitorPrompt):
             text = self._monitor(prompt, images, structured)
+        elif isinstance(prompt, SpfPrompt):
+            text = self._spf(prompt, images[0], structured)
+        elif isinstance(prompt, PivotPrompt):
+            text = self._pivot(prompt, images[0], structured)
+        elif isinstance(prompt, TypeflyPrompt):
+            text = self._typefly(prompt, images[0])
         else:
             text = self._decompose(prompt, structured)
         return self._respond(prompt, images, segments, text, deadline_s, max_new_tokens, cache_key)
@@ -152,8 +189,9 @@ class SimulatedVlm:
     # -- checks ---------------------------------------------------------------------------------
     @staticmethod
     def _check_images(prompt: object, images: Sequence[VlmImage]) -> str:
-        if isinstance(prompt, DecisionPrompt) and len(images) != 1:
-            return f"decision prompt needs 1 image, got {len(images)}"
+        if isinstance(prompt, (DecisionPrompt, SpfPrompt, PivotPrompt, TypeflyPrompt)) and len(images) != 1:
+            kind = type(prompt).__name__.removesuffix("Prompt").lower()
+            return f"{kind} prompt needs 1 image, got {len(images)}"
         if isinstance(prompt, MonitorPrompt) and len(images) != prompt.n_keyframes + 2:
             return f"monitoring prompt with {prompt.n_keyframes} keyframes needs {prompt.n_keyframes + 2} images, got {len(images)}"
         for img in images:
@@ -279,6 +317,163 @@ class SimulatedVlm:
         variants = (f"**{status}**", f"Status: {status}.", status.lower(), f"{status}\n")
         return variants[int(rng.integers(len(variants)))]
 
+    # -- baseline prompts: shared rules -----------------------------------------------------------
+    def _close(self, per: Perception | None, jitter_m: float) -> bool:
+        """The common stop rule: perceived and nearer than the (offset, jittered) stop distance."""
+        m = self.model
+        return bool(
+            per is not None and per.perceived and per.region.median_depth_m < m.stop_distance_m + m.stop_offset_m + jitter_m
+        )
+
+    def _legs(self, instruction: str) -> list[str]:
+        return split_instruction(instruction)
+
+    def _leg_perceptions(self, legs: list[str], image: VlmImage) -> list[Perception]:
+        """Perception of each leg's target; a leg naming nothing visible that refers back
+        ("go to it", "stop there") is read together with the previous leg."""
+        out = []
+        for k, leg in enumerate(legs):
+            per = self.perceive(leg, image)
+            if per.named_id is None and k > 0 and _BACK_REFERENCES & set(words(leg)):
+                per = self.perceive(f"{legs[k - 1]} {leg}", image)
+            out.append(per)
+        return out
+
+    def leg_target(self, instruction: str, image: VlmImage, jitter_m: float) -> LegTarget:
+        """The memoryless leg rule of the baseline prompts (see :mod:`vlm.sim.error_model`)."""
+        legs = self._legs(instruction)
+        pers = self._leg_perceptions(legs, image)
+        final = len(legs) - 1
+        if pers[final].perceived:
+            return LegTarget(final, pers[final], True, self._close(pers[final], jitter_m))
+        seen = [k for k, p in enumerate(pers) if p.perceived]
+        if not seen:
+            return LegTarget(0, None, final == 0, False)
+        j = max(seen)
+        if self._close(pers[j], jitter_m):
+            return LegTarget(j + 1, None, j + 1 == final, False)
+        return LegTarget(j, pers[j], False, False)
+
+    def _aim(self, leg_text: str, image: VlmImage, per: Perception | None, rng: np.random.Generator, u_confuse: float):
+        """Noisy pixel the model aims at: the perceived target (or a confused look-alike) or
+        the exploration point. Returns ``(u, v, region_or_None)`` before rounding."""
+        m = self.model
+        ann: FrameAnnotation = image.annotation
+        w, _ = image.size
+        if per is not None and per.perceived:
+            region = per.region
+            lookalikes = self._lookalikes(leg_text, ann, per.named_id)
+            if lookalikes and u_confuse < m.confusion_prob:
+                region = region_of(ann, lookalikes[int(rng.integers(len(lookalikes)))])
+            u0, v0 = anchor_pixel(region.mask)
+            sigma = m.pixel_sigma_px(w, region.median_depth_m)
+        else:
+            region = None
+            u0, v0 = exploration_point(ann.depth_m)
+            sigma = m.pixel_sigma_px(w, 0.0)
+        du, dv = rng.normal(0.0, sigma, 2) if sigma > 0 else (0.0, 0.0)
+        return u0 + du, v0 + dv, region
+
+    # -- See-Point-Fly ------------------------------------------------------------------------------
+    def _spf(self, prompt: SpfPrompt, image: VlmImage, structured: bool) -> str:
+        m = self.model
+        rng = keyed_rng(self.seed, "spf", image.frame_id, prompt.instruction)
+        u_malformed, u_variety, u_confuse = rng.random(3)
+        jitter = float(rng.normal(0.0, m.stop_jitter_m)) if m.stop_jitter_m > 0 else 0.0
+        w, h = image.size
+        tgt = self.leg_target(prompt.instruction, image, jitter)
+        legs = self._legs(prompt.instruction)
+        uf, vf, region = self._aim(legs[min(tgt.leg, len(legs) - 1)], image, tgt.perception, rng, u_confuse)
+        u = int(np.clip(round(uf), 0, w - 1))
+        v = int(np.clip(round(vf), 0, h - 1))
+        if tgt.reached:
+            depth = 0
+        elif region is not None:
+            depth = int(np.clip(round(region.median_depth_m), 1, SPF_MAX_DEPTH_M))
+        else:
+            depth = _open_depth(image.annotation.depth_m, u, v)
+        if u_malformed < m.malformed_prob:
+            return self._malformed_point(rng, u, v, w, h, structured)
+        plain = json.dumps({"point_2d": [u, v], "depth": depth})
+        if structured or u_variety >= m.format_variety_prob:
+            return plain
+        variants = (f"```json\n{plain}\n```", f"Next waypoint: {plain}")
+        return variants[int(rng.integers(len(variants)))]
+
+    # -- PIVOT --------------------------------------------------------------------------------------
+    def _pivot(self, prompt: PivotPrompt, image: VlmImage, structured: bool) -> str:
+        m = self.model
+        # the model's belief about the frame (target pixel, stop) is one draw per frame and
+        # instruction; only the output-format draws change with the arrows shown
+        belief = keyed_rng(self.seed, "pivot-belief", image.frame_id, prompt.instruction)
+        u_confuse = belief.random()
+        jitter = float(belief.normal(0.0, m.stop_jitter_m)) if m.stop_jitter_m > 0 else 0.0
+        call = keyed_rng(self.seed, "pivot", image.frame_id, prompt.instruction, prompt.arrows, prompt.n_pick)
+        u_malformed, u_variety = call.random(2)
+        tgt = self.leg_target(prompt.instruction, image, jitter)
+        if tgt.reached:
+            text = json.dumps({"stop": True})
+        else:
+            legs = self._legs(prompt.instruction)
+            uf, vf, _ = self._aim(legs[min(tgt.leg, len(legs) - 1)], image, tgt.perception, belief, u_confuse)
+            ends = np.array([[a[1], a[2]] for a in prompt.arrows], float)
+            dist = np.hypot(ends[:, 0] - uf, ends[:, 1] - vf)
+            order = np.lexsort((np.array([a[0] for a in prompt.arrows]), dist))
+            text = json.dumps({"arrows": [int(prompt.arrows[i][0]) for i in order[: prompt.n_pick]]})
+        if u_malformed < m.malformed_prob:
+            undrawn = max(a[0] for a in prompt.arrows) + 1 + int(call.integers(5))
+            if structured:
+                return json.dumps({"arrows": [undrawn]})
+            variants = (
+                "I would take the arrow that points toward the target.",
+                '{"arrows": [',
+                '{"arrow": "left"}',
+                json.dumps({"arrows": [undrawn]}),
+                "",
+            )
+            return variants[int(call.integers(len(variants)))]
+        if structured or u_variety >= m.format_variety_prob:
+            return text
+        variants = (f"```json\n{text}\n```", f"Best arrows: {text}")
+        return variants[int(call.integers(len(variants)))]
+
+    # -- TypeFly ------------------------------------------------------------------------------------
+    def _typefly(self, prompt: TypeflyPrompt, image: VlmImage) -> str:
+        m = self.model
+        rng = keyed_rng(self.seed, "typefly", image.frame_id, prompt.instruction, prompt.objects, prompt.history)
+        u_malformed, u_confuse = rng.random(2)
+        jitter = float(rng.normal(0.0, m.stop_jitter_m)) if m.stop_jitter_m > 0 else 0.0
+        legs = self._legs(prompt.instruction)
+        final = len(legs) - 1
+        # "reached" is judged on the frame (common stop rule); where things are comes from the
+        # detector's scene description only
+        reached = self._leg_perceptions(legs, image)
+        detected = _detected_per_leg(legs, prompt.objects, image.annotation)
+        if self._close(reached[final], jitter):
+            program = "stop"
+        else:
+            seen = [k for k, d in enumerate(detected) if d is not None]
+            target = None
+            if detected[final] is not None:
+                target = final
+            elif seen and not self._close(reached[max(seen)], jitter):
+                target = max(seen)
+            if target is not None:
+                obj = detected[target]
+                same = [o for o in prompt.objects if o.label == obj.label and o.name != obj.name]
+                if same and u_confuse < m.confusion_prob:
+                    obj = same[int(rng.integers(len(same)))]
+                program = f"approach {obj.name}"
+            else:
+                nxt = max(seen) + 1 if seen else _first_unapproached(legs, prompt.history)
+                phrase = _skill_text(legs[min(nxt, final)])
+                failed = bool(prompt.history) and prompt.history[-1] == f"find {phrase}: not found"
+                program = f"move_forward {TYPEFLY_EXPLORE_M:g}; find {phrase}" if failed else f"find {phrase}"
+        if u_malformed < m.malformed_prob:
+            variants = ("I will fly toward the target now.", "approach", "fly_to target; stop", "find;", "")
+            return variants[int(rng.integers(len(variants)))]
+        return program
+
     # -- decomposition --------------------------------------------------------------------------
     def _decompose(self, prompt: DecomposePrompt, structured: bool) -> str:
         m = self.model
@@ -313,7 +508,7 @@ class SimulatedVlm:
 
     def _respond(
         self,
-        prompt: DecisionPrompt | MonitorPrompt | DecomposePrompt,
+        prompt: DecisionPrompt | MonitorPrompt | DecomposePrompt | SpfPrompt | PivotPrompt | TypeflyPrompt,
         images: Sequence[VlmImage],
         segments: tuple[str, ...],
         text: str,
@@ -332,7 +527,7 @@ class SimulatedVlm:
             shared += 1
         prompt_tokens = sum(self._tokens(s, by_id) for s in segments)
         cached_tokens = sum(self._tokens(s, by_id) for s in segments[:shared])
-        if isinstance(prompt, DecisionPrompt):
+        if isinstance(prompt, (DecisionPrompt, SpfPrompt, PivotPrompt, TypeflyPrompt)):
             latency_s = self.latency.decision_s
         elif isinstance(prompt, MonitorPrompt):
             cached_images = sum(1 for s in segments[:shared] if s.startswith("\x00image:"))
@@ -357,3 +552,65 @@ class SimulatedVlm:
             cached_tokens=cached_tokens,
         )
         return VlmResponse(CallStatus.OK, text=text, usage=usage, latency_s=float(latency_s))
+
+
+def _open_depth(depth_m: np.ndarray, u: int, v: int, half_px: int = 4) -> int:
+    """Travel distance toward open space at ``(u, v)``: the median z-depth of readings in a
+    small window, whole metres in ``[1, SPF_MAX_DEPTH_M]``; no reading counts as far."""
+    h, w = depth_m.shape
+    win = np.asarray(depth_m[max(v - half_px, 0) : v + half_px + 1, max(u - half_px, 0) : u + half_px + 1], float)
+    vals = win[np.isfinite(win) & (win > 0)]
+    if vals.size == 0:
+        return SPF_MAX_DEPTH_M
+    return int(np.clip(round(float(np.median(vals))), 1, SPF_MAX_DEPTH_M))
+
+
+def scene_objects_as_visible(
+    objects: Sequence[SceneObject], annotation: FrameAnnotation | None = None
+) -> tuple[dict[int, VisibleObject], dict[int, int]]:
+    """A scene description as grounding input: pseudo instance ids 1..n and box areas (in
+    ten-thousandths of the image) as the visible areas. With ``annotation``, a detection whose
+    name an object of the frame has gets that object's aliases (the model's knowledge of
+    synonyms; it adds no object and no position)."""
+    known = {}
+    if annotation is not None:
+        for obj in annotation.objects.values():
+            known.setdefault(obj.name, tuple(obj.aliases))
+    objs = {k + 1: VisibleObject(k + 1, o.name, o.label, known.get(o.name, ())) for k, o in enumerate(objects)}
+    areas = {k + 1: max(1, int(round(o.w * o.h * 1e4))) for k, o in enumerate(objects)}
+    return objs, areas
+
+
+def _detected_per_leg(
+    legs: list[str], objects: Sequence[SceneObject], annotation: FrameAnnotation | None
+) -> list[SceneObject | None]:
+    """The detection each leg names (grounding rule), with the back-reference rule of the legs."""
+    objs, areas = scene_objects_as_visible(objects, annotation)
+    out: list[SceneObject | None] = []
+    for k, leg in enumerate(legs):
+        matches = ground(leg, objs, areas)
+        if not matches and k > 0 and _BACK_REFERENCES & set(words(leg)):
+            matches = ground(f"{legs[k - 1]} {leg}", objs, areas)
+        out.append(objects[matches[0].instance_id - 1] if matches else None)
+    return out
+
+
+def _skill_text(text: str) -> str:
+    """A leg as a skill argument: one line without the program separator."""
+    return " ".join(text.replace(";", " ").split())
+
+
+def _first_unapproached(legs: list[str], history: Sequence[str]) -> int:
+    """Index of the first leg whose target no ``approach <name>: done`` entry names."""
+    approached = set()
+    for item in history:
+        if item.startswith("approach ") and item.endswith(": done"):
+            name = item[len("approach ") : -len(": done")]
+            objs = {1: VisibleObject(1, name, name.split()[-1] if name.split() else name)}
+            for k, leg in enumerate(legs):
+                if ground(leg, objs, {1: 1}):
+                    approached.add(k)
+    for k in range(len(legs)):
+        if k not in approached:
+            return k
+    return len(legs) - 1

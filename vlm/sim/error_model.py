@@ -54,6 +54,44 @@ Decomposition (JSON array of strings)
     between adjacent subtasks is merged (joined with ``" then "``) with probability
     ``merge_prob``.
 
+Baseline prompts (``spf``, ``pivot``, ``typefly`` templates; the paper's Table II baselines)
+    These prompts carry the whole instruction and no memory. The instruction is cut into legs
+    by :func:`vlm.decompose.split_instruction` (no merges); a leg naming nothing visible that
+    refers back ("go to it", "stop there") is read together with the previous leg. Per frame,
+    with the miss rule above and one stop jitter ``e`` per call:
+
+    - *Leg rule*: if the last leg's target is perceived, aim at it; else take the furthest leg
+      whose target is perceived: aim at it, or, if it is already within the stop distance
+      (below), explore for the next leg; nothing perceived: explore.
+    - *Stop rule* (the stop interfaces the OnFly paper added, timed like monitoring STOP): the
+      last leg's target is perceived with ``d < stop_distance_m + stop_offset_m + e``.
+      ``status_error_prob`` (a monitoring forced-choice error) does not apply.
+    - *Aim*: the decision rule's point (anchor pixel, confusion with ``confusion_prob``, noise
+      ``sigma_px``); exploring: the exploration point plus noise at ``d = 0``.
+
+    ``spf``: ``{"point_2d": [x, y], "depth": k}`` with ``k`` the pointed object's median depth
+    rounded to whole metres in ``[1, 10]`` (exploring: the median depth in a 9 x 9 px window
+    at the point, no reading = 10); ``k = 0`` when the stop rule holds.
+    ``pivot``: the arrows' endpoints are read from the prompt text (a real implementation
+    draws the numbers on the image; a model reads them there); the answer lists the
+    ``n_pick`` arrows whose endpoints lie nearest to the aimed pixel, nearest first, or
+    ``{"stop": true}``. The aimed pixel and the stop jitter are drawn once per frame and
+    instruction (the same belief in every PIVOT iteration on one frame); format draws per call.
+    Malformed answers: prose, truncated JSON, a wrong key, or arrow numbers that were not drawn
+    (the only kind a schema allows).
+    ``typefly``: a skill program. Where objects are comes only from the detector's scene
+    description in the prompt (grounding over its names and labels; box area as visible
+    area); whether the goal is reached is judged on the frame with the stop rule. Program:
+    ``stop`` when reached; else ``approach <name>`` for the detection of the last leg, or of
+    the furthest leg whose target is detected and not yet within the stop distance (a
+    look-alike detection, same label and another name, with ``confusion_prob``); else
+    ``find <leg text>`` for the next leg (after the furthest detected one, or the first leg no
+    ``approach <name>: done`` entry of the skill log names), preceded by ``move_forward 3``
+    when the log's last entry is that same find failing. Malformed: prose, a skill without an
+    argument, an unknown skill, an empty answer.
+
+    All three are charged the decision latency (one image, a short answer).
+
 Every call
     With probability ``malformed_prob`` the answer is replaced by a realistic malformed one
     (prose without coordinates, truncated JSON, wrong key, a point outside the image, an

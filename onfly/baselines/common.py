@@ -1,0 +1,157 @@
+"""What the baselines share: flight limits, map-free motion, option handling, call outcomes.
+
+Every baseline flies under the same dynamic limits as OnFly (the ``planner`` table of the
+benchmark config: ``v_max_mps``, ``a_max_mps2``, ``yaw_rate_max_rps``, ``dt_s``,
+``horizon_steps``); map-free motion is :func:`planning.straight_line.straight_line_plan`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from typing import Any
+
+import numpy as np
+
+from onfly.observation import Observation
+from planning.frames import wrap_angle
+from planning.planner import Planner
+from planning.planner_config import PlannerConfig
+from planning.straight_line import straight_line_plan
+from planning.trajectory import Trajectory, VehicleState
+from vlm.types import VlmImage, VlmResponse
+
+__all__ = [
+    "BaselineOptionError",
+    "FlightLimits",
+    "split_options",
+    "shared_planner",
+    "straight_plan",
+    "arrived",
+    "yaw_settled",
+    "ray_world",
+    "vlm_image",
+    "CallOutcome",
+]
+
+#: arrival tolerances of map-free moves (position, speed)
+ARRIVE_TOL_M = 0.15
+ARRIVE_SPEED_MPS = 0.1
+
+
+class BaselineOptionError(ValueError):
+    """A baseline option that does not exist or is out of range (names it)."""
+
+
+@dataclass(frozen=True)
+class FlightLimits:
+    """The dynamic limits every method flies under (from the shared planner config).
+
+    v_max_mps, a_max_mps2, yaw_rate_max_rps : speed, per-interval acceleration and yaw-rate limits
+    dt_s, steps : interval length and count of a map-free plan
+    """
+
+    v_max_mps: float
+    a_max_mps2: float
+    yaw_rate_max_rps: float
+    dt_s: float
+    steps: int
+
+    @classmethod
+    def from_planner(cls, config: PlannerConfig) -> "FlightLimits":
+        return cls(config.v_max_mps, config.a_max_mps2, config.yaw_rate_max_rps, config.dt_s, config.horizon_steps)
+
+
+def split_options(options: dict[str, Any], config_cls, method: str) -> tuple[PlannerConfig, dict, Any]:
+    """Split factory options into ``(planner config, esdf overrides, method config)``.
+
+    ``verifier`` is accepted (shared table of the benchmark config) and unused by baselines.
+    Unknown keys raise :class:`BaselineOptionError` listing the valid ones.
+    """
+    opts = dict(options)
+    planner = PlannerConfig.from_dict(dict(opts.pop("planner", {}) or {}))
+    esdf = dict(opts.pop("esdf", {}) or {})
+    opts.pop("verifier", None)
+    valid = {f.name for f in fields(config_cls)}
+    bad = sorted(set(opts) - valid)
+    if bad:
+        raise BaselineOptionError(f"unknown {method} option(s) {bad}; valid: {sorted(valid | {'planner', 'esdf', 'verifier'})}")
+    return planner, esdf, config_cls(**opts)
+
+
+_PLANNERS: dict[PlannerConfig, Planner] = {}
+
+
+def shared_planner(config: PlannerConfig) -> Planner:
+    """One Planner per config per process (CasADi set-up is built once), reset for the episode."""
+    if config not in _PLANNERS:
+        _PLANNERS[config] = Planner(config)
+    planner = _PLANNERS[config]
+    planner.reset()
+    return planner
+
+
+def straight_plan(
+    state: VehicleState, goal, limits: FlightLimits, *, yaw_first: bool = False, yaw_ref: float | None = None
+) -> Trajectory:
+    """Map-free straight-line plan to ``goal`` (3,), world ENU metres, under ``limits``."""
+    return straight_line_plan(
+        state,
+        np.asarray(goal, float),
+        v_max_mps=limits.v_max_mps,
+        a_max_mps2=limits.a_max_mps2,
+        yaw_rate_max_rps=limits.yaw_rate_max_rps,
+        dt_s=limits.dt_s,
+        steps=limits.steps,
+        yaw_first=yaw_first,
+        yaw_ref=yaw_ref,
+    )
+
+
+def arrived(state: VehicleState, goal) -> bool:
+    """At ``goal`` (within :data:`ARRIVE_TOL_M`) and nearly still."""
+    return bool(
+        np.linalg.norm(state.p - np.asarray(goal, float)) <= ARRIVE_TOL_M and np.linalg.norm(state.v) <= ARRIVE_SPEED_MPS
+    )
+
+
+def yaw_settled(state: VehicleState, yaw_rad: float, tol_rad: float = 0.05) -> bool:
+    """Heading within ``tol_rad`` of ``yaw_rad`` and the yaw rate nearly zero."""
+    return bool(abs(wrap_angle(state.yaw - yaw_rad)) <= tol_rad and abs(state.yaw_rate) <= 0.05)
+
+
+def ray_world(obs: Observation, uv) -> np.ndarray:
+    """Unit viewing ray through pixel ``uv`` of ``obs``, shape (3,), world frame."""
+    ray_cam = obs.camera.K_inv @ np.array([float(uv[0]), float(uv[1]), 1.0])
+    r = obs.T_world_cam[:3, :3] @ ray_cam
+    return r / np.linalg.norm(r)
+
+
+def vlm_image(obs: Observation, rgb: np.ndarray | None = None) -> VlmImage:
+    """The VLM's view of ``obs`` (``rgb`` replaces the pixels, e.g. with drawn overlays; the
+    annotation rides along for the simulated VLM)."""
+    return VlmImage(rgb=obs.rgb if rgb is None else rgb, frame_id=obs.frame_id, annotation=obs.annotation)
+
+
+@dataclass(frozen=True, eq=False)
+class CallOutcome:
+    """One VLM call of a baseline: what was asked about and the response (lands after its latency).
+
+    kind : str, the baseline's call kind; frame_id : the frame asked about; payload : the
+    method's own context for the call (e.g. the candidates drawn)
+    """
+
+    kind: str
+    frame_id: str
+    response: VlmResponse
+    payload: Any = None
+
+    @property
+    def latency_s(self) -> float:
+        return self.response.latency_s
+
+
+def finite_positive(name: str, value: float, cls=BaselineOptionError) -> None:
+    """Raise ``cls`` naming ``name`` unless ``value`` is a finite number > 0."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
+        raise cls(f"{name} must be a finite number > 0, got {value!r}")
