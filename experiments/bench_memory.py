@@ -75,7 +75,7 @@ import numpy as np
 from onfly.agents import global_descriptor
 from onfly.memory import MEMORY_STRATEGIES, MemoryConfig, make_memory
 from planning.camera import PinholeCamera
-from vlm.prompts import build_monitor_prompt, prompt_segments
+from vlm.prompts import build_monitor_prompt
 from vlm.sim import SimulatedVlm
 from vlm.tiny_models import TINY_FAMILIES, TinyVlmSpec, build_tiny_vlm
 from vlm.types import FrameAnnotation, VlmImage
@@ -547,7 +547,8 @@ def run_model_calls(specs: Sequence[StreamSpec], windows: dict[str, list[MemoryC
             resp = backends[name].complete(messages, images, max_new_tokens=cfg.max_new_tokens,
                                            cache_key=f"monitor:{name}")
             ms = (time.perf_counter() - t0) * 1e3
-            sim = sims[name].complete(messages, images, max_new_tokens=cfg.max_new_tokens, cache_key=f"monitor:{name}")
+            sim = sims[name].complete(messages, images, max_new_tokens=cfg.max_new_tokens,
+                                      cache_key=f"monitor:{name}" if spec.reuse_prefix else None)
             out.append(ModelCall(
                 strategy=name, episode=call.episode, call=call.call, cold=(i == 0),
                 prompt_tokens=resp.usage.prompt_tokens, cached_tokens=resp.usage.cached_tokens, ms=ms,
@@ -720,7 +721,7 @@ def run_benchmark(cfg: BenchMemoryConfig, *, model_path: str | Path | None = Non
         "model": model_desc,
         "episode_lengths_m": [round(ep.length_m, 2) for ep, _, _ in episodes],
         "monitoring_calls_per_episode": [sum(1 for c in mem["hybrid"] if c.episode == e) for e in range(cfg.episodes)],
-        "memory": dataclasses.asdict(MemoryConfig(slots=cfg.slots)),
+        "memory": {k: v for k, v in dataclasses.asdict(MemoryConfig(slots=cfg.slots)).items() if k != "strategy"},
         "subtask": SUBTASK,
         "modelled_latency": "vlm.sim.SimulatedVlm('nominal') default LatencyModel (paper's Jetson Orin NX numbers)",
         "targets": {"cached_token_fraction_hybrid_min": TARGET_CACHED_FRACTION_HYBRID,
