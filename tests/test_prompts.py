@@ -11,7 +11,16 @@ from vlm.prompts import (
     DecisionPrompt,
     DecomposePrompt,
     MonitorPrompt,
+    PivotPrompt,
     PromptError,
+    SceneObject,
+    SpfPrompt,
+    TypeflyPrompt,
+    build_pivot_prompt,
+    build_spf_prompt,
+    build_typefly_prompt,
+    pivot_schema,
+    spf_schema,
     build_decision_prompt,
     build_decompose_prompt,
     build_monitor_prompt,
@@ -31,6 +40,9 @@ PINNED = {
     "decision": ("decision/v1", "043a999f64cf635141b022af3ca0c480178e5f948edbe0a5685404fd51d6f202"),
     "monitor": ("monitor/v1", "070bfc0058f6949d6d1c8db906a152960c9e017c4133cc56d078b41ec3a533d0"),
     "decompose": ("decompose/v1", "531dcedca5041025b19524364a85a208ff85a9b1c8c2bf4598b36aff21d5aa4c"),
+    "typefly": ("typefly/v1", "91e40abda5ab5999748b97cba358b7ca2d18629e22d4c1efcc17ebc8aa72a563"),
+    "pivot": ("pivot/v1", "36e94787a2fcc626451c252d525b8a36cccf3b3348111317faebc2fa2667a935"),
+    "spf": ("spf/v1", "70d4343d066d542bad7ece1524aea4a1409ca4413856b7f7479c985e43e0cc0b"),
 }
 
 
@@ -147,3 +159,62 @@ def test_parse_prompt_refuses_foreign_chats():
     messages, _ = build_decision_prompt("go", _img("a"))
     tampered = [messages[0], ChatMessage("user", messages[1].content.replace("History point", "Hint"))]
     assert parse_prompt(tampered) is None
+
+
+# ---------------------------------------------------------------------------------------------
+# baseline prompts
+
+
+def test_typefly_prompt_round_trip_objects_and_history():
+    objs = [SceneObject("red van", "van", 0.4234, 0.5, 0.1, 0.2), SceneObject("office 103", "door", 0.0, 1.0, 1.0, 0.05)]
+    messages, images = build_typefly_prompt(" Fly to the\nred van. ", _img("t1", 320, 214), objs, ["find red van: found", "turn 45: done"])
+    assert images[0].frame_id == "t1" and count_placeholders(messages) == 1
+    user = messages[1].content
+    assert "red van [van] x=0.42 y=0.50 w=0.10 h=0.20; office 103 [door] x=0.00 y=1.00 w=1.00 h=0.05" in user
+    assert "Executed skills: find red van: found | turn 45: done" in user
+    assert "stop" in messages[0].content and "find <object>" in messages[0].content
+    parsed = parse_prompt(messages)
+    assert parsed == TypeflyPrompt(
+        "typefly/v1", "Fly to the red van.", (320, 214),
+        (SceneObject("red van", "van", 0.42, 0.5, 0.1, 0.2), SceneObject("office 103", "door", 0.0, 1.0, 1.0, 0.05)),
+        ("find red van: found", "turn 45: done"),
+    )  # fmt: skip
+    empty = parse_prompt(build_typefly_prompt("go", _img("t2"), [], [])[0])
+    assert empty.objects == () and empty.history == ()
+
+
+def test_typefly_prompt_errors():
+    with pytest.raises(PromptError, match="SceneObject.x must be a fraction"):
+        SceneObject("van", "van", 1.5, 0.0, 0.1, 0.1)
+    with pytest.raises(PromptError, match="SceneObject.name must be words"):
+        SceneObject("van; stop", "van", 0.5, 0.5, 0.1, 0.1)
+    with pytest.raises(PromptError, match="must not contain"):
+        build_typefly_prompt("go", _img("a"), [], ["a | b"])
+    with pytest.raises(PromptError, match="objects must be SceneObject"):
+        build_typefly_prompt("go", _img("a"), [("van", 0.5)], [])  # type: ignore[list-item]
+
+
+def test_pivot_prompt_lists_labels_and_endpoints():
+    messages, images = build_pivot_prompt("Fly to the tree.", _img("p1", 160, 107), [(1, 10.4, 20.6), (2, 159.2, 0.0)], 3)
+    user = messages[1].content
+    assert "2 numbered arrows, 160 x 107 pixels" in user
+    assert "Arrow endpoints (number: x, y in pixels): 1: (10, 21); 2: (159, 0)" in user
+    assert "Choose up to 3 arrows" in user and '{"stop": true}' in messages[0].content
+    assert parse_prompt(messages) == PivotPrompt("pivot/v1", "Fly to the tree.", (160, 107), ((1, 10, 21), (2, 159, 0)), 3)
+    with pytest.raises(PromptError, match="outside the 160x107 image"):
+        build_pivot_prompt("go", _img("p", 160, 107), [(1, 160.0, 3.0)], 1)
+    with pytest.raises(PromptError, match="distinct positive"):
+        build_pivot_prompt("go", _img("p", 160, 107), [(1, 3.0, 3.0), (1, 4.0, 4.0)], 1)
+    with pytest.raises(PromptError, match="at least one arrow"):
+        build_pivot_prompt("go", _img("p", 160, 107), [], 1)
+    with pytest.raises(PromptError, match="n_pick must be an int >= 1"):
+        build_pivot_prompt("go", _img("p", 160, 107), [(1, 3.0, 3.0)], 0)
+    assert set(pivot_schema()["properties"]) == {"arrows", "stop"}
+
+
+def test_spf_prompt_round_trip_and_schema():
+    messages, images = build_spf_prompt("Fly to the red van.", _img("s1", 320, 214))
+    assert parse_prompt(messages) == SpfPrompt("spf/v1", "Fly to the red van.", (320, 214))
+    assert "depth 0" in messages[0].content and "from 1 to 10" in messages[0].content
+    assert spf_schema()["properties"]["depth"] == {"type": "integer", "minimum": 0, "maximum": 10}
+    assert spf_schema()["required"] == ["point_2d", "depth"]

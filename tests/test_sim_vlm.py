@@ -467,3 +467,140 @@ def test_features_similar_within_objects_and_dissimilar_across_labels():
     assert np.array_equal(again.grid, f.grid)  # features depend on the seed and frame, not the preset
     assert not np.array_equal(SimulatedVlm("nominal", seed=2).features(img).grid, f.grid)
     assert sim.features(VlmImage(np.zeros((4, 4, 3), np.uint8), "raw")) is None
+
+
+# ---------------------------------------------------------------------------------------------
+# baseline prompts (typefly, pivot, spf): the same error model, memoryless leg rule
+
+
+def _spf(sim, instruction, img, **kw):
+    from vlm.prompts import build_spf_prompt
+
+    return json.loads(sim.complete(*build_spf_prompt(instruction, img), json_schema={}, **kw).text)
+
+
+def test_spf_points_at_the_target_with_its_depth_and_says_zero_when_close():
+    sim = SimulatedVlm("perfect", seed=0)
+    far = frame("s1", [VAN])  # median depth 6 m
+    ans = _spf(sim, "Fly to the red van.", far)
+    u, v = ans["point_2d"]
+    assert far.annotation.instance_ids[v, u] == VAN.iid and ans["depth"] == 6
+    near = frame("s2", [dataclasses.replace(VAN, depth_m=2.9)])
+    assert _spf(sim, "Fly to the red van.", near)["depth"] == 0
+    # nothing named is visible: the exploration point, travel = the depth there (no reading: 10)
+    empty = frame("s3", [TREE], open_cols=(0, 40))
+    ans = _spf(sim, "Fly to the red van.", empty)
+    assert tuple(ans["point_2d"]) == exploration_point(empty.annotation.depth_m) and ans["depth"] == 10
+
+
+def test_spf_zero_depth_follows_the_monitoring_stop_rule():
+    model = dataclasses.replace(PRESETS["weak"], malformed_prob=0.0, miss_prob_small=0.0, miss_prob_far=0.0)
+    sim = SimulatedVlm(model, seed=5)
+    d = 3.5
+    base = frame("z", [dataclasses.replace(VAN, depth_m=d)])
+    stops = sum(_spf(sim, "fly to the red van", renamed(base, f"z{k}"))["depth"] == 0 for k in range(N))
+    p = 0.5 * (1 + math.erf((model.stop_distance_m + model.stop_offset_m - d) / (model.stop_jitter_m * math.sqrt(2))))
+    assert binomial_ok(stops, N, p)
+
+
+def test_memoryless_leg_rule_moves_on_after_a_reached_leg():
+    sim = SimulatedVlm("perfect", seed=0)
+    instruction = "Fly to the oak tree, then stop at the red van."
+    # only the first leg's target, far: aim at it
+    t = frame("l1", [TREE])
+    assert sim.leg_target(instruction, t, 0.0).leg == 0 and not sim.leg_target(instruction, t, 0.0).reached
+    u, v = _spf(sim, instruction, t)["point_2d"]
+    assert t.annotation.instance_ids[v, u] == TREE.iid
+    # the first target is within the stop distance: explore for the second leg, never stop
+    close_tree = frame("l2", [dataclasses.replace(TREE, depth_m=2.0)], open_cols=(120, 160))
+    tgt = sim.leg_target(instruction, close_tree, 0.0)
+    assert (tgt.leg, tgt.perception, tgt.reached) == (1, None, False)
+    assert _spf(sim, instruction, close_tree)["depth"] > 0
+    # the final target visible wins over an earlier one; close -> reached
+    both = frame("l3", [TREE, dataclasses.replace(VAN, depth_m=2.5)])
+    tgt = sim.leg_target(instruction, both, 0.0)
+    assert tgt.final and tgt.reached and tgt.perception.named_id == VAN.iid
+    # "go to it" refers back to the previous leg's target
+    it = frame("l4", [VAN])
+    tgt = sim.leg_target("There is a red van down the road. Go to it.", it, 0.0)
+    assert tgt.final and tgt.perception.named_id == VAN.iid
+
+
+def _pivot(sim, instruction, img, arrows, n_pick=3, **kw):
+    from vlm.prompts import build_pivot_prompt
+
+    return sim.complete(*build_pivot_prompt(instruction, img, arrows, n_pick), **kw)
+
+
+def test_pivot_picks_the_arrows_nearest_to_its_target_and_stops_when_close():
+    sim = SimulatedVlm("perfect", seed=0)
+    img = frame("v1", [VAN])  # van anchor near (120, 70)
+    arrows = [(1, 20.0, 60.0), (2, 118.0, 72.0), (3, 100.0, 50.0), (4, 150.0, 100.0), (5, 60.0, 60.0)]
+    ua, va = 119, 69  # anchor of the VAN rectangle (nearest pixel to the centroid)
+    order = sorted(arrows, key=lambda a: math.hypot(a[1] - ua, a[2] - va))
+    ans = json.loads(_pivot(sim, "Fly to the red van.", img, arrows).text)
+    assert ans == {"arrows": [a[0] for a in order[:3]]}
+    near = frame("v2", [dataclasses.replace(VAN, depth_m=2.0)])
+    assert json.loads(_pivot(sim, "Fly to the red van.", near, arrows).text) == {"stop": True}
+
+
+def test_pivot_belief_is_one_per_frame_whatever_arrows_are_drawn():
+    sim = SimulatedVlm(dataclasses.replace(PRESETS["noisy"], malformed_prob=0.0, format_variety_prob=0.0), seed=2)
+    img = frame("b1", [VAN])
+    grid = [(u, v) for u in range(5, W, 10) for v in range(5, H, 10)]
+    a = [(k + 1, float(u), float(v)) for k, (u, v) in enumerate(grid)]
+    b = [(len(grid) - k, float(u), float(v)) for k, (u, v) in enumerate(grid)]  # same endpoints, other numbers
+    pick_a = json.loads(_pivot(sim, "fly to the red van", img, a, 1).text)["arrows"][0]
+    pick_b = json.loads(_pivot(sim, "fly to the red van", img, b, 1).text)["arrows"][0]
+    assert a[pick_a - 1][1:] == b[len(grid) - pick_b][1:]
+
+
+def test_pivot_malformed_rate_matches_preset():
+    model = PRESETS["noisy"]
+    sim = SimulatedVlm(model, seed=4)
+    base = frame("m", [VAN])
+    arrows = [(1, 20.0, 60.0), (2, 118.0, 72.0)]
+    from onfly.baselines.pivot import parse_pivot_answer  # the PIVOT baseline's own reader
+
+    bad = sum(
+        not parse_pivot_answer(_pivot(sim, "fly to the red van", renamed(base, f"m{k}"), arrows).text, (1, 2)).ok
+        for k in range(N)
+    )
+    assert binomial_ok(bad, N, model.malformed_prob)
+
+
+def _typefly(sim, instruction, img, objects, history=()):
+    from vlm.prompts import build_typefly_prompt
+
+    return sim.complete(*build_typefly_prompt(instruction, img, objects, list(history))).text
+
+
+def test_typefly_programs_follow_the_scene_description():
+    from vlm.prompts import SceneObject
+
+    sim = SimulatedVlm("perfect", seed=0)
+    van = SceneObject("red van", "van", 0.75, 0.58, 0.25, 0.33)
+    img = frame("y1", [VAN])
+    assert _typefly(sim, "Fly to the red delivery van.", img, [van]) == "approach red van"
+    # the detector missed it: search, then move on after a failed search
+    assert _typefly(sim, "Fly to the red van.", img, []) == "find Fly to the red van"
+    assert _typefly(sim, "Fly to the red van.", img, [], ["find Fly to the red van: not found"]) == "move_forward 3; find Fly to the red van"
+    # reached is judged on the frame, with or without a detection
+    near = frame("y2", [dataclasses.replace(VAN, depth_m=2.0)])
+    assert _typefly(sim, "Fly to the red van.", near, [van]) == "stop"
+    assert _typefly(sim, "Fly to the red van.", near, []) == "stop"
+    # a detection the frame does not show (a false box) is approached all the same
+    assert _typefly(sim, "Fly to the red van.", frame("y3", [TREE]), [van]) == "approach red van"
+
+
+def test_baseline_prompts_cost_the_decision_latency():
+    from vlm.prompts import build_spf_prompt
+
+    sim = SimulatedVlm("nominal", seed=0, latency=LatencyModel(decision_s=0.5))
+    img = frame("lat", [VAN])
+    assert sim.complete(*build_spf_prompt("go to the van", img)).latency_s == 0.5
+    assert _pivot(sim, "go to the van", img, [(1, 3.0, 3.0)]).latency_s == 0.5
+    from vlm.prompts import build_typefly_prompt
+
+    r = sim.complete(*build_typefly_prompt("go to the van", img, [], []))
+    assert r.latency_s == 0.5 and r.status is CallStatus.OK
