@@ -231,7 +231,8 @@ class OnboardFlight:
         self.config = config
         self.clock = clock if clock is not None else MonotonicClock()
         self.ground_truth = ground_truth
-        self.autopilot = "px4" if isinstance(session, Px4Offboard) else "ardupilot"
+        # PX4 climbs in offboard (phase 3); ArduPilot took off inside engage()
+        self.autopilot = "px4" if session.MODE_NAME == Px4Offboard.MODE_NAME else "ardupilot"
         self.events: list[dict] = []
         self.t_begin_s: float | None = None
         self.t_finished_s: float | None = None

@@ -26,6 +26,8 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
+
 from onfly.cli import CliError
 from onfly.mavlink.link import LinkError, MavlinkLink
 from onfly.mavlink.sim_vehicle import SimMavlinkVehicle, SimVehicleConfig
@@ -45,6 +47,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration-s", type=float, default=None, help="stop after this many seconds (default: until Ctrl-C)")
     parser.add_argument("--scene", help="fly in this embedded-world scene (name or file); see `onfly scenes`")
     parser.add_argument("--task", help="start below this benchmark task's start pose (implies its scene); see `onfly tasks list`")
+    parser.add_argument("--start", nargs=3, type=float, metavar=("X", "Y", "YAW_DEG"),
+                        help="start on the ground here instead of below the scene's / task's start pose (metres, degrees, ENU)")
     parser.add_argument("--camera", metavar="tcp://127.0.0.1:PORT", help="serve the world camera here (needs --scene or --task)")
     parser.add_argument("--camera-rate-hz", type=float, default=2.0, help="camera frames per second (default 2, as the benchmark)")
     parser.add_argument("--width", type=int, default=320, help="camera width in pixels, 90 x 60 deg FOV (default 320)")
@@ -80,11 +84,16 @@ def build_world_model(args: argparse.Namespace):
     if args.width <= 0 or args.height <= 0:
         raise CliError(f"--width and --height must be positive, got {args.width} x {args.height}")
     camera = PinholeCamera.from_fov(args.width, args.height, 90.0, 60.0)
+    scene = task.scene if task is not None else args.scene
+    position = yaw = None
+    if task is not None:
+        position, yaw = task.start.position_m, task.start.yaw_rad
+    if getattr(args, "start", None) is not None:
+        x, y, yaw_deg = args.start
+        height = 1.5 if position is None else float(position[2])  # the ray cast for the ground starts here
+        position, yaw = [x, y, height], float(np.deg2rad(yaw_deg))
     try:
-        if task is not None:
-            model = WorldVehicleModel.from_scene(task.scene, position_m=task.start.position_m, yaw_rad=task.start.yaw_rad, camera=camera)
-        else:
-            model = WorldVehicleModel.from_scene(args.scene, camera=camera)
+        model = WorldVehicleModel.from_scene(scene, position_m=position, yaw_rad=yaw, camera=camera)
     except (SceneFormatError, FileNotFoundError, KeyError, ValueError) as exc:
         raise CliError(f"cannot build the world of {args.task or args.scene!r}: {exc}") from exc
     return model, task
