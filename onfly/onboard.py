@@ -48,6 +48,7 @@ VLM timeout / garbage / raising   reported to the bridge (keep the last verified
                                   pilot drops a goal not refreshed for ``goal_timeout_s`` and
                                   holds; the bridge holds after ``vlm_hold_after_s`` of silence
 planner failure (braking plan)    reported: the bridge brakes until a plan succeeds
+pilot tick raising (a bug)        treated as a planner failure: brake, log, keep ticking
 pilot takeover (mode change)      the session releases the bridge: no motion command, ever;
                                   the pilot keeps running (logging) for
                                   ``observe_after_takeover_s``
@@ -372,7 +373,13 @@ class OnboardFlight:
             return False
         obs, self._pending_obs = self._pending_obs, None
         w0 = time.perf_counter()
-        tick = self.pilot.tick(t, state, obs)
+        try:
+            tick = self.pilot.tick(t, state, obs)
+        except Exception as exc:  # a pilot bug must not leave the vehicle flying the last plan
+            log.exception("pilot tick failed; braking")
+            self._event("pilot_error", {"error": repr(exc)}, t)
+            self.bridge.failsafe.report_planner(t, ok=False, detail=f"pilot tick raised {exc!r}")
+            return False
         self._tick_ms.append((time.perf_counter() - w0) * 1e3)
         self._ticks += 1
         if not commanding:

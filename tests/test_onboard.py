@@ -455,3 +455,19 @@ def test_vlm_dies_mid_flight_the_flight_holds_then_a_takeover_stops_the_companio
     assert not [s for s in bridge.sent if s.t_s > f.t_takeover_s]
     assert summary.pilot["ticks_after_takeover"] >= 8
     assert fs["pilot_takeover"] is not None and not fs["pilot_takeover"]["after_handover"]
+
+
+def test_a_pilot_tick_that_raises_brakes_and_the_loop_goes_on():
+    class Buggy(FakePilot):
+        def tick(self, t, state, obs):
+            if len(self.ticks) == 3 and not getattr(self, "raised", False):
+                self.raised = True
+                raise ZeroDivisionError("bug")
+            return super().tick(t, state, obs)
+
+    f, bridge, pilot, clock = flight(pilot=Buggy(finish_after_s=0.8))
+    summary = f.run()
+    ev = [(e.cause, e.cleared) for e in bridge.failsafe.events]
+    assert ev == [(FailsafeCause.PLANNER_FAILED, False), (FailsafeCause.PLANNER_FAILED, True)]  # braked one tick
+    assert [e["data"]["error"] for e in summary.events if e["kind"] == "pilot_error"] == ["ZeroDivisionError('bug')"]
+    assert summary.end_reason == "finished"

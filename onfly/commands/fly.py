@@ -25,6 +25,7 @@ clock (--modelled-latency auto), as the benchmark charges it on its virtual cloc
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import sys
@@ -147,7 +148,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         out = {"connect": args.connect, "vlm": args.vlm, "seed": args.seed, "camera": args.camera, "honour_modelled_latency": honour,
-               "onboard_config": config.__dict__, **summary.to_dict()}
+               "onboard_config": dataclasses.asdict(config), **summary.to_dict()}
         args.json.write_text(json.dumps(out, indent=1, default=str))
     return 0 if summary.end_reason in ("finished", "time_limit") else 1
 
