@@ -125,8 +125,8 @@ def test_bad_configs_name_the_field(tmp_path):
         BenchConfig.from_dict({"episode": {"limit_s": 3}})
     with pytest.raises(BenchConfigError, match=r"\[world\]: unknown field\(s\) \['fov'\]"):
         BenchConfig.from_dict({"world": {"fov": 3}})
-    with pytest.raises(BenchConfigError, match=r"unknown method\(s\) \['typefly'\]; registered methods: .*oracle"):
-        run_bench(_config(bench={"methods": ["typefly"], "tasks": {"ids": TASKS}}), tmp_path)
+    with pytest.raises(BenchConfigError, match=r"unknown method\(s\) \['no_such_method'\]; registered methods: .*oracle"):
+        run_bench(_config(bench={"methods": ["no_such_method"], "tasks": {"ids": TASKS}}), tmp_path)
     with pytest.raises(ValueError, match=r"unknown task id\(s\) \['nope'\]"):
         run_bench(_config(bench={"methods": ["oracle"], "tasks": {"ids": ["nope"]}}), tmp_path)
     bad = tmp_path / "bad.toml"
