@@ -248,6 +248,9 @@ def run(args) -> dict:
             counts[f"note:{rec.refinement_note.value}"] += 1
             if not res.accepted:
                 counts[f"rejected:{rec.rejection.value}"] += 1
+                if rec.rejection.value == "no_feasible_pixel" and counts["ref_rejections"] < args.reference_samples:
+                    counts["ref_rejections"] += 1
+                    counts["ref_rejections_exact_found"] += reference_refine(cand, config)[0] is not None
                 continue
             counts["accepted"] += 1
             X = transform_points(T_cam_world, res.goal_world)
@@ -291,6 +294,7 @@ def run(args) -> dict:
             "noise_px_median": statistics.median(sigmas),
             "config": {k: getattr(config, k) for k in config.__dataclass_fields__},
             "loadavg_1min": os.getloadavg()[0],
+            "calibration_sqrt_1e6_us": calibration_us(),
             "cpu_count": os.cpu_count(),
         },
         "verify_us_median": statistics.median(times_us),
@@ -322,9 +326,22 @@ def run(args) -> dict:
             "extra_shift_px_median": float(np.median(finite[:, 2] - finite[:, 3])) if len(finite) else math.nan,
             "extra_shift_px_p90": float(np.percentile(finite[:, 2] - finite[:, 3], 90)) if len(finite) else math.nan,
             "fast_never_closer_than_exact": bool(np.all(finite[:, 2] >= finite[:, 3] - 1e-9)) if len(finite) else True,
+            "no_feasible_rejections_checked": counts["ref_rejections"],
+            "no_feasible_but_exact_pixel_exists": counts["ref_rejections_exact_found"],
         },
     }
     return out
+
+
+def calibration_us(reps: int = 20) -> float:
+    """Median time of a fixed numpy workload (sqrt of 10^6 floats), to compare machines/loads."""
+    x = np.arange(1_000_000, dtype=np.float64)
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        np.sqrt(x)
+        times.append((time.perf_counter() - t0) * 1e6)
+    return statistics.median(times)
 
 
 def print_table(out: dict) -> None:
@@ -351,13 +368,19 @@ def print_table(out: dict) -> None:
         ("  exhaustive exact us (median)", f"{ref['exhaustive_us_median']:.0f}", ""),
         ("  speed-up (median)", f"{ref['speedup_median']:.1f}x", ""),
         ("  extra shift vs exact px (median / p90)", f"{ref['extra_shift_px_median']:.1f} / {ref['extra_shift_px_p90']:.1f}", ">= 0"),
+        (
+            "  no_feasible rejections with an exact pixel",
+            f"{ref['no_feasible_but_exact_pixel_exists']} / {ref['no_feasible_rejections_checked']}",
+            "conservative map",
+        ),
     ]
     width = max(len(r[0]) for r in rows)
     s = out["setup"]
     print(
         f"verifier bench: {s['candidates']} candidates in {s['scenes']} scenes, {s['image'][0]}x{s['image'][1]}, "
         f"{s['feature_grid'][1]}x{s['feature_grid'][0]} patches, pointing {s['pointing']}, noise {s['noise']} "
-        f"(median {s['noise_px_median']:.1f} px), load {s['loadavg_1min']:.1f} "
+        f"(median {s['noise_px_median']:.1f} px), load {s['loadavg_1min']:.1f}, "
+        f"sqrt(1e6 floats) {s['calibration_sqrt_1e6_us']:.0f} us "
         f"on {s['cpu_count']} cpus"
     )
     for name, value, target in rows:

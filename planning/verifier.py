@@ -77,12 +77,14 @@ logger = logging.getLogger(__name__)
 
 _TINY_DEPTH = float(np.finfo(np.float32).tiny)
 _MAX_DEPTH = float(np.finfo(np.float32).max)
-#: A pixel is feasible when its clearance slack exceeds this, pixels (absorbs float32 rounding).
+#: A map pixel is feasible when its clearance slack exceeds this, pixels (float32 rounding).
 _SLACK_EPS_PX = 1e-3
+#: A ray is clear when it passes farther than r + this from every obstacle point, metres.
+_CLEARANCE_EPS_M = 1e-9
 #: Exact re-checks of refined candidates before giving up (a failure would be a bug; logged).
 _MAX_EXACT_RECHECKS = 8
 #: Ratio between the depth edges of the bands in which exact obstacles are collected.
-_BAND_RATIO = 1.2
+_BAND_RATIO = 1.5
 
 
 class VerifierInputError(ValueError):
@@ -223,9 +225,10 @@ class VerificationRecord:
     obstacle_threshold_m : float
         Depth below which valid readings counted as obstacles (see
         :meth:`VerifierConfig.obstacle_threshold_m`); NaN when not reached.
-    clearance_slack_px : float
-        At p': pixel distance beyond the nearest obstacle disc (> 0 when clear, inf when no
-        obstacle is near); NaN when not computed.
+    ray_clearance_m : float
+        Distance from the nearest obstacle point to the viewing ray of p' (of p for a rejection
+        after its check), metres: > r when accepted, inf when no obstacle comes near; NaN when
+        not computed.
     refined_depth_m : float
         ``d' = min(depth(p'), D_max)`` (D_max when refinement was skipped); NaN when rejected.
     bearing_rad : float
@@ -247,7 +250,7 @@ class VerificationRecord:
     component_size_px: int
     target_depth_m: float
     obstacle_threshold_m: float
-    clearance_slack_px: float
+    ray_clearance_m: float
     refined_depth_m: float
     bearing_rad: float
     gating_factor: float
@@ -334,29 +337,33 @@ def _rho_from_squares(tan2, range2, clearance_m: float):
 
 @dataclass(frozen=True)
 class _Obstacles:
-    """Obstacle pixels whose clearance region can reach a pixel box.
+    """Obstacle pixels whose clearance disc can reach a pixel box, with their 3D points.
 
-    Distances are measured in *column pixels*: ``fx`` times the distance on the normalized
-    image plane, i.e. ``hypot(du, dv * fx / fy)``. A ray through ``q`` clears obstacle ``j`` by
-    ``r`` when ``dist(q, j) > fx * rho_j``.
+    A ray through pixel ``q`` clears obstacle ``j`` by r when the angle between the rays exceeds
+    ``beta_j``; the disc of normalized radius ``rho_j`` (``fx * rho_j`` column pixels,
+    ``fy * rho_j`` rows) around ``j`` holds every ray that does not.
     """
 
     rows: np.ndarray  # (n,) int, image rows
     cols: np.ndarray  # (n,) int, image columns
     rho: np.ndarray  # (n,) float, normalized cone radius, may hold inf
-    fx: float
-    fy: float
+    points: np.ndarray  # (n, 3) float, metres, camera optical frame
 
     @property
     def empty(self) -> bool:
         return self.rows.size == 0
 
-    def slack_at(self, u: float, v: float) -> float:
-        """``min_j (dist((u, v), j) - fx * rho_j)`` in column pixels; inf with no obstacle."""
+    def ray_clearance_m(self, camera: PinholeCamera, u: float, v: float) -> float:
+        """Smallest distance from these points to the half-line from the camera centre through
+        pixel (u, v), metres; inf without points. Exact (no pixel-space approximation)."""
         if self.empty:
             return math.inf
-        d = np.hypot(self.cols - u, (self.rows - v) * (self.fx / self.fy))
-        return float(np.min(d - self.fx * self.rho))
+        d = np.array([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, 1.0])
+        d /= math.sqrt(float(d @ d))
+        P = self.points
+        along = np.maximum(P @ d, 0.0)
+        dist2 = np.einsum("ij,ij->i", P, P) - along * along
+        return math.sqrt(max(float(dist2.min()), 0.0))
 
 
 def _tan2_max(camera: PinholeCamera, r0: int, r1: int, c0: int, c1: int) -> float:
@@ -445,7 +452,7 @@ def _gather_obstacles(
     """Every obstacle pixel (valid depth < ``threshold_m``) whose clearance region reaches
     ``box``, with its exact cone radius (see :func:`_depth_bands` for the search windows)."""
     fx, fy = camera.fx, camera.fy
-    rows_all, cols_all, rho_all = [], [], []
+    rows_all, cols_all, rho_all, pts_all = [], [], [], []
     r0, r1, c0, c1 = box
     for lo, hi, (wr0, wr1, wc0, wc1), _ in _depth_bands(depth, camera, box, threshold_m, z_min, clearance_m, _BAND_RATIO):
         idx = np.flatnonzero(cv2.inRange(depth[wr0:wr1, wc0:wc1], lo, hi) != 0)
@@ -466,9 +473,13 @@ def _gather_obstacles(
         rows_all.append(rows[keep])
         cols_all.append(cols[keep])
         rho_all.append(rho[keep])
+        zk = z[keep]
+        pts_all.append(np.stack([xn[keep] * zk, yn[keep] * zk, zk], axis=1))
     if not rows_all:
-        return _Obstacles(np.zeros(0, np.intp), np.zeros(0, np.intp), np.zeros(0), fx, fy)
-    return _Obstacles(np.concatenate(rows_all), np.concatenate(cols_all), np.concatenate(rho_all), fx, fy)
+        return _Obstacles(np.zeros(0, np.intp), np.zeros(0, np.intp), np.zeros(0), np.zeros((0, 3)))
+    return _Obstacles(
+        np.concatenate(rows_all), np.concatenate(cols_all), np.concatenate(rho_all), np.concatenate(pts_all)
+    )
 
 
 _CROSS_3 = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
@@ -579,26 +590,29 @@ def _segment_box(u: float, v: float, col: int, row: int) -> tuple[int, int, int,
 
 def _pull_toward_target(
     obstacles: _Obstacles,
+    camera: PinholeCamera,
+    clearance_m: float,
     allowed: np.ndarray,
     box: tuple[int, int, int, int],
     uv: tuple[float, float],
     found: tuple[int, int],
-    found_slack: float,
+    found_clearance_m: float,
 ) -> tuple[int, int, float]:
     """Move a feasible pixel back toward the target along the line joining them.
 
-    The slack map is conservative (radius groups, coarse cells), so the nearest pixel it accepts
-    can lie a few pixels beyond the exact clearance boundary. The pixels of the line from the
-    target ``uv`` to ``found`` that are ``allowed`` (in the component, with a reading) are
-    bisected with the exact per-obstacle test; only a pixel passing that test is returned.
+    The feasibility map is conservative (discs around the cone images, radius classes, coarse
+    cells), so the nearest pixel it accepts can lie a few pixels beyond the exact clearance
+    boundary. The pixels of the line from the target ``uv`` to ``found`` that are ``allowed``
+    (in the component, with a reading, not an obstacle) are bisected with the exact ray
+    clearance; only a pixel whose ray clears every obstacle by ``clearance_m`` is returned.
 
-    Returns ``(row, col, slack)`` of the chosen pixel (``found`` itself when nothing closer passes).
+    Returns ``(row, col, clearance_m)`` of the chosen pixel (``found`` when nothing closer passes).
     """
     r0, _, c0, _ = box
     fr, fc = found
     n = int(math.ceil(math.hypot(fc - uv[0], fr - uv[1])))
     if n < 2:
-        return fr, fc, found_slack
+        return fr, fc, found_clearance_m
     t = np.linspace(0.0, 1.0, n + 1)
     rows = np.floor(uv[1] + t * (fr - uv[1]) + 0.5).astype(np.intp)
     cols = np.floor(uv[0] + t * (fc - uv[0]) + 0.5).astype(np.intp)
@@ -607,12 +621,12 @@ def _pull_toward_target(
     line = line[order]
     line = line[allowed[line[:, 0] - r0, line[:, 1] - c0]]
     # line[-1] is `found` (feasible); look for the first feasible pixel assuming one crossing.
-    lo, hi, best = -1, len(line) - 1, (fr, fc, found_slack)
+    lo, hi, best = -1, len(line) - 1, (fr, fc, found_clearance_m)
     while hi - lo > 1:
         mid = (lo + hi) // 2
-        slack = obstacles.slack_at(float(line[mid, 1]), float(line[mid, 0]))
-        if slack > _SLACK_EPS_PX:
-            hi, best = mid, (int(line[mid, 0]), int(line[mid, 1]), slack)
+        clearance = obstacles.ray_clearance_m(camera, float(line[mid, 1]), float(line[mid, 0]))
+        if clearance > clearance_m + _CLEARANCE_EPS_M:
+            hi, best = mid, (int(line[mid, 0]), int(line[mid, 1]), clearance)
         else:
             lo = mid
     return best
@@ -681,25 +695,27 @@ class Verifier:
         target_depth = d if has_reading else _NAN
 
         if note is not None:  # refinement skipped: p' = p, but its ray must still be clear
-            slack = _gather_obstacles(depth, cam, _pixel_box(u, v), threshold, z_min, r_m).slack_at(u, v)
-            if not slack > _SLACK_EPS_PX:
+            clearance = _gather_obstacles(depth, cam, _pixel_box(u, v), threshold, z_min, r_m).ray_clearance_m(cam, u, v)
+            if not clearance > r_m + _CLEARANCE_EPS_M:
                 return self._reject(
                     candidate,
                     RejectionReason.UNREFINED_TARGET_UNSAFE,
                     note=note,
                     target_depth_m=target_depth,
                     threshold_m=threshold,
-                    slack_px=slack,
+                    clearance_m=clearance,
                 )
-            return self._accept(candidate, (u, v), cfg.d_max_m, note, False, 0, target_depth, threshold, slack)
+            return self._accept(candidate, (u, v), cfg.d_max_m, note, False, 0, target_depth, threshold, clearance)
 
         # -- step 1: semantic-guided refinement ------------------------------------------------
         comp, note = self._component(candidate, roi, row, col)
         component_size = int(np.count_nonzero(comp))
         geometric_only = note is not RefinementNote.SEMANTIC
-        slack_p = _gather_obstacles(depth, cam, _pixel_box(u, v), threshold, z_min, r_m).slack_at(u, v)
-        if slack_p > _SLACK_EPS_PX:  # already feasible: stays put
-            return self._accept(candidate, (u, v), min(d, cfg.d_max_m), note, geometric_only, component_size, d, threshold, slack_p)
+        clearance_p = _gather_obstacles(depth, cam, _pixel_box(u, v), threshold, z_min, r_m).ray_clearance_m(cam, u, v)
+        if clearance_p > r_m + _CLEARANCE_EPS_M:  # already feasible: stays put
+            return self._accept(
+                candidate, (u, v), min(d, cfg.d_max_m), note, geometric_only, component_size, d, threshold, clearance_p
+            )
 
         r0, r1, c0, c1 = roi
         slack_map = _slack_map(depth, cam, roi, threshold, z_min, r_m, cfg.radius_class_ratio)
@@ -714,12 +730,14 @@ class Verifier:
             for k in order:
                 qr, qc = int(rr[k] + r0), int(cc[k] + c0)
                 near_line = _gather_obstacles(depth, cam, _segment_box(u, v, qc, qr), threshold, z_min, r_m)
-                slack_q = near_line.slack_at(float(qc), float(qr))
-                if slack_q > _SLACK_EPS_PX:
-                    qr, qc, slack_q = _pull_toward_target(near_line, allowed, roi, (u, v), (qr, qc), slack_q)
+                clearance_q = near_line.ray_clearance_m(cam, float(qc), float(qr))
+                if clearance_q > r_m + _CLEARANCE_EPS_M:
+                    qr, qc, clearance_q = _pull_toward_target(
+                        near_line, cam, r_m, allowed, roi, (u, v), (qr, qc), clearance_q
+                    )
                     dq = min(float(depth[qr, qc]), cfg.d_max_m)
                     return self._accept(
-                        candidate, (float(qc), float(qr)), dq, note, geometric_only, component_size, d, threshold, slack_q
+                        candidate, (float(qc), float(qr)), dq, note, geometric_only, component_size, d, threshold, clearance_q
                     )
                 logger.error("verifier: slack map accepted pixel (%d, %d) that fails the exact check", qc, qr)
         return self._reject(
@@ -731,7 +749,7 @@ class Verifier:
             component_size=component_size,
             target_depth_m=d,
             threshold_m=threshold,
-            slack_px=slack_p,
+            clearance_m=clearance_p,
         )
 
     # -- helpers ---------------------------------------------------------------------------------
@@ -771,7 +789,7 @@ class Verifier:
         component_size: int,
         target_depth_m: float,
         threshold_m: float,
-        slack_px: float,
+        clearance_m: float,
     ) -> VerifiedGoal:
         cfg = self.config
         cam = candidate.camera
@@ -793,7 +811,7 @@ class Verifier:
             component_size_px=component_size,
             target_depth_m=float(target_depth_m),
             obstacle_threshold_m=float(threshold_m),
-            clearance_slack_px=float(slack_px),
+            ray_clearance_m=float(clearance_m),
             refined_depth_m=float(d_prime),
             bearing_rad=float(theta),
             gating_factor=float(gate),
@@ -813,7 +831,7 @@ class Verifier:
         component_size: int = 0,
         target_depth_m: float = _NAN,
         threshold_m: float = _NAN,
-        slack_px: float = _NAN,
+        clearance_m: float = _NAN,
     ) -> VerifiedGoal:
         u, v = candidate.pixel_uv
         logger.debug("verifier: rejected pixel (%.1f, %.1f): %s", u, v, reason.value)
@@ -827,7 +845,7 @@ class Verifier:
             component_size_px=component_size,
             target_depth_m=float(target_depth_m),
             obstacle_threshold_m=float(threshold_m),
-            clearance_slack_px=float(slack_px),
+            ray_clearance_m=float(clearance_m),
             refined_depth_m=_NAN,
             bearing_rad=_NAN,
             gating_factor=_NAN,

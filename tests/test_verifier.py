@@ -136,12 +136,12 @@ def edge_scene(target_depth: float, obstacle_depth: float, edge_col: int = 336):
 
 def exact_nearest_feasible(cam, depth, labels, uv, label, roi, threshold_m) -> float:
     """Brute force: distance from uv to the nearest pixel of ``label`` inside ``roi`` whose ray
-    clears every obstacle point by r, searched on the rows of uv +- 3 (the obstacle in the
+    clears every obstacle point by r, searched on the rows of uv +- 2 (the obstacle in the
     callers is a vertical edge to the right, so on each row clearance grows leftward)."""
     P = obstacle_points(cam, depth, threshold_m)
     r0, r1, c0, c1 = roi
     best = math.inf
-    for row in range(max(r0, int(uv[1]) - 3), min(r1, int(uv[1]) + 4)):
+    for row in range(max(r0, int(uv[1]) - 2), min(r1, int(uv[1]) + 3)):
         for col in range(c1 - 1, c0 - 1, -1):
             if labels[row, col] == label and ray_clearance(P, cam, (col, row)) >= R_M:
                 best = min(best, math.hypot(col - uv[0], row - uv[1]))
@@ -358,7 +358,7 @@ def test_beyond_d_max_next_to_a_foreground_obstacle_is_rejected_not_moved():
     res = Verifier().verify(candidate((330.0, 240.0), depth, cam, onehot_features(labels, 16, 2)))
     assert not res.accepted and res.goal_world is None
     assert res.record.rejection is RejectionReason.UNREFINED_TARGET_UNSAFE
-    assert res.record.refinement_note is RefinementNote.BEYOND_D_MAX and res.record.clearance_slack_px < 0
+    assert res.record.refinement_note is RefinementNote.BEYOND_D_MAX and res.record.ray_clearance_m < R_M
 
 
 # -- step 2: gating and the world transform -------------------------------------------------------
