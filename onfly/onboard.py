@@ -262,8 +262,9 @@ class OnboardFlight:
         self.bridge.wait_for_state(cfg.connect_timeout_s)
         self.bridge.request_message_intervals()
         self._event("engage", {"autopilot": self.autopilot})
-        self.session.engage()
-        self._event("engaged", {"position_m": self.bridge.state().p.tolist()})
+        t_engage = self.clock.now_s()
+        self.session.engage()  # ArduPilot: includes its NAV_TAKEOFF
+        self._event("engaged", {"position_m": self.bridge.state().p.tolist(), "duration_s": self.clock.now_s() - t_engage})
         end = "finished"
         try:
             if self.autopilot == "px4" and cfg.takeoff_alt_m > 0:

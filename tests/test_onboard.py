@@ -15,7 +15,6 @@ from onfly.mavlink.failsafe import FailsafeCause, FailsafeConfig, FailsafeMonito
 from onfly.mavlink.link import mavlink2
 from onfly.onboard import FlightSummary, OnboardConfig, OnboardConfigError, OnboardFlight, pose_source
 from onfly.pilot import PilotConfig, PilotEvent, PilotMode, PilotTick
-from planning.frames import T_BODY_CAM
 from planning.planner import Fallback
 from planning.planner_config import PlannerConfig
 from planning.trajectory import Trajectory, VehicleState
