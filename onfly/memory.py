@@ -31,7 +31,7 @@ in time between ``o_1`` and ``o_t``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np

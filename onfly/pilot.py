@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import logging
 import tomllib
-from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
+from dataclasses import asdict, dataclass, field
 from enum import Enum
 from pathlib import Path
 from typing import Any
@@ -35,6 +35,7 @@ from onfly.agents import DecisionAgent, DecisionOutcome, MonitoringAgent, Monito
 from onfly.memory import MemoryConfig, make_memory
 from onfly.observation import Observation
 from onfly.runtime import AgentRuntime, Landed
+from onfly.serialize import config_from_tables, to_jsonable
 from onfly.task_manager import Status, TaskEvent, TaskManager
 from planning.esdf import EsdfMap
 from planning.esdf_config import EsdfConfig
@@ -119,21 +120,8 @@ class PilotConfig:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "PilotConfig":
         """Build from a plain dict (e.g. a TOML table); nested tables fill nested configs."""
-        known = {f.name: f for f in fields(cls)}
         nested = {"planner": PlannerConfig, "verifier": VerifierConfig, "esdf": EsdfConfig, "memory": MemoryConfig}
-        kwargs: dict[str, Any] = {}
-        for key, value in data.items():
-            if key not in known:
-                raise PilotConfigError(f"unknown pilot option {key!r}; valid: {sorted(known)}")
-            if key in nested:
-                sub = nested[key]
-                valid = {f.name for f in fields(sub)}
-                bad = sorted(set(value) - valid)
-                if bad:
-                    raise PilotConfigError(f"unknown {key} option(s) {bad}; valid: {sorted(valid)}")
-                value = sub(**{k: tuple(v) if isinstance(v, list) else v for k, v in value.items()})
-            kwargs[key] = value
-        return cls(**kwargs)
+        return config_from_tables(cls, data, nested, PilotConfigError, "pilot")
 
     @classmethod
     def from_toml(cls, path: str | Path, table: str = "pilot") -> "PilotConfig":
@@ -170,20 +158,6 @@ class PilotTick:
     plan: PlanResult | None
 
 
-def _jsonable(x):
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, (np.floating, np.integer)):
-        return x.item()
-    if isinstance(x, Enum):
-        return x.value
-    if is_dataclass(x):
-        return {k: _jsonable(v) for k, v in asdict(x).items()}
-    if isinstance(x, dict):
-        return {k: _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    return x
 
 
 class OnFlyPilot:
@@ -252,7 +226,7 @@ class OnFlyPilot:
         return self.mode is PilotMode.FINISHED
 
     def _event(self, t_s: float, kind: str, data: dict) -> None:
-        self.events.append(PilotEvent(float(t_s), kind, _jsonable(data)))
+        self.events.append(PilotEvent(float(t_s), kind, to_jsonable(data)))
 
     # -- the loop -------------------------------------------------------------------------------
     def tick(self, t_s: float, state: VehicleState, obs: Observation | None = None) -> PilotTick:

@@ -58,13 +58,13 @@ import math
 import tempfile
 import time
 from collections import Counter, deque
-from dataclasses import asdict, dataclass, field, fields, is_dataclass
-from enum import Enum
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Iterable, Iterator, Mapping
 
 import numpy as np
 
+from onfly.serialize import config_from_tables, to_jsonable
 from onfly.agents import DecisionAgent, DecisionOutcome, MonitoringAgent, MonitorOutcome
 from onfly.memory import MemoryConfig, make_memory
 from onfly.observation import Observation
@@ -203,29 +203,14 @@ class ReplayConfig:
             raise ReplayConfigError(f"ReplayConfig.vlm_deadline_s must be positive, got {self.vlm_deadline_s!r}")
 
     def to_dict(self) -> dict:
-        return _jsonable(asdict(self))
+        return to_jsonable(asdict(self))
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> "ReplayConfig":
         """Build from a plain dict (e.g. a TOML ``[replay]`` table); nested tables fill the
         nested configs. Unknown keys raise :class:`ReplayConfigError` listing the valid ones."""
-        known = {f.name for f in fields(cls)}
         nested = {"planner": PlannerConfig, "esdf": EsdfConfig, "verifier": VerifierConfig, "memory": MemoryConfig}
-        kwargs: dict[str, Any] = {}
-        for key, value in data.items():
-            if key not in known:
-                raise ReplayConfigError(f"unknown replay option {key!r}; valid: {sorted(known)}")
-            if key in nested:
-                sub = nested[key]
-                valid = {f.name for f in fields(sub)}
-                bad = sorted(set(value) - valid)
-                if bad:
-                    raise ReplayConfigError(f"unknown {key} option(s) {bad}; valid: {sorted(valid)}")
-                value = sub(**{k: tuple(v) if isinstance(v, list) else v for k, v in value.items()})
-            elif key == "goal_world" and value is not None:
-                value = tuple(value)
-            kwargs[key] = value
-        return cls(**kwargs)
+        return config_from_tables(cls, data, nested, ReplayConfigError, "replay", convert={"goal_world": tuple})
 
 
 # -- report values -------------------------------------------------------------------------------
@@ -405,27 +390,9 @@ class ReplayReport:
         if not per_frame:
             d.pop("per_frame")
             d.pop("decision_log")
-        return _jsonable(d)
+        return to_jsonable(d)
 
 
-def _jsonable(x: Any) -> Any:
-    if isinstance(x, Enum):
-        return _jsonable(x.value)
-    if is_dataclass(x) and not isinstance(x, type):
-        return {f.name: _jsonable(getattr(x, f.name)) for f in fields(x)}
-    if isinstance(x, Mapping):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, np.generic):
-        return _jsonable(x.item())
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    if isinstance(x, Path):
-        return str(x)
-    return x
 
 
 # -- backends -----------------------------------------------------------------------------------
