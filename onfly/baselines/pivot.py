@@ -50,7 +50,7 @@ from planning.frames import transform_points
 from planning.trajectory import VehicleState
 from vlm.factory import make_backend
 from vlm.prompts import build_pivot_prompt, pivot_schema
-from vlm.types import CallStatus
+from vlm.types import CallStatus, VlmBackend
 
 __all__ = ["PivotConfig", "PivotMethod", "Candidates", "sample_candidates", "directions_cam", "draw_arrows",
            "parse_pivot_answer", "PivotAnswer", "refit", "make_pivot"]  # fmt: skip
@@ -217,19 +217,26 @@ def refit(cand: Candidates, picks: tuple[int, ...], min_std: float) -> tuple[np.
 
 
 class PivotMethod:
-    """The PIVOT-style baseline (module docstring)."""
+    """The PIVOT-style baseline (module docstring).
+
+    Parameters
+    ----------
+    vlm_spec : backend spec; config : PivotConfig; limits : FlightLimits
+    backend : a VLM backend to use instead of building one from ``vlm_spec`` per episode
+    """
 
     name = "pivot"
     privileged = False
 
-    def __init__(self, vlm_spec: str, config: PivotConfig, limits: FlightLimits) -> None:
+    def __init__(self, vlm_spec: str, config: PivotConfig, limits: FlightLimits, backend: VlmBackend | None = None) -> None:
         self.vlm_spec = vlm_spec
+        self._backend = backend
         self.config = config
         self.limits = limits
 
     def reset(self, spec: EpisodeSpec) -> None:
         self.spec = spec
-        self.backend = make_backend(self.vlm_spec, seed=spec.seed)
+        self.backend = self._backend if self._backend is not None else make_backend(self.vlm_spec, seed=spec.seed)
         self.runtime = spec.runtime
         self.rng = np.random.default_rng([spec.seed, 0x9170])
         self.latest: Observation | None = None

@@ -49,7 +49,7 @@ from planning.trajectory import VehicleState
 from vlm.factory import make_backend
 from vlm.parsing import parse_point_depth
 from vlm.prompts import build_spf_prompt, spf_schema
-from vlm.types import CallStatus
+from vlm.types import CallStatus, VlmBackend
 
 __all__ = ["SpfConfig", "SpfMethod", "SpfAnswer", "parse_spf_answer", "make_spf", "make_spf_planner"]
 
@@ -107,6 +107,7 @@ class SpfMethod:
     config : SpfConfig
     limits : FlightLimits (straight-line motion)
     planner : None (no map at all) or a Planner, with ``esdf_config`` for its map
+    backend : a VLM backend to use instead of building one from ``vlm_spec`` per episode
     """
 
     privileged = False
@@ -118,8 +119,10 @@ class SpfMethod:
         limits: FlightLimits,
         planner: Planner | None = None,
         esdf_config: EsdfConfig | None = None,
+        backend: VlmBackend | None = None,
     ) -> None:
         self.vlm_spec = vlm_spec
+        self._backend = backend
         self.config = config
         self.limits = limits
         self.planner = planner
@@ -129,7 +132,7 @@ class SpfMethod:
 
     def reset(self, spec: EpisodeSpec) -> None:
         self.spec = spec
-        self.backend = make_backend(self.vlm_spec, seed=spec.seed)
+        self.backend = self._backend if self._backend is not None else make_backend(self.vlm_spec, seed=spec.seed)
         self.runtime = spec.runtime
         self.latest: Observation | None = None
         self._asked_frame: str | None = None

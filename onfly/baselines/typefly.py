@@ -50,7 +50,7 @@ from planning.frames import wrap_angle
 from planning.trajectory import VehicleState
 from vlm.factory import make_backend
 from vlm.prompts import SceneObject, build_typefly_prompt
-from vlm.types import CallStatus
+from vlm.types import CallStatus, VlmBackend
 
 __all__ = ["TypeflyConfig", "TypeflyMethod", "Skill", "ProgramError", "parse_program", "make_typefly", "MAX_SKILLS"]
 
@@ -191,13 +191,15 @@ class TypeflyMethod:
     vlm_spec : backend spec (``sim:nominal`` ...), the same VLM as every method
     config : TypeflyConfig
     limits : FlightLimits (the shared planner table's limits)
+    backend : a VLM backend to use instead of building one from ``vlm_spec`` per episode
     """
 
     name = "typefly"
     privileged = False
 
-    def __init__(self, vlm_spec: str, config: TypeflyConfig, limits: FlightLimits) -> None:
+    def __init__(self, vlm_spec: str, config: TypeflyConfig, limits: FlightLimits, backend: VlmBackend | None = None) -> None:
         self.vlm_spec = vlm_spec
+        self._backend = backend
         self.config = config
         self.limits = limits
         self._detector_config = config.detector_config()
@@ -205,7 +207,7 @@ class TypeflyMethod:
     # -- lifecycle --------------------------------------------------------------------------------
     def reset(self, spec: EpisodeSpec) -> None:
         self.spec = spec
-        self.backend = make_backend(self.vlm_spec, seed=spec.seed)
+        self.backend = self._backend if self._backend is not None else make_backend(self.vlm_spec, seed=spec.seed)
         self.runtime = spec.runtime
         self.detector = SimulatedDetector(self._detector_config, seed=spec.seed)
         self.latest: Observation | None = None
