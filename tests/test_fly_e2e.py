@@ -130,3 +130,24 @@ def test_two_processes_fly_a_benchmark_task_with_the_benchmark_success(tmp_path)
     assert truth["world"]["collision"] is None, truth["world"]
     assert goal_distance(truth["world"]["position_m"]) < 5.0
     assert "mode offboard" in vehicle_out
+
+
+def test_fly_and_sim_vehicle_refuse_bad_input_with_one_line_errors():
+    from onfly.cli import CliError
+
+    port = free_port()
+    base = ["--connect", f"udpout:127.0.0.1:{port}"]
+    with pytest.raises(CliError, match="give --instruction TEXT or --task ID"):
+        fly_cmd.run(parse(fly_cmd, base))
+    with pytest.raises(CliError, match="no task 'urban_block-x99'"):
+        fly_cmd.run(parse(fly_cmd, base + ["--task", "urban_block-x99"]))
+    with pytest.raises(CliError, match="unsupported camera URL 'udp://127.0.0.1:5'"):
+        fly_cmd.run(parse(fly_cmd, base + ["--instruction", "go", "--camera", "udp://127.0.0.1:5"]))
+    with pytest.raises(CliError, match="cannot open the autopilot link"):
+        fly_cmd.run(parse(fly_cmd, ["--connect", "bogus:1", "--instruction", "go"]))
+    with pytest.raises(ValueError, match="unknown simulated-VLM preset"):
+        fly_cmd.run(parse(fly_cmd, base + ["--instruction", "go", "--vlm", "sim:clairvoyant"]))
+    with pytest.raises(CliError, match="--camera needs --scene or --task"):
+        sim_vehicle_cmd.run(parse(sim_vehicle_cmd, ["--camera", "tcp://127.0.0.1:5600"]))
+    with pytest.raises(CliError, match="task urban_block-o01 is in scene 'urban_block', not 'villa'"):
+        sim_vehicle_cmd.run(parse(sim_vehicle_cmd, ["--task", TASK, "--scene", "villa"]))
