@@ -536,16 +536,16 @@ def _slack_map(
         zz = np.where(obst != 0, zw, np.float32(np.inf))  # non-obstacles: infinite range, rho 0
         den = np.sqrt(np.maximum(zz * zz * (1.0 + tan2) - r * r, 0.0)) - np.sqrt(tan2) * r
         rho = np.where(den > 0.0, r * (1.0 + tan2) / den, np.float32(np.inf)).astype(np.float32)
-    rho_hi = float(rho[obst != 0].max())
+    rho_hi = float(rho.max())
     if not math.isfinite(rho_hi):
         slack[:] = -np.inf
         return slack
-    # float32 rounding of rho: classes are widened by a relative 1e-5 (and never below 0).
+    # float32 rounding of rho: every radius is widened by a relative 1e-5 (0 stays 0).
     rho *= np.float32(1.0 + 1e-5)
-    rho_lo = float(rho[obst != 0].min())
+    rho_lo = float(cv2.minMaxLoc(rho, obst)[0])
     aspect = fx / fy
     edge_lo = rho_lo
-    while edge_lo <= rho_hi * (1.0 + 1e-5):
+    while edge_lo <= rho_hi * (1.0 + 2e-5):
         edge_hi = edge_lo * radius_ratio
         radius = fx * edge_hi
         pr, pc = int(math.ceil(fy * edge_hi)), int(math.ceil(fx * edge_hi))
