@@ -152,6 +152,7 @@ def exact_nearest_feasible(cam, depth, labels, uv, label, roi, threshold_m) -> f
 def assert_safe(result, cand: CandidateGoal, config: VerifierConfig) -> None:
     """The returned goal and the path to it clear every rule obstacle by r (brute force)."""
     assert result.accepted and result.goal_world is not None
+    assert result.record.ray_clearance_m > config.clearance_radius_m
     X_cam = transform_points(invert_transform(cand.T_world_cam), result.goal_world)
     P = obstacle_points(cand.camera, cand.depth_m, rule_threshold(config, cand.depth_m, cand.pixel_uv))
     assert point_clearance(P, X_cam) >= config.clearance_radius_m - 1e-9
