@@ -34,7 +34,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
-from typing import Iterable, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 import open3d as o3d
@@ -435,8 +435,10 @@ class TaskChecker:
         return GoalRegion((lo + hi) / 2, (hi - lo) / 2)
 
 
-def check_tasks(tasks: Sequence[Task], config: CheckerConfig | None = None, progress: Iterable | None = None) -> list[CheckResult]:
-    """Check tasks (grouped by scene, each scene's free space built once), in input order."""
+def check_tasks(tasks: Sequence[Task], config: CheckerConfig | None = None, progress: Any = None) -> list[CheckResult]:
+    """Check tasks (grouped by scene, each scene's free space built once), in input order.
+
+    ``progress`` (optional) is anything with ``update(n)``, e.g. a tqdm bar."""
     cfg = config if config is not None else CheckerConfig()
     by_scene: dict[str, list[int]] = {}
     for i, t in enumerate(tasks):
