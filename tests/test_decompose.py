@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import re
-from pathlib import Path
 
 import pytest
 
@@ -18,8 +17,9 @@ from vlm.decompose import (
 from vlm.prompts import parse_prompt
 from vlm.sim import SimulatedVlm
 from vlm.types import CallStatus, Usage, VlmConnectionError, VlmResponse
+from realdata_paths import REALDATA
 
-R2R = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "instructions" / "R2R_val_unseen.json"
+R2R = REALDATA / "instructions" / "R2R_val_unseen.json"
 
 
 def _content_words(text: str) -> list[str]:

@@ -5,7 +5,6 @@ scale 5000, ``t tx ty tz qx qy qz qw`` camera-to-world). Its world frame is not 
 must not care. A small local reader keeps planning tests independent of onfly's TUM reader.
 """
 
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -16,8 +15,9 @@ from planning.camera import PinholeCamera
 from planning.esdf import EsdfMap
 from planning.esdf_config import EsdfConfig
 from planning.frames import make_transform, matrix_from_quat, quat_wxyz_from_xyzw
+from realdata_paths import REALDATA
 
-ROOT = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "7scenes-kitchen-tum"
+ROOT = REALDATA / "7scenes-kitchen-tum"
 CAMERA = PinholeCamera(640, 480, 585.0, 585.0, 320.0, 240.0)
 DEPTH_SCALE = 5000.0
 # 6 m cube around the middle of the recorded geometry (points span about 2.7 x 2.3 x 2.5 m).

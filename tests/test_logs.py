@@ -17,8 +17,9 @@ from onfly.readers.tum import TumReader
 from planning.camera import PinholeCamera
 from planning.frames import T_BODY_CAM, body_transform, cam_transform_from_body
 from vlm.types import FrameAnnotation, VisibleObject
+from realdata_paths import REALDATA
 
-KITCHEN = Path(__file__).resolve().parents[1].parent / "shared" / "realdata" / "7scenes-kitchen-tum"
+KITCHEN = REALDATA / "7scenes-kitchen-tum"
 
 
 def random_observations(n: int, seed: int = 0, annotated: bool = False) -> list[Observation]:

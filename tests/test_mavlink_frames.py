@@ -2,7 +2,6 @@
 telemetry checked against an independent route (scipy rotations built from axis-angle, never
 our own functions)."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,8 +11,9 @@ from scipy.spatial.transform import Rotation
 
 from onfly.mavlink import frames
 from planning.frames import FrameError, wrap_angle
+from realdata_paths import REALDATA
 
-REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "mavlink"
+REALDATA = REALDATA / "mavlink"
 
 # Independent route: NED -> ENU is a rotation by pi about (1, 1, 0)/sqrt(2); FRD -> FLU by pi about x.
 ROT_ENU_NED = Rotation.from_rotvec(np.pi * np.array([1.0, 1.0, 0.0]) / np.sqrt(2.0))

@@ -1,7 +1,6 @@
 """StateReader: ENU state from MAVLink telemetry, id filtering, vehicle-clock sync, and a replay
 of a real ArduCopter telemetry log."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,8 +9,9 @@ from pymavlink import mavutil
 from onfly.mavlink.link import mavlink2
 from onfly.mavlink.state import StateReader, StateReaderConfig, VehicleClockSync
 from planning.frames import wrap_angle
+from realdata_paths import REALDATA
 
-REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "mavlink"
+REALDATA = REALDATA / "mavlink"
 
 
 class Wire:

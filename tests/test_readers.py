@@ -27,8 +27,9 @@ from onfly.readers import (
     open_source,
 )
 from planning.camera import PinholeCamera
+from realdata_paths import REALDATA
 
-KITCHEN = Path(__file__).resolve().parents[1].parent / "shared" / "realdata" / "7scenes-kitchen-tum"
+KITCHEN = REALDATA / "7scenes-kitchen-tum"
 
 
 def _depth_only_bag(path: Path, ros2: bool) -> Path:

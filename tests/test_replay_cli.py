@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 from onfly.cli import main
+from realdata_paths import REALDATA
 
-KITCHEN = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "7scenes-kitchen-tum"
+KITCHEN = REALDATA / "7scenes-kitchen-tum"
 RERUN = Path(sys.executable).parent / "rerun"
 
 

@@ -21,8 +21,9 @@ from onfly.cli import main as cli_main
 from onfly.readers.rosbag import BagConfig, BagFormatError, BagReader, bag_summary, image_to_array, resolve_bag_path
 from onfly.readers.tum import TumReader
 from planning.frames import quat_from_matrix
+from realdata_paths import REALDATA
 
-KITCHEN = Path(__file__).resolve().parents[1].parent / "shared" / "realdata" / "7scenes-kitchen-tum"
+KITCHEN = REALDATA / "7scenes-kitchen-tum"
 N_FRAMES = 3
 
 

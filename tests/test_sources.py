@@ -7,7 +7,6 @@ import queue
 import sys
 import threading
 import types
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -25,8 +24,9 @@ from onfly.sources.realsense import (
 )
 from planning.camera import PinholeCamera
 from planning.frames import T_BODY_CAM, body_transform, cam_transform_from_body, transform_points
+from realdata_paths import REALDATA
 
-TUM = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "7scenes-kitchen-tum"
+TUM = REALDATA / "7scenes-kitchen-tum"
 
 
 def frame(i, t_s=None):

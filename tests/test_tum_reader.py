@@ -16,8 +16,9 @@ from scipy.spatial.transform import Rotation, Slerp
 from onfly.readers.poses import PoseTrack, associate, slerp
 from onfly.readers.tum import TUM_DEFAULT_INTRINSICS, TumConfig, TumFormatError, TumReader
 from planning.frames import T_BODY_CAM
+from realdata_paths import REALDATA
 
-KITCHEN = Path(__file__).resolve().parents[1].parent / "shared" / "realdata" / "7scenes-kitchen-tum"
+KITCHEN = REALDATA / "7scenes-kitchen-tum"
 
 
 def _gt_rows(path: Path) -> np.ndarray:
