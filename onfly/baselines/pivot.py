@@ -134,13 +134,12 @@ def sample_candidates(
     arrow endpoints on ``camera``'s image."""
     az_max, el_max = _limits(camera, fov_margin)
     s = rng.normal(mean, std, size=(k, 2))
-    # elevation is limited to what stays inside the image at that azimuth too
     s[:, 0] = np.clip(s[:, 0], -az_max, az_max)
-    s[:, 1] = np.clip(s[:, 1], -el_max, el_max)
-    d = directions_cam(s)
-    uv, _ = camera.project(d)
-    uv[:, 0] = np.clip(uv[:, 0], 0.0, camera.width - 1.0)
-    uv[:, 1] = np.clip(uv[:, 1], 0.0, camera.height - 1.0)
+    # the image row of a direction is cy - fy * tan(e) / cos(a): at azimuth a the elevation
+    # limit shrinks to atan(cos(a) * tan(el_max)) so every endpoint stays in the image
+    el_lim = np.arctan(np.cos(s[:, 0]) * math.tan(el_max))
+    s[:, 1] = np.clip(s[:, 1], -el_lim, el_lim)
+    uv, _ = camera.project(directions_cam(s))
     return Candidates(s, uv, tuple(range(1, k + 1)))
 
 
