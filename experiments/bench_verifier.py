@@ -255,7 +255,12 @@ def run(args) -> dict:
             counts["accepted"] += 1
             X = transform_points(T_cam_world, res.goal_world)
             P_own = obstacle_points(cam, depth, rec.obstacle_threshold_m)
-            counts["unsafe_after"] += point_clearance(P_true, X) < r
+            unsafe_after = point_clearance(P_true, X) < r
+            counts["unsafe_after"] += unsafe_after
+            # An unsafe goal after the verifier whose noisy pixel was not on the target at all:
+            # the verifier trusted the wrong object (it cannot know the instruction's target).
+            on_target = labels[int(math.floor(uv[1] + 0.5)), int(math.floor(uv[0] + 0.5))] == target
+            counts["unsafe_after_pixel_off_target"] += unsafe_after and not on_target
             counts["path_unsafe_after"] += segment_clearance(P_true, X) < r
             counts["unsafe_after_own_rule"] += point_clearance(P_own, X) < r
             counts["path_unsafe_after_own_rule"] += segment_clearance(P_own, X) < r
@@ -304,6 +309,8 @@ def run(args) -> dict:
         "unsafe_rate_before": counts["unsafe_before"] / n,
         "unsafe_rate_after": counts["unsafe_after"] / n,
         "unsafe_rate_after_own_rule": counts["unsafe_after_own_rule"] / n,
+        "unsafe_after_pixel_off_target": counts["unsafe_after_pixel_off_target"],
+        "unsafe_after_count": counts["unsafe_after"],
         "path_unsafe_rate_before": counts["path_unsafe_before"] / n,
         "path_unsafe_rate_after": counts["path_unsafe_after"] / n,
         "path_unsafe_rate_after_own_rule": counts["path_unsafe_after_own_rule"] / n,
@@ -351,6 +358,7 @@ def print_table(out: dict) -> None:
         ("verify_us_median_when_moved", f"{out['verify_us_median_when_moved']:.0f}", ""),
         ("unsafe_rate_before", f"{out['unsafe_rate_before']:.4f}", ""),
         ("unsafe_rate_after", f"{out['unsafe_rate_after']:.4f}", "= 0"),
+        ("  of which noisy pixel was off the target", f"{out['unsafe_after_pixel_off_target']} / {out['unsafe_after_count']}", ""),
         ("unsafe_rate_after_own_rule", f"{out['unsafe_rate_after_own_rule']:.4f}", "= 0 (guarantee)"),
         ("path_unsafe_rate_before", f"{out['path_unsafe_rate_before']:.4f}", ""),
         ("path_unsafe_rate_after", f"{out['path_unsafe_rate_after']:.4f}", ""),
