@@ -7,7 +7,6 @@ benchmark config: ``v_max_mps``, ``a_max_mps2``, ``yaw_rate_max_rps``, ``dt_s``,
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, fields
 from typing import Any
 
@@ -150,8 +149,3 @@ class CallOutcome:
     def latency_s(self) -> float:
         return self.response.latency_s
 
-
-def finite_positive(name: str, value: float, cls=BaselineOptionError) -> None:
-    """Raise ``cls`` naming ``name`` unless ``value`` is a finite number > 0."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
-        raise cls(f"{name} must be a finite number > 0, got {value!r}")

@@ -46,7 +46,6 @@ from onfly.baselines.common import (
 from onfly.bench.method import EpisodeSpec, MethodStep
 from onfly.observation import Observation
 from planning.camera import PinholeCamera
-from planning.frames import transform_points
 from planning.trajectory import VehicleState
 from vlm.factory import make_backend
 from vlm.prompts import build_pivot_prompt, pivot_schema

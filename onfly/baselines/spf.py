@@ -19,7 +19,6 @@ closed loop re-asking every 0.81 s the cap matters only when answers stop coming
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import re
@@ -44,7 +43,6 @@ from planning.esdf import EsdfMap
 from planning.esdf_config import EsdfConfig
 from planning.frames import transform_points
 from planning.planner import Planner
-from planning.planner_config import PlannerConfig
 from planning.trajectory import VehicleState
 from vlm.factory import make_backend
 from vlm.parsing import parse_point_depth
