@@ -31,7 +31,6 @@ import functools
 import hashlib
 import json
 import logging
-import math
 import multiprocessing as mp
 import time
 import tomllib
@@ -41,6 +40,7 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
+from onfly.serialize import to_jsonable
 from onfly.bench.episode import EpisodeConfig, run_episode
 from onfly.bench.metrics import EpisodeMetrics, summarize
 from onfly.bench.registry import get_factory, method_names
@@ -79,30 +79,8 @@ class BenchConfigError(ValueError):
     """A benchmark config that cannot be used (the message names the file and field)."""
 
 
-def _jsonable(x: Any) -> Any:
-    """Plain JSON types: numpy to lists / numbers, non-finite floats to None, enums to values."""
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, (np.bool_, bool)):
-        return bool(x)
-    if isinstance(x, np.integer):
-        return int(x)
-    if isinstance(x, (float, np.floating)):
-        v = float(x)
-        return v if math.isfinite(v) else None
-    if isinstance(x, (int, str)) or x is None:
-        return x
-    if hasattr(x, "value") and isinstance(getattr(x, "value"), (str, int)):
-        return x.value
-    return repr(x)
-
-
 def _digest(data: Any) -> str:
-    return hashlib.sha256(json.dumps(_jsonable(data), sort_keys=True, separators=(",", ":")).encode()).hexdigest()[:16]
+    return hashlib.sha256(json.dumps(to_jsonable(data), sort_keys=True, separators=(",", ":")).encode()).hexdigest()[:16]
 
 
 @dataclass(frozen=True)
@@ -254,7 +232,7 @@ class BenchConfig:
         return w
 
     def to_dict(self) -> dict:
-        return _jsonable(asdict(self))
+        return to_jsonable(asdict(self))
 
 
 def episode_seed(base_seed: int, task_id: str, run_index: int) -> int:
@@ -364,7 +342,7 @@ def run_job(job: EpisodeJob) -> dict:
     cpu_s = time.process_time() - cpu0
     rec = result.to_dict()
     clearance = world.collision.clearance(result.trace.positions)
-    return _jsonable(
+    return to_jsonable(
         {
             "key": job.key,
             "config_hash": job.config_hash,
@@ -437,7 +415,7 @@ def _block(recs: list[dict]) -> dict:
             charged[k] = charged.get(k, 0.0) + v
     s["vlm_calls_per_episode"] = {k: v / len(recs) for k, v in calls.items()}
     s["vlm_charged_s_per_episode"] = {k: v / len(recs) for k, v in charged.items()}
-    return _jsonable(s)
+    return to_jsonable(s)
 
 
 def summarize_records(records: Iterable[dict], *, error_model: str, name: str = "bench") -> dict:
@@ -455,7 +433,7 @@ def summarize_records(records: Iterable[dict], *, error_model: str, name: str = 
     sim = sum(r["sim_s"] for r in recs)
     wall = sum(r["wall_s"] for r in recs)
     cpu = sum(r.get("cpu_s", 0.0) for r in recs)
-    return _jsonable(
+    return to_jsonable(
         {
             "name": name,
             "error_model": error_model,
