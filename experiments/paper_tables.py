@@ -20,11 +20,17 @@ table::
     [paper_tables]
     # backbone rows: VLM spec -> the model it stands in for (one must be bench.vlm)
     backbones = [["sim:weak", "Qwen3-VL-2B"], ["sim:nominal", "Qwen3-VL-4B"], ["sim:strong", "Qwen3-VL-30B-A3B"]]
+    # optional: run in chunks of this many tasks (every method and backbone per chunk)
+    chunk_tasks = 10
 
 ``bench.methods`` is ignored: the methods are the tables' rows. Episodes run through the
 benchmark runner into ``OUT/<error model>/`` (one folder per VLM spec; resumable: a run
-started again skips finished episodes). ``--from-runs DIR`` only reads finished episodes of
-such a folder tree and runs nothing; rows without episodes show ``n/a``.
+started again skips finished episodes). With ``chunk_tasks`` the selected tasks are cut into
+interleaved chunks (every ``n``-th task, so each chunk spans the scenes and kinds) and every
+method and backbone runs on one chunk before the next starts: a long run stopped early holds
+comparable rows. Episode keys do not depend on the selection, so chunked and unchunked runs
+of one config share their finished episodes. ``--from-runs DIR`` only reads finished episodes
+of such a folder tree and runs nothing; rows without episodes show ``n/a``.
 
 Run::
 
@@ -67,6 +73,7 @@ __all__ = [
     "BACKBONE_METHOD",
     "load_config",
     "run_all",
+    "task_chunks",
     "read_runs",
     "build_tables",
     "format_markdown",
@@ -114,14 +121,19 @@ class PaperTablesConfig:
 
     bench : BenchConfig (its ``vlm`` is the main error model of every table)
     backbones : ((VLM spec, stand-in label), ...), one of them ``bench.vlm``
+    chunk_tasks : None (one run per VLM spec) or tasks per interleaved chunk
     source : the file it was read from
     """
 
     bench: BenchConfig
     backbones: tuple[tuple[str, str], ...]
+    chunk_tasks: int | None = None
     source: str | None = None
 
     def __post_init__(self) -> None:
+        c = self.chunk_tasks
+        if c is not None and (isinstance(c, bool) or not isinstance(c, int) or c < 1):
+            raise PaperTablesError(f"{self.source}: paper_tables.chunk_tasks must be a positive integer, got {c!r}")
         specs = [s for s, _ in self.backbones]
         if len(set(specs)) != len(specs):
             raise PaperTablesError(f"{self.source}: paper_tables.backbones lists a VLM spec twice: {specs}")
@@ -157,31 +169,55 @@ def load_config(path: str | Path) -> PaperTablesConfig:
     except tomllib.TOMLDecodeError as exc:
         raise PaperTablesError(f"{path}: not valid TOML: {exc}") from None
     own = dict(data.pop("paper_tables", {}) or {})
-    bad = sorted(set(own) - {"backbones"})
+    bad = sorted(set(own) - {"backbones", "chunk_tasks"})
     if bad:
-        raise PaperTablesError(f"{path}: [paper_tables]: unknown field(s) {bad}; valid: ['backbones']")
+        raise PaperTablesError(f"{path}: [paper_tables]: unknown field(s) {bad}; valid: ['backbones', 'chunk_tasks']")
     bench = BenchConfig.from_dict(data, source=str(path))
     raw = own.get("backbones", [[bench.vlm, "main backbone"]])
     if not isinstance(raw, list) or not all(
         isinstance(b, list) and len(b) == 2 and all(isinstance(x, str) and x for x in b) for b in raw
     ):
         raise PaperTablesError(f"{path}: paper_tables.backbones must be a list of [vlm spec, label] pairs, got {raw!r}")
-    return PaperTablesConfig(bench, tuple((s, lab) for s, lab in raw), str(path))
+    return PaperTablesConfig(bench, tuple((s, lab) for s, lab in raw), own.get("chunk_tasks"), str(path))
 
 
 def _out_dir(root: Path, vlm: str) -> Path:
     return root / error_model_name(vlm).replace(":", "_").replace("/", "_")
 
 
-def run_all(cfg: PaperTablesConfig, out: str | Path, *, workers: int | None = None, progress: bool = True) -> tuple[dict[str, list[dict]], dict[str, float]]:
-    """Run (or resume) every episode the tables need; returns records and wall seconds per VLM spec."""
+def _selected_ids(bench: BenchConfig) -> list[str]:
+    tasks = select_tasks(load_tasks(bench.task_files), ids=bench.task_ids, scenes=bench.scenes, kinds=bench.kinds, count=bench.count)
+    return [t.task_id for t in tasks]
+
+
+def task_chunks(ids: Sequence[str], chunk_tasks: int | None) -> list[list[str]]:
+    """Interleaved chunks of about ``chunk_tasks`` tasks: chunk ``i`` holds every ``n``-th task
+    from the ``i``-th (``n`` chunks in all); one chunk of everything when ``chunk_tasks`` is None."""
+    ids = list(ids)
+    if chunk_tasks is None or chunk_tasks >= len(ids):
+        return [ids]
+    n = math.ceil(len(ids) / chunk_tasks)
+    return [ids[i::n] for i in range(n)]
+
+
+def run_all(
+    cfg: PaperTablesConfig, out: str | Path, *, workers: int | None = None, progress: bool = True
+) -> tuple[dict[str, list[dict]], dict[str, float]]:
+    """Run (or resume) every episode the tables need, chunk by chunk (``chunk_tasks``); returns
+    the records and the wall seconds spent per VLM spec."""
     root = Path(out)
+    walls: dict[str, float] = {vlm: 0.0 for vlm, _ in cfg.backbones}
+    chunks = task_chunks(_selected_ids(cfg.bench), cfg.chunk_tasks)
+    if len(chunks) > 1:
+        for chunk in chunks:
+            for vlm, _ in _ordered_backbones(cfg):
+                bench = replace(cfg.bench_for(vlm), task_ids=tuple(chunk), scenes=None, kinds=None, count=None)
+                walls[vlm] += run_bench(bench, _out_dir(root, vlm), workers=workers, progress=progress).wall_s
     records: dict[str, list[dict]] = {}
-    walls: dict[str, float] = {}
-    for vlm, _ in _ordered_backbones(cfg):
+    for vlm, _ in _ordered_backbones(cfg):  # the whole selection: summaries over every episode
         res = run_bench(cfg.bench_for(vlm), _out_dir(root, vlm), workers=workers, progress=progress)
         records[vlm] = res.records
-        walls[vlm] = res.wall_s
+        walls[vlm] += res.wall_s
     return records, walls
 
 
@@ -197,7 +233,8 @@ def read_runs(cfg: PaperTablesConfig, runs_dir: str | Path) -> dict[str, list[di
     out: dict[str, list[dict]] = {}
     for vlm, _ in cfg.backbones:
         bench = cfg.bench_for(vlm)
-        tasks = select_tasks(load_tasks(bench.task_files), ids=bench.task_ids, scenes=bench.scenes, kinds=bench.kinds, count=bench.count)
+        ids = set(_selected_ids(bench))
+        tasks = [t for t in load_tasks(bench.task_files) if t.task_id in ids]
         keys = {j.key: i for i, j in enumerate(plan_jobs(bench, tasks))}
         latest = {r["key"]: r for r in read_records(_out_dir(root, vlm) / EPISODES_FILE) if r.get("key") in keys}
         out[vlm] = sorted(latest.values(), key=lambda r: keys[r["key"]])

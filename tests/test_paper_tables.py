@@ -16,6 +16,7 @@ from experiments.paper_tables import (
     main,
     read_runs,
     run_all,
+    task_chunks,
 )
 from onfly.bench.runner import EPISODES_FILE, plan_jobs
 from onfly.bench.tasks import load_tasks, select_tasks
@@ -162,3 +163,34 @@ def test_run_all_runs_each_backbone_into_its_folder(tmp_path, monkeypatch):
     assert calls[0][0] == "sim:nominal" and len(calls[0][1]) == 10 and calls[0][2] == "nominal"
     assert sorted(c[:3] for c in calls[1:]) == [("sim:strong", ("onfly",), "strong"), ("sim:weak", ("onfly",), "weak")]
     assert all(c[3] == 2 for c in calls) and walls == {"sim:nominal": 1.5, "sim:weak": 1.5, "sim:strong": 1.5}
+
+
+def test_task_chunks_interleave_and_cover_every_task_once():
+    ids = [f"t{k:02d}" for k in range(23)]
+    chunks = task_chunks(ids, 10)
+    assert len(chunks) == 3 and chunks[0][:3] == ["t00", "t03", "t06"]
+    assert sorted(sum(chunks, [])) == ids
+    assert task_chunks(ids, None) == [ids] and task_chunks(ids, 50) == [ids]
+
+
+def test_chunked_run_runs_every_backbone_per_chunk_then_the_whole_selection(tmp_path, monkeypatch):
+    calls = []
+
+    class Res:
+        records: list = []
+        wall_s = 1.0
+
+    def fake_run_bench(bench, out, workers=None, progress=False):
+        calls.append((bench.vlm, bench.task_ids, Path(out).name))
+        return Res()
+
+    monkeypatch.setattr("experiments.paper_tables.run_bench", fake_run_bench)
+    cfg = load_config(write_config(tmp_path))
+    cfg = type(cfg)(cfg.bench, cfg.backbones, 1, cfg.source)
+    _, walls = run_all(cfg, tmp_path / "out", progress=False)
+    assert [c[:2] for c in calls[:3]] == [("sim:nominal", ("park-o01",)), ("sim:weak", ("park-o01",)), ("sim:strong", ("park-o01",))]
+    assert [c[1] for c in calls[3:6]] == [("villa-o01",)] * 3
+    assert [c[1] for c in calls[6:]] == [tuple(TASKS)] * 3  # final pass over the whole selection
+    assert walls == {"sim:nominal": 3.0, "sim:weak": 3.0, "sim:strong": 3.0}
+    with pytest.raises(PaperTablesError, match="chunk_tasks must be a positive integer"):
+        type(cfg)(cfg.bench, cfg.backbones, 0, cfg.source)
