@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from planning.camera import PinholeCamera
+from realdata_paths import REALDATA
 from planning.frames import body_transform, cam_transform_from_body, invert_transform, transform_points
 from planning.verifier import (
     CandidateGoal,
@@ -30,7 +31,7 @@ from planning.verifier import (
 )
 
 R_M = 0.2
-KITCHEN = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "7scenes-kitchen-tum"
+KITCHEN = REALDATA / "7scenes-kitchen-tum"
 
 # -- helpers -----------------------------------------------------------------------------------
 
