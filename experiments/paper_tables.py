@@ -26,9 +26,8 @@ table::
 ``bench.methods`` is ignored: the methods are the tables' rows. Episodes run through the
 benchmark runner into ``OUT/<error model>/`` (one folder per VLM spec; resumable: a run
 started again skips finished episodes). With ``chunk_tasks`` the selected tasks are cut into
-interleaved chunks (every ``n``-th task, so each chunk spans the scenes and kinds) and every
-method and backbone runs on one chunk before the next starts: a long run stopped early holds
-comparable rows. Episode keys do not depend on the selection, so chunked and unchunked runs
+chunks that mix scenes and kinds (:func:`task_chunks`) and every method and backbone runs on
+one chunk before the next starts: a long run stopped early holds comparable rows. Episode keys do not depend on the selection, so chunked and unchunked runs
 of one config share their finished episodes. ``--from-runs DIR`` only reads finished episodes
 of such a folder tree and runs nothing; rows without episodes show ``n/a``.
 
@@ -41,6 +40,7 @@ Run::
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
 import sys
@@ -191,13 +191,16 @@ def _selected_ids(bench: BenchConfig) -> list[str]:
 
 
 def task_chunks(ids: Sequence[str], chunk_tasks: int | None) -> list[list[str]]:
-    """Interleaved chunks of about ``chunk_tasks`` tasks: chunk ``i`` holds every ``n``-th task
-    from the ``i``-th (``n`` chunks in all); one chunk of everything when ``chunk_tasks`` is None."""
+    """Chunks of about ``chunk_tasks`` tasks that mix scenes and kinds: the tasks in a fixed
+    pseudo-random order (by the SHA-256 of their ids; task files list a scene's tasks grouped
+    by kind), then every ``n``-th of them from the ``i``-th for chunk ``i``. One chunk of
+    everything when ``chunk_tasks`` is None."""
     ids = list(ids)
     if chunk_tasks is None or chunk_tasks >= len(ids):
         return [ids]
+    order = sorted(ids, key=lambda t: hashlib.sha256(t.encode("utf-8")).hexdigest())
     n = math.ceil(len(ids) / chunk_tasks)
-    return [ids[i::n] for i in range(n)]
+    return [order[i::n] for i in range(n)]
 
 
 def run_all(

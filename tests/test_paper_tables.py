@@ -165,11 +165,14 @@ def test_run_all_runs_each_backbone_into_its_folder(tmp_path, monkeypatch):
     assert all(c[3] == 2 for c in calls) and walls == {"sim:nominal": 1.5, "sim:weak": 1.5, "sim:strong": 1.5}
 
 
-def test_task_chunks_interleave_and_cover_every_task_once():
-    ids = [f"t{k:02d}" for k in range(23)]
+def test_task_chunks_mix_the_order_and_cover_every_task_once():
+    ids = [f"{scene}-{kind}{k:02d}" for scene in ("a", "b", "c") for kind in ("o", "p") for k in range(1, 9)]
     chunks = task_chunks(ids, 10)
-    assert len(chunks) == 3 and chunks[0][:3] == ["t00", "t03", "t06"]
-    assert sorted(sum(chunks, [])) == ids
+    assert len(chunks) == 5 and sorted(len(c) for c in chunks) == [9, 9, 10, 10, 10]
+    assert sorted(sum(chunks, [])) == sorted(ids)
+    assert chunks == task_chunks(list(reversed(ids)), 10)  # the order depends on the ids only
+    # a file's grouping by kind does not survive: every chunk holds both kinds and 3 scenes
+    assert all({t.split("-")[1][0] for t in c} == {"o", "p"} and len({t[0] for t in c}) == 3 for c in chunks)
     assert task_chunks(ids, None) == [ids] and task_chunks(ids, 50) == [ids]
 
 
