@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import logging
 import tomllib
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from enum import Enum
 from pathlib import Path
 from typing import Any
@@ -82,6 +82,11 @@ class PilotConfig:
     use_planner : False = goals flown in straight lines without the map (ablation)
     coord_format : how the backend writes points (``vlm.parsing.CoordFormat`` value)
     vlm_deadline_s : per-call deadline handed to the backend (None = backend default)
+    goal_min_z_m : altitude floor for navigation goals, metres above the odometry origin (the
+        ground at take-off). A level camera never sees the ground right below and ahead of the
+        vehicle, and unobserved space counts as free in the ESDF, so a goal lifted from a pixel
+        at an object's base would otherwise pull the vehicle onto unseen ground. Default 0.7 m =
+        body radius 0.25 m + the planner's 0.45 m safety distance. None disables it.
     """
 
     control_period_s: float = 0.1
@@ -95,6 +100,7 @@ class PilotConfig:
     use_planner: bool = True
     coord_format: str = CoordFormat.PIXEL.value
     vlm_deadline_s: float | None = None
+    goal_min_z_m: float | None = 0.7
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     verifier: VerifierConfig = field(default_factory=VerifierConfig)
     esdf: EsdfConfig = field(default_factory=EsdfConfig)
@@ -105,6 +111,8 @@ class PilotConfig:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise PilotConfigError(f"PilotConfig.{name} must be positive, got {v}")
+        if self.goal_min_z_m is not None and not np.isfinite(self.goal_min_z_m):
+            raise PilotConfigError(f"PilotConfig.goal_min_z_m must be finite or None, got {self.goal_min_z_m}")
         if self.stop_confirmations < 1:
             raise PilotConfigError(f"PilotConfig.stop_confirmations must be >= 1, got {self.stop_confirmations}")
         try:
@@ -310,6 +318,11 @@ class OnFlyPilot:
             return
         if out.subtask != self.tasks.current:
             return  # answered about a subtask that has since advanced
+        if out.goal_world is not None and self.config.goal_min_z_m is not None and out.goal_world[2] < self.config.goal_min_z_m:
+            raised = np.array(out.goal_world, float)
+            raised[2] = self.config.goal_min_z_m
+            self._event(t_s, "goal_raised", {"from_z_m": float(out.goal_world[2]), "to_z_m": float(raised[2])})
+            out = replace(out, goal_world=raised)
         if out.goal_world is None:
             # hold the last goal (it times out by itself); with no goal, at least face the
             # target the VLM pointed at, so a rejected edge-of-image target comes into view

@@ -168,6 +168,29 @@ def test_vlm_faults_never_stop_the_planner_or_crash_the_pilot(planner, fault):
     assert np.linalg.norm(ticks[-1][2]) < 0.05
 
 
+def test_goals_on_the_unseen_ground_are_raised_to_the_floor(planner):
+    # the VLM keeps pointing at the ground a few metres ahead (bottom centre of the image):
+    # the verifier lifts that to a goal near z = 0, below what the level camera ever sees
+    def decision(i, resp):
+        return text('{"point_2d": [80, 100]}', 0.81)
+
+    backend = ScriptedVlm("perfect", decision=decision, monitor=lambda i, r: text("CONTINUE", 1.15))
+    m = BackendMethod(backend, planner=planner)
+    world = World.from_scene("urban_block", camera=CAM)
+    heights = []
+    r = run_episode(
+        world, m, instruction="Fly to the red van.", goal=RED_VAN, reference_path_m=10.0, seed=0,
+        error_model="test", config=EpisodeConfig(time_limit_s=20.0),
+        observer=lambda s: heights.append(s.state.p[2]),
+    )
+    raised = [e for e in m.pilot.events if e.kind == "goal_raised"]
+    assert raised and all(e.data["from_z_m"] < 0.7 and e.data["to_z_m"] == 0.7 for e in raised)
+    assert not r.metrics.collided
+    assert min(heights) > 0.7 - 0.1
+    with pytest.raises(PilotConfigError, match="goal_min_z_m"):
+        PilotConfig(goal_min_z_m=float("nan"))
+
+
 def test_ablation_configs_and_validation():
     assert ablation_config("onfly_no_dual_agent").dual_agent is False
     assert ablation_config("onfly_sliding_window").memory.strategy == "sliding"
