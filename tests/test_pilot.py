@@ -211,3 +211,22 @@ def test_single_stream_pays_both_latencies(planner):
     assert r.vlm_calls.get("single", 0) >= 2 and "decision" not in r.vlm_calls
     per_call = r.vlm_charged_s["single"] / r.vlm_calls["single"]
     assert per_call > 0.81 + 1.0  # a decision and a monitoring answer in each call
+
+
+def test_summary_counts_moved_goals_and_survives_missing_shifts():
+    from onfly.pilot import PilotEvent
+
+    class P:
+        mode = PilotMode.HOLDING
+        tasks = None
+        planner_fallbacks = {}
+        events = [
+            PilotEvent(1.0, "decision", {"goal_world": [1, 2, 3], "verifier": {"pixel_shift_px": 4.0}}),
+            PilotEvent(2.0, "decision", {"goal_world": None, "reason": "rejected: x", "verifier": {"pixel_shift_px": None}}),
+            PilotEvent(3.0, "decision", {"goal_world": [1, 2, 3], "verifier": {"pixel_shift_px": 0.0}}),
+        ]
+
+    m = OnFlyMethod("sim:perfect")
+    m.pilot = P()
+    s = m.summary()
+    assert s["decisions"] == 3 and s["verifier_moved"] == 1 and s["decision_failures"] == {"rejected": 1}

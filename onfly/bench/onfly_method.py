@@ -79,7 +79,7 @@ class OnFlyMethod:
         monitors = [e.data for e in p.events if e.kind == "monitor"]
         statuses = Counter(str(m.get("status")) for m in monitors)
         failed = Counter((d.get("reason") or "").split(":")[0] for d in decisions if d.get("goal_world") is None)
-        moved = [d for d in decisions if d.get("verifier") and d["verifier"].get("pixel_shift_px", 0) > 0]
+        moved = [d for d in decisions if d.get("verifier") and (d["verifier"].get("pixel_shift_px") or 0) > 0]
         return {
             "mode": p.mode.value,
             "subtasks": list(p.tasks.subtasks) if p.tasks else [],
