@@ -73,6 +73,7 @@ __all__ = [
     "BACKBONE_METHOD",
     "load_config",
     "run_all",
+    "check_methods",
     "task_chunks",
     "read_runs",
     "build_tables",
@@ -152,10 +153,15 @@ class PaperTablesConfig:
                     out.append(m)
         return tuple(out)
 
-    def bench_for(self, vlm: str) -> BenchConfig:
+    def bench_for(self, vlm: str, only: Sequence[str] | None = None) -> BenchConfig | None:
         """The benchmark config of one VLM spec: all methods under the main one, the backbone
-        method under the others."""
+        method under the others; ``only`` keeps just those methods (the order stays), None
+        when that leaves none."""
         methods = self.main_methods if vlm == self.bench.vlm else (BACKBONE_METHOD,)
+        if only is not None:
+            methods = tuple(m for m in methods if m in only)
+            if not methods:
+                return None
         return replace(self.bench, vlm=vlm, methods=methods, name=f"{self.bench.name}-{error_model_name(vlm)}")
 
 
@@ -203,25 +209,39 @@ def task_chunks(ids: Sequence[str], chunk_tasks: int | None) -> list[list[str]]:
     return [order[i::n] for i in range(n)]
 
 
+def check_methods(cfg: PaperTablesConfig, methods: Sequence[str]) -> tuple[str, ...]:
+    """``methods`` if every one is a row of the tables, else :class:`PaperTablesError`."""
+    bad = sorted(set(methods) - set(cfg.main_methods))
+    if bad or not methods:
+        raise PaperTablesError(f"unknown method(s) {bad or list(methods)}; the tables' methods are {list(cfg.main_methods)}")
+    return tuple(methods)
+
+
 def run_all(
-    cfg: PaperTablesConfig, out: str | Path, *, workers: int | None = None, progress: bool = True
+    cfg: PaperTablesConfig,
+    out: str | Path,
+    *,
+    workers: int | None = None,
+    progress: bool = True,
+    methods: Sequence[str] | None = None,
 ) -> tuple[dict[str, list[dict]], dict[str, float]]:
     """Run (or resume) every episode the tables need, chunk by chunk (``chunk_tasks``); returns
-    the records and the wall seconds spent per VLM spec."""
+    the records and the wall seconds spent per VLM spec. ``methods`` runs only those rows (the
+    backbone rows belong to :data:`BACKBONE_METHOD`); the others are read from ``out`` as
+    they are, so a table can be filled row group by row group."""
     root = Path(out)
     walls: dict[str, float] = {vlm: 0.0 for vlm, _ in cfg.backbones}
     chunks = task_chunks(_selected_ids(cfg.bench), cfg.chunk_tasks)
+    specs = [(vlm, cfg.bench_for(vlm, methods)) for vlm, _ in _ordered_backbones(cfg)]
+    specs = [(vlm, b) for vlm, b in specs if b is not None]
     if len(chunks) > 1:
         for chunk in chunks:
-            for vlm, _ in _ordered_backbones(cfg):
-                bench = replace(cfg.bench_for(vlm), task_ids=tuple(chunk), scenes=None, kinds=None, count=None)
+            for vlm, b in specs:
+                bench = replace(b, task_ids=tuple(chunk), scenes=None, kinds=None, count=None)
                 walls[vlm] += run_bench(bench, _out_dir(root, vlm), workers=workers, progress=progress).wall_s
-    records: dict[str, list[dict]] = {}
-    for vlm, _ in _ordered_backbones(cfg):  # the whole selection: summaries over every episode
-        res = run_bench(cfg.bench_for(vlm), _out_dir(root, vlm), workers=workers, progress=progress)
-        records[vlm] = res.records
-        walls[vlm] += res.wall_s
-    return records, walls
+    for vlm, b in specs:  # the whole selection: summaries over every episode
+        walls[vlm] += run_bench(b, _out_dir(root, vlm), workers=workers, progress=progress).wall_s
+    return read_runs(cfg, root), walls
 
 
 def _ordered_backbones(cfg: PaperTablesConfig) -> list[tuple[str, str]]:
@@ -391,10 +411,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--from-runs", default=None, metavar="DIR", help="only read finished episodes of this run folder")
     ap.add_argument("--workers", type=int, default=None, help="local worker processes (default: the config's)")
     ap.add_argument("--json", default=None, help="also write the tables as JSON here")
+    ap.add_argument("--methods", default=None, help="comma-separated: run only these rows (the others are read from --out)")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
     try:
         cfg = load_config(args.config)
+        methods = check_methods(cfg, [m.strip() for m in args.methods.split(",") if m.strip()]) if args.methods else None
     except (OSError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -405,7 +427,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         out = Path(args.from_runs)
     else:
         out = Path(args.out) if args.out else Path("runs") / "paper_tables" / cfg.bench.name
-        records, walls = run_all(cfg, out, workers=args.workers, progress=not args.no_progress)
+        records, walls = run_all(cfg, out, workers=args.workers, progress=not args.no_progress, methods=methods)
     tables = build_tables(cfg, records)
     command = " ".join(["experiments/paper_tables.py", *(argv if argv is not None else sys.argv[1:])])
     text = format_markdown(tables, wall_s=walls, command=command)

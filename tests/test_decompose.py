@@ -9,6 +9,7 @@ import pytest
 
 from vlm.decompose import (
     CONNECTIVE_WORDS,
+    attach_back_references,
     DecompositionError,
     decompose,
     decompose_detailed,
@@ -149,3 +150,35 @@ def test_truncated_simulated_answer_falls_back():
         result = decompose_detailed("Fly through the gate, then stop next to the red van.", sim, max_new_tokens=3)
     assert result.source == "fallback" and result.reason.startswith("parse:")
     assert list(result.subtasks) == ["Fly through the gate", "stop next to the red van"]
+
+
+# -- back-references ---------------------------------------------------------------------------
+
+
+def test_a_subtask_that_only_refers_back_is_joined_to_the_one_before():
+    text = "There's a vending machine somewhere along this corridor. Go to it."
+    assert split_instruction(text) == ["There's a vending machine somewhere along this corridor", "Go to it"]
+    assert decompose(text) == ["There's a vending machine somewhere along this corridor, Go to it"]
+    got = attach_back_references(["fly to the red car", "stop there", "land right next to it", "turn left"])
+    assert got == ("fly to the red car, stop there, land right next to it", "turn left")
+
+
+@pytest.mark.parametrize(
+    "subtasks",
+    [
+        ["fly to the tree", "go to that door"],  # "that" with a noun names a new target
+        ["go to it", "fly to the bench"],  # the first subtask has nothing to refer to
+        ["fly to the tree", "turn left"],
+        ["fly to the tree", "then ascend to the roof"],
+    ],
+)
+def test_subtasks_that_name_a_target_are_kept_apart(subtasks):
+    assert attach_back_references(subtasks) == tuple(subtasks)
+
+
+def test_back_references_in_a_model_answer_are_attached_and_no_word_is_lost():
+    fake = _FakeBackend(VlmResponse(CallStatus.OK, text='["find the blue sofa", "fly up to it", "land on the roof"]', usage=Usage(10, 5)))
+    dec = decompose_detailed("find the blue sofa and fly up to it, then land on the roof", fake)
+    assert dec.source == "vlm"
+    assert dec.subtasks == ("find the blue sofa, fly up to it", "land on the roof")
+    assert re.findall(r"\w+", " ".join(dec.subtasks)) == re.findall(r"\w+", "find the blue sofa fly up to it land on the roof")

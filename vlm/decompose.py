@@ -27,13 +27,24 @@ the instruction's word tokens minus the dropped connectives (:data:`CONNECTIVE_W
 is the coverage property the tests check on every R2R instruction. The order is the text
 order: ``before`` / ``after`` clauses are not reordered (``turn left after the tree`` stays as
 written; reordering needs parsing we do not trust without a model).
+
+Back-references
+---------------
+A subtask is flown and monitored on its own, so one that only points back at the previous
+subtask's target (``There's a vending machine along this corridor. Go to it.`` -> ``go to it``)
+names nothing the agents can find. :func:`attach_back_references` joins such a subtask to the
+one before it (``"..., go to it"``); :func:`decompose_detailed` applies it to every
+decomposition, the model's and the fallback's. A subtask counts as a back-reference when it
+holds one of :data:`BACK_REFERENCE_WORDS` and every other word is a movement verb or a
+function word (:data:`_FILLER_WORDS`): ``go to it``, ``stop there``, ``land right next to
+it``; ``go to that door`` names a door and stays.
 """
 
 from __future__ import annotations
 
 import logging
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from vlm.parsing import parse_subtasks
 from vlm.prompts import build_decompose_prompt, subtasks_schema
@@ -45,6 +56,8 @@ __all__ = [
     "decompose",
     "decompose_detailed",
     "split_instruction",
+    "attach_back_references",
+    "BACK_REFERENCE_WORDS",
     "MOVEMENT_VERBS",
     "CONNECTIVE_WORDS",
 ]
@@ -73,6 +86,18 @@ _CUT_RE = re.compile(
     re.IGNORECASE,
 )
 _STRIP = " \t,.;:!?"
+
+#: words by which a subtask points back at the previous subtask's target
+BACK_REFERENCE_WORDS = frozenset({"it", "there", "them", "that", "this", "one"})
+_FILLER_WORDS = frozenset(MOVEMENT_VERBS) | frozenset(
+    {
+        "a", "about", "above", "all", "and", "around", "at", "away", "back", "behind", "below", "beside",
+        "by", "close", "closer", "down", "front", "in", "into", "just", "near", "next", "now", "of", "off",
+        "on", "onto", "over", "please", "right", "the", "then", "to", "toward", "towards", "under", "up",
+        "with", "you", "your", "its",
+    }
+)  # fmt: skip
+_WORD_RE = re.compile(r"[^\W_]+(?:'[^\W_]+)?")
 
 
 class DecompositionError(ValueError):
@@ -129,6 +154,29 @@ def split_instruction(instruction: str) -> list[str]:
     return out
 
 
+def _is_back_reference(subtask: str) -> bool:
+    words = [w.lower() for w in _WORD_RE.findall(subtask)]
+    return any(w in BACK_REFERENCE_WORDS for w in words) and all(
+        w in BACK_REFERENCE_WORDS or w in _FILLER_WORDS for w in words
+    )
+
+
+def attach_back_references(subtasks: list[str] | tuple[str, ...]) -> tuple[str, ...]:
+    """Join every subtask that only refers back (module docstring) to the one before it.
+
+    ``["There's a vending machine along this corridor", "Go to it"]`` ->
+    ``("There's a vending machine along this corridor, Go to it",)``. The first subtask has
+    nothing to refer to and stays; order and words are kept.
+    """
+    out: list[str] = []
+    for sub in subtasks:
+        if out and _is_back_reference(sub):
+            out[-1] = f"{out[-1]}, {sub}"
+        else:
+            out.append(sub)
+    return tuple(out)
+
+
 def _starts_with_subordinator(clause: str) -> bool:
     """True if the current clause (since the last sentence/connective cut) opens with one."""
     low = clause.strip(_STRIP).lower()
@@ -143,11 +191,18 @@ def decompose_detailed(
     max_new_tokens: int = 512,
     structured: bool = True,
 ) -> Decomposition:
-    """Decompose with one VLM call; fall back to :func:`split_instruction` on any failure.
+    """Decompose with one VLM call; fall back to :func:`split_instruction` on any failure;
+    back-references are attached to their subtask (:func:`attach_back_references`) either way.
 
     ``structured`` passes :func:`vlm.prompts.subtasks_schema` as ``json_schema``.
     """
-    text = _check_instruction(instruction)
+    dec = _decompose_raw(_check_instruction(instruction), backend, deadline_s, max_new_tokens, structured)
+    return replace(dec, subtasks=attach_back_references(dec.subtasks))
+
+
+def _decompose_raw(
+    text: str, backend: VlmBackend | None, deadline_s: float | None, max_new_tokens: int, structured: bool
+) -> Decomposition:
     if backend is None:
         return Decomposition(tuple(split_instruction(text)), "fallback", "no backend")
     messages, images = build_decompose_prompt(text)
