@@ -72,7 +72,10 @@ class PilotConfig:
     ----------
     control_period_s : planner period (10 Hz)
     monitor_period_s : monitoring-agent period (paper: 2 s)
-    stop_confirmations : consecutive STOPs that make a STOP stable
+    stop_confirmations : consecutive STOPs that make a STOP stable. After a STOP that is not
+        yet stable the vehicle hovers where it heard it (mode ``CONFIRMING``) and the monitor is
+        asked again as soon as a new frame arrives, so confirming costs one call, not a flight
+        of ``monitor_period_s`` past a target beside the path
     goal_timeout_s : a goal not refreshed by a successful decision for this long is dropped
         and the vehicle holds (VLM timeouts or garbage)
     recovery_yaw_tolerance_rad : LOST recovery is over once the heading is this close
@@ -143,6 +146,7 @@ class PilotMode(str, Enum):
     NAVIGATING = "navigating"
     HOLDING = "holding"  # no valid goal: hover in place
     RECOVERING = "recovering"  # LOST: stopped, turning to the last normal heading
+    CONFIRMING = "confirming"  # a STOP heard, not yet stable: hover, ask again on the next frame
     FINISHED = "finished"
 
 
@@ -206,6 +210,7 @@ class OnFlyPilot:
         self.latest: Observation | None = None
         self._decision_frame: str | None = None
         self._last_monitor_s = -np.inf
+        self._confirm_frame: str | None = None
         self._recovery_yaw: float | None = None
         self._face_yaw: float | None = None
         self._recovery_start_s = 0.0
@@ -270,8 +275,10 @@ class OnFlyPilot:
             self._decision_frame = obs.frame_id
             goal = self.goal_world
             self.runtime.submit(DECISION, lambda: self.decision.decide(obs, subtask, goal))
-        if not self.runtime.busy(MONITORING) and t_s - self._last_monitor_s >= self.config.monitor_period_s:
+        confirm_now = self.mode is PilotMode.CONFIRMING and obs.frame_id != self._confirm_frame
+        if not self.runtime.busy(MONITORING) and (confirm_now or t_s - self._last_monitor_s >= self.config.monitor_period_s):
             self._last_monitor_s = t_s
+            self._confirm_frame = obs.frame_id
             self.runtime.submit(MONITORING, lambda: self.monitor.assess(subtask))
 
     def _apply(self, landed: Landed, state: VehicleState) -> None:
@@ -323,6 +330,11 @@ class OnFlyPilot:
             raised[2] = self.config.goal_min_z_m
             self._event(t_s, "goal_raised", {"from_z_m": float(out.goal_world[2]), "to_z_m": float(raised[2])})
             out = replace(out, goal_world=raised)
+        if self.mode is PilotMode.CONFIRMING:
+            if out.goal_world is not None:  # kept for when the STOP is withdrawn
+                self.goal_world = np.asarray(out.goal_world, float)
+                self.goal_t_s = t_s
+            return
         if out.goal_world is None:
             # hold the last goal (it times out by itself); with no goal, at least face the
             # target the VLM pointed at, so a rejected edge-of-image target comes into view
@@ -353,7 +365,18 @@ class OnFlyPilot:
             return
         if self.mode is PilotMode.RECOVERING and out.status.value != Status.STOP.value:
             return
-        event = self.tasks.on_status(Status(out.status.value), t_s, state.p, state.yaw)
+        status = Status(out.status.value)
+        event = self.tasks.on_status(status, t_s, state.p, state.yaw)
+        if event is TaskEvent.NONE and status is Status.STOP:
+            if self.mode is not PilotMode.CONFIRMING:
+                self.mode = PilotMode.CONFIRMING
+                self._hold_p = state.p.copy()
+                self._face_yaw = None
+                self._event(t_s, "stop_heard", {"position": state.p, "stops": self.tasks.pending_stops})
+        elif event is TaskEvent.NONE and self.mode is PilotMode.CONFIRMING:
+            # CONTINUE after an unconfirmed STOP: carry on toward the freshest goal
+            self.mode = PilotMode.NAVIGATING if self.goal_world is not None else PilotMode.HOLDING
+            self._event(t_s, "stop_withdrawn", {"position": state.p})
         if event is TaskEvent.FINISHED:
             self.mode = PilotMode.FINISHED
             self._hold_p = state.p.copy()

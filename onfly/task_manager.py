@@ -73,6 +73,12 @@ class TaskManager:
         return self.subtasks[min(self.index, len(self.subtasks) - 1)]
 
     @property
+    def pending_stops(self) -> int:
+        """Consecutive STOPs heard on the current subtask that are not yet stable (0 after any
+        other status)."""
+        return self._stops
+
+    @property
     def is_last(self) -> bool:
         return self.index == len(self.subtasks) - 1
 

@@ -137,6 +137,53 @@ def test_lost_triggers_stop_and_reorient_recovery(planner):
     assert r.end_reason == "stopped" and r.metrics.success
 
 
+def test_an_unconfirmed_stop_hovers_and_asks_again_on_the_next_frame(planner):
+    # monitor: CONTINUE, then one STOP while still far from the van, then CONTINUE
+    def monitor(i, resp):
+        if i == 0:
+            return text("CONTINUE", 0.4)
+        if i == 1:
+            return text("STOP", 0.4)
+        if i == 2:
+            return text("CONTINUE", 0.4)
+        return None
+
+    backend = ScriptedVlm("perfect", monitor=monitor)
+    cfg = PilotConfig()
+    m = BackendMethod(backend, config=cfg, planner=planner)
+    world = World.from_scene("urban_block", camera=CAM)
+    trace = []
+    r = run_episode(
+        world,
+        m,
+        instruction="Fly over to the red van and stop right next to it.",
+        goal=RED_VAN,
+        reference_path_m=10.0,
+        seed=0,
+        error_model="test",
+        config=SHORT,
+        observer=lambda s: trace.append((s.t_s, s.state.p.copy(), s.state.v.copy(), s.method.pilot.mode)),
+    )
+    ev = {}
+    for e in m.pilot.events:
+        ev.setdefault(e.kind, e)  # the first of each kind
+    heard, withdrawn = ev["stop_heard"].t_s, ev["stop_withdrawn"].t_s
+    monitors = [e.t_s for e in m.pilot.events if e.kind == "monitor"]
+    # the confirming call went out on the next frame (0.5 s period here), not 2 s later
+    assert withdrawn - heard < cfg.monitor_period_s
+    assert monitors[2] - monitors[1] < cfg.monitor_period_s
+    # while confirming, the vehicle brakes and stays near where it heard the STOP
+    hold = np.asarray(ev["stop_heard"].data["position"])
+    confirming = [(p, v, mode) for t, p, v, mode in trace if heard < t < withdrawn]
+    # (a status lands between ticks and is applied at the next one)
+    assert len(confirming) >= 2 and all(mode is PilotMode.CONFIRMING for _, _, mode in confirming[:-1])
+    assert max(np.linalg.norm(p - hold) for p, _, _ in confirming) < 1.0
+    assert np.linalg.norm(confirming[-1][1]) < np.linalg.norm(confirming[0][1])
+    # the withdrawn STOP changed nothing else: the task still ends on a stable STOP at the van
+    assert r.end_reason == "stopped" and r.metrics.success
+    assert m.pilot.tasks.index == 0
+
+
 @pytest.mark.parametrize("fault", ["timeout", "garbage"])
 def test_vlm_faults_never_stop_the_planner_or_crash_the_pilot(planner, fault):
     bad = timeout(2.0) if fault == "timeout" else text("I think the van is over there, maybe left? ```", 0.8)
