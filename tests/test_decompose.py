@@ -10,6 +10,7 @@ import pytest
 from vlm.decompose import (
     CONNECTIVE_WORDS,
     attach_back_references,
+    attach_context,
     DecompositionError,
     decompose,
     decompose_detailed,
@@ -182,3 +183,14 @@ def test_back_references_in_a_model_answer_are_attached_and_no_word_is_lost():
     assert dec.source == "vlm"
     assert dec.subtasks == ("find the blue sofa, fly up to it", "land on the roof")
     assert re.findall(r"\w+", " ".join(dec.subtasks)) == re.findall(r"\w+", "find the blue sofa fly up to it land on the roof")
+
+
+def test_a_scene_setting_statement_is_joined_to_the_subtask_after_it():
+    text = "You're at the end of the hall. Fly back past the snack machine, then stop at the blue door."
+    assert decompose(text) == ["You're at the end of the hall, Fly back past the snack machine", "stop at the blue door"]
+    # a statement with a movement verb asks for something and stays; one with nothing after it stays
+    assert attach_context(["There is a tree, fly to it", "land"]) == ("There is a tree, fly to it", "land")
+    assert attach_context(["fly to the tree", "There is a bench"]) == ("fly to the tree", "There is a bench")
+    assert attach_context(["There are two cars", "You're near the gate", "go to the gate"]) == (
+        "There are two cars, You're near the gate, go to the gate",
+    )

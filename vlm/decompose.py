@@ -37,7 +37,10 @@ one before it (``"..., go to it"``); :func:`decompose_detailed` applies it to ev
 decomposition, the model's and the fallback's. A subtask counts as a back-reference when it
 holds one of :data:`BACK_REFERENCE_WORDS` and every other word is a movement verb or a
 function word (:data:`_FILLER_WORDS`): ``go to it``, ``stop there``, ``land right next to
-it``; ``go to that door`` names a door and stays.
+it``; ``go to that door`` names a door and stays. Likewise a statement that only sets the
+scene (``You're at the end of the hall. Fly back past ...``: it opens with one of
+:data:`CONTEXT_OPENERS` and holds no movement verb) has nothing to complete; it is joined to
+the subtask after it (:func:`attach_context`).
 """
 
 from __future__ import annotations
@@ -57,6 +60,8 @@ __all__ = [
     "decompose_detailed",
     "split_instruction",
     "attach_back_references",
+    "attach_context",
+    "CONTEXT_OPENERS",
     "BACK_REFERENCE_WORDS",
     "MOVEMENT_VERBS",
     "CONNECTIVE_WORDS",
@@ -97,6 +102,8 @@ _FILLER_WORDS = frozenset(MOVEMENT_VERBS) | frozenset(
         "with", "you", "your", "its",
     }
 )  # fmt: skip
+#: openings of a statement that describes the scene instead of asking for a movement
+CONTEXT_OPENERS = ("you're", "you are", "there's", "there is", "there are", "we're", "we are", "this is")
 _WORD_RE = re.compile(r"[^\W_]+(?:'[^\W_]+)?")
 
 
@@ -177,6 +184,34 @@ def attach_back_references(subtasks: list[str] | tuple[str, ...]) -> tuple[str, 
     return tuple(out)
 
 
+def _is_context(subtask: str) -> bool:
+    low = " ".join(subtask.lower().split())
+    words = set(_WORD_RE.findall(low))
+    return any(low == o or low.startswith(o + " ") for o in CONTEXT_OPENERS) and not (words & set(MOVEMENT_VERBS))
+
+
+def attach_context(subtasks: list[str] | tuple[str, ...]) -> tuple[str, ...]:
+    """Join every scene-setting statement (module docstring) to the subtask after it.
+
+    ``["You're at the end of the hall", "Fly back past the snack machine"]`` ->
+    ``("You're at the end of the hall, Fly back past the snack machine",)``. A statement with
+    nothing after it stays; order and words are kept.
+    """
+    out: list[str] = []
+    carry: str | None = None
+    for sub in subtasks:
+        if carry is not None:
+            sub = f"{carry}, {sub}"
+            carry = None
+        if _is_context(sub):
+            carry = sub
+        else:
+            out.append(sub)
+    if carry is not None:
+        out.append(carry)
+    return tuple(out)
+
+
 def _starts_with_subordinator(clause: str) -> bool:
     """True if the current clause (since the last sentence/connective cut) opens with one."""
     low = clause.strip(_STRIP).lower()
@@ -192,12 +227,13 @@ def decompose_detailed(
     structured: bool = True,
 ) -> Decomposition:
     """Decompose with one VLM call; fall back to :func:`split_instruction` on any failure;
-    back-references are attached to their subtask (:func:`attach_back_references`) either way.
+    scene-setting statements and back-references are attached to the subtask they belong to
+    (:func:`attach_context`, :func:`attach_back_references`) either way.
 
     ``structured`` passes :func:`vlm.prompts.subtasks_schema` as ``json_schema``.
     """
     dec = _decompose_raw(_check_instruction(instruction), backend, deadline_s, max_new_tokens, structured)
-    return replace(dec, subtasks=attach_back_references(dec.subtasks))
+    return replace(dec, subtasks=attach_back_references(attach_context(dec.subtasks)))
 
 
 def _decompose_raw(
