@@ -29,12 +29,15 @@ started again skips finished episodes). With ``chunk_tasks`` the selected tasks 
 chunks that mix scenes and kinds (:func:`task_chunks`) and every method and backbone runs on
 one chunk before the next starts: a long run stopped early holds comparable rows. Episode keys do not depend on the selection, so chunked and unchunked runs
 of one config share their finished episodes. ``--from-runs DIR`` only reads finished episodes
-of such a folder tree and runs nothing; rows without episodes show ``n/a``.
+of such a folder tree and runs nothing; rows without episodes show ``n/a``. ``--methods a,b``
+runs only those rows (the backbone rows belong to ``onfly``) and reads the others from the
+folder as they are: rows whose code did not change need not run again, and row groups can run
+side by side into one folder (each episode is one appended line).
 
 Run::
 
     .venv/bin/python experiments/paper_tables.py --config experiments/configs/paper_tables_quick.toml \\
-        [--out runs/paper_quick] [--workers 2] [--json PATH] [--from-runs DIR]
+        [--out runs/paper_quick] [--workers 2] [--json PATH] [--from-runs DIR] [--methods a,b]
 """
 
 from __future__ import annotations

@@ -11,6 +11,7 @@ from experiments.paper_tables import (
     PAPER,
     PaperTablesError,
     build_tables,
+    check_methods,
     format_markdown,
     load_config,
     main,
@@ -197,3 +198,33 @@ def test_chunked_run_runs_every_backbone_per_chunk_then_the_whole_selection(tmp_
     assert walls == {"sim:nominal": 3.0, "sim:weak": 3.0, "sim:strong": 3.0}
     with pytest.raises(PaperTablesError, match="chunk_tasks must be a positive integer"):
         type(cfg)(cfg.bench, cfg.backbones, 0, cfg.source)
+
+
+def test_methods_runs_only_those_rows_and_reads_the_rest_from_the_folder(tmp_path, monkeypatch):
+    calls = []
+
+    class Res:
+        records: list = []
+        wall_s = 2.0
+
+    def fake_run_bench(bench, out, workers=None, progress=False):
+        calls.append((bench.vlm, bench.methods))
+        return Res()
+
+    monkeypatch.setattr("experiments.paper_tables.run_bench", fake_run_bench)
+    cfg = load_config(write_config(tmp_path))
+    root = tmp_path / "out"
+    write_runs(cfg, root)  # every row already finished in the folder
+    records, walls = run_all(cfg, root, progress=False, methods=["typefly", "spf"])
+    # only the main VLM runs, only those rows, in the tables' order; no backbone row
+    assert calls == [("sim:nominal", ("spf", "typefly"))]
+    assert walls == {"sim:nominal": 2.0, "sim:weak": 0.0, "sim:strong": 0.0}
+    # the tables still see every finished row of the folder
+    assert {r["method"] for r in records["sim:nominal"]} == set(cfg.main_methods)
+    assert len(records["sim:weak"]) == 2 * len(TASKS)
+    calls.clear()
+    run_all(cfg, root, progress=False, methods=["onfly"])  # the backbone method runs everywhere
+    assert sorted(calls) == [("sim:nominal", ("onfly",)), ("sim:strong", ("onfly",)), ("sim:weak", ("onfly",))]
+    with pytest.raises(PaperTablesError, match="unknown method"):
+        check_methods(cfg, ["onfly", "rt2"])
+    assert main(["--config", str(tmp_path / "pt.toml"), "--methods", "nope", "--from-runs", str(root)]) == 2
