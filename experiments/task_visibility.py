@@ -1,0 +1,148 @@
+"""Which tasks start with their goal in view, and how every method of a run does on each side.
+
+A task *starts in view* when its goal object (:func:`onfly.bench.checker.goal_target`: the
+goal object, else the last named target) has at least one pixel in the first rendered frame at
+the start pose, at the benchmark's camera (``[world]`` of the config). Where it does not, a
+method has to search: the simulated VLM then points by its documented exploration rule
+(``vlm/sim/error_model.py``), TypeFly has its ``find`` skill (turn in place), and OnFly, as in
+the paper, has no search action.
+
+With ``--runs DIR`` (a benchmark or paper-tables run folder: every ``episodes.jsonl`` below it)
+it prints, per method and error model, SR / CR over all episodes and SR on each side, with the
+failure classes of the out-of-view episodes. Records are counted as they are in the files
+(the latest record of each episode key).
+
+Run::
+
+    .venv/bin/python experiments/task_visibility.py --config experiments/configs/paper_tables.toml \\
+        [--runs runs/paper_final] [--json PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import Counter
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from onfly.bench.checker import goal_target
+from onfly.bench.runner import EPISODES_FILE, BenchConfig, read_records
+from onfly.bench.tasks import Task, load_tasks
+from onfly.world.world import World
+from planning.camera import PinholeCamera
+from planning.trajectory import VehicleState
+
+__all__ = ["starts_in_view", "split_by_view", "main"]
+
+
+def starts_in_view(tasks: Iterable[Task], camera: PinholeCamera) -> dict[str, bool]:
+    """``{task id: goal object has a pixel in the first frame at the start pose}``."""
+    out: dict[str, bool] = {}
+    for t in tasks:
+        start = VehicleState(0.0, t.start.position_m.copy(), np.zeros(3), float(t.start.yaw_rad))
+        ann = World.from_scene(t.scene, camera=camera, initial_state=start).observe().annotation
+        present = set(np.unique(ann.instance_ids).tolist())
+        name = goal_target(t)
+        out[t.task_id] = any(o.name == name and iid in present for iid, o in ann.objects.items())
+    return out
+
+
+def _latest(records: Iterable[dict]) -> list[dict]:
+    latest: dict[str, dict] = {}
+    for r in records:
+        if "metrics" in r and "key" in r:
+            latest[r["key"]] = r
+    return list(latest.values())
+
+
+def split_by_view(records: Iterable[dict], in_view: dict[str, bool]) -> list[dict]:
+    """One row per (method, error model): episodes, SR %, CR % over all episodes, SR % and
+    episodes on each side, and the failure classes of the out-of-view episodes. Records of
+    tasks missing from ``in_view`` are skipped."""
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for r in _latest(records):
+        if r.get("task") in in_view:
+            groups.setdefault((r["method"], r.get("error_model", "?")), []).append(r)
+
+    def sr(xs: list[dict]) -> float | None:
+        return 100.0 * sum(bool(x["metrics"]["success"]) for x in xs) / len(xs) if xs else None
+
+    rows = []
+    for (method, em), rs in sorted(groups.items()):
+        seen = [r for r in rs if in_view[r["task"]]]
+        hidden = [r for r in rs if not in_view[r["task"]]]
+        rows.append(
+            {
+                "method": method,
+                "error_model": em,
+                "episodes": len(rs),
+                "sr_pct": sr(rs),
+                "cr_pct": 100.0 * sum(bool(r["metrics"]["collided"]) for r in rs) / len(rs),
+                "in_view_episodes": len(seen),
+                "sr_in_view_pct": sr(seen),
+                "out_of_view_episodes": len(hidden),
+                "sr_out_of_view_pct": sr(hidden),
+                "out_of_view_failures": dict(Counter(r["failure"] for r in hidden if r.get("failure"))),
+            }
+        )
+    return rows
+
+
+def _f(x: float | None) -> str:
+    return "n/a" if x is None else f"{x:.1f}"
+
+
+def format_rows(rows: Sequence[dict]) -> str:
+    lines = [
+        "| method | error model | episodes | SR % | CR % | SR % in view (n) | SR % out of view (n) | out-of-view failures |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | --- |",
+    ]
+    for r in rows:
+        fails = ", ".join(f"{k} {v}" for k, v in sorted(r["out_of_view_failures"].items())) or "-"
+        lines.append(
+            f"| {r['method']} | {r['error_model']} | {r['episodes']} | {_f(r['sr_pct'])} | {_f(r['cr_pct'])} | "
+            f"{_f(r['sr_in_view_pct'])} ({r['in_view_episodes']}) | {_f(r['sr_out_of_view_pct'])} ({r['out_of_view_episodes']}) | {fails} |"
+        )
+    return "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--config", required=True, help="benchmark or paper-tables TOML (its [world] sets the camera)")
+    ap.add_argument("--runs", default=None, metavar="DIR", help="split the episodes of this run folder by start visibility")
+    ap.add_argument("--json", default=None, help="also write the flags (and rows) as JSON here")
+    args = ap.parse_args(argv)
+    try:
+        import tomllib
+
+        data = tomllib.loads(Path(args.config).read_text())
+        data.pop("paper_tables", None)
+        bench = BenchConfig.from_dict(data, source=args.config)
+    except (OSError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    w = bench.world_settings()
+    camera = PinholeCamera.from_fov(int(w["width_px"]), int(w["height_px"]), float(w["hfov_deg"]), float(w["vfov_deg"]))
+    flags = starts_in_view(load_tasks(bench.task_files), camera)
+    n_in = sum(flags.values())
+    print(f"{n_in} of {len(flags)} tasks start with their goal in view ({camera.width} x {camera.height} px)")
+    print("out of view: " + ", ".join(sorted(t for t, v in flags.items() if not v)))
+    out: dict = {"camera_px": [camera.width, camera.height], "in_view": flags}
+    if args.runs:
+        records = [r for p in sorted(Path(args.runs).rglob(EPISODES_FILE)) for r in read_records(p)]
+        rows = split_by_view(records, flags)
+        print()
+        print(format_rows(rows))
+        out["rows"] = rows
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
