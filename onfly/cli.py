@@ -15,11 +15,24 @@ import sys
 
 import onfly.commands
 
-__all__ = ["main", "build_parser"]
+__all__ = ["main", "build_parser", "CliError", "task_by_id"]
 
 
 class CliError(Exception):
     """A user-facing error: printed as one line, exit status 2, no traceback."""
+
+
+def task_by_id(task_id: str):
+    """The benchmark task ``task_id`` (:class:`onfly.bench.tasks.Task`), or a CliError naming
+    some valid ids."""
+    from onfly.bench.tasks import load_tasks
+
+    tasks = load_tasks()
+    for t in tasks:
+        if t.task_id == task_id:
+            return t
+    near = sorted(t.task_id for t in tasks)[:10]
+    raise CliError(f"no task {task_id!r}; some valid ids: {', '.join(near)} (all: `onfly tasks list`)")
 
 
 def _command_modules():

@@ -51,6 +51,24 @@ def clearance_along(world, positions):
     return world.collision.distance(np.asarray(positions)) if hasattr(world.collision, "distance") else None
 
 
+def fly_scripted(backend, planner, observer, config=None):
+    """Fly the red-van instruction in urban_block with an injected backend."""
+    m = BackendMethod(backend, config=config, planner=planner)
+    world = World.from_scene("urban_block", camera=CAM)
+    r = run_episode(
+        world,
+        m,
+        instruction="Fly over to the red van and stop right next to it.",
+        goal=RED_VAN,
+        reference_path_m=10.0,
+        seed=0,
+        error_model="test",
+        config=SHORT,
+        observer=observer,
+    )
+    return m, r
+
+
 def test_stop_ends_the_task_at_the_goal(planner):
     m = OnFlyMethod("sim:perfect", planner=planner)
     world, r = fly(m, "Fly over to the red van and stop right next to it.")
@@ -102,20 +120,9 @@ def test_lost_triggers_stop_and_reorient_recovery(planner):
             return text("LOST", 1.15)
         return None
 
-    backend = ScriptedVlm("perfect", monitor=monitor)
-    m = BackendMethod(backend, planner=planner)
-    world = World.from_scene("urban_block", camera=CAM)
     yaws = []
-    r = run_episode(
-        world,
-        m,
-        instruction="Fly over to the red van and stop right next to it.",
-        goal=RED_VAN,
-        reference_path_m=10.0,
-        seed=0,
-        error_model="test",
-        config=SHORT,
-        observer=lambda s: yaws.append((s.t_s, s.state.yaw, s.method.pilot.mode)),
+    m, r = fly_scripted(
+        ScriptedVlm("perfect", monitor=monitor), planner, lambda s: yaws.append((s.t_s, s.state.yaw, s.method.pilot.mode))
     )
     ev = {e.kind: e for e in m.pilot.events}
     assert "lost" in ev and "resumed" in ev
@@ -148,21 +155,13 @@ def test_an_unconfirmed_stop_hovers_and_asks_again_on_the_next_frame(planner):
             return text("CONTINUE", 0.4)
         return None
 
-    backend = ScriptedVlm("perfect", monitor=monitor)
     cfg = PilotConfig()
-    m = BackendMethod(backend, config=cfg, planner=planner)
-    world = World.from_scene("urban_block", camera=CAM)
     trace = []
-    r = run_episode(
-        world,
-        m,
-        instruction="Fly over to the red van and stop right next to it.",
-        goal=RED_VAN,
-        reference_path_m=10.0,
-        seed=0,
-        error_model="test",
-        config=SHORT,
-        observer=lambda s: trace.append((s.t_s, s.state.p.copy(), s.state.v.copy(), s.method.pilot.mode)),
+    m, r = fly_scripted(
+        ScriptedVlm("perfect", monitor=monitor),
+        planner,
+        lambda s: trace.append((s.t_s, s.state.p.copy(), s.state.v.copy(), s.method.pilot.mode)),
+        config=cfg,
     )
     ev = {}
     for e in m.pilot.events:

@@ -172,3 +172,12 @@ def test_default_model_name():
 def test_server_config_validation(kwargs, match):
     with pytest.raises(ValueError, match=match):
         ServerConfig(**kwargs)
+
+
+def test_main_reports_a_bad_backend_on_stderr_and_keeps_stdout_for_the_listening_line(capsys):
+    from vlm.server import main
+
+    assert main(["--backend", "bogus:x", "--port", "0"]) == 2
+    out, err = capsys.readouterr()
+    assert out == ""  # the first stdout line is reserved for "listening on URL"
+    assert err.startswith("error: bad VLM backend spec 'bogus:x'")

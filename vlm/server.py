@@ -40,6 +40,7 @@ import hashlib
 import io
 import json
 import logging
+import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -409,7 +410,7 @@ def main(argv: list[str] | None = None) -> int:
                               default_max_tokens=args.max_tokens, allow_faults=args.allow_faults)
         server = VlmServer(backend, config)
     except (ValueError, OSError, VlmError) as exc:
-        print(f"error: {exc}", flush=True)
+        print(f"error: {exc}", file=sys.stderr, flush=True)
         return 2
     # The first stdout line is the contract with scripts and tests that start the server.
     print(f"listening on {server.url}", flush=True)

@@ -31,7 +31,7 @@ import logging
 import sys
 from pathlib import Path
 
-from onfly.cli import CliError
+from onfly.cli import CliError, task_by_id
 
 NAME = "fly"
 HELP = "fly an instruction onboard through a MAVLink autopilot (PX4 offboard / ArduPilot guided)"
@@ -61,17 +61,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", type=Path, help="write the flight summary (failsafes, events, metrics, trace) here")
 
 
-def _task(task_id: str):
-    from onfly.bench.tasks import load_tasks
-
-    tasks = load_tasks()
-    match = [t for t in tasks if t.task_id == task_id]
-    if not match:
-        near = sorted(t.task_id for t in tasks)[:10]
-        raise CliError(f"no task {task_id!r}; some valid ids: {', '.join(near)} (all: `onfly tasks list`)")
-    return match[0]
-
-
 def run(args: argparse.Namespace) -> int:
     from onfly.mavlink.autopilot import OffboardConfig, make_session
     from onfly.mavlink.bridge import BridgeConfig, BridgeError, MavlinkBridge
@@ -83,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
     from onfly.sources.camera import CameraError, open_camera
     from vlm.factory import make_backend
 
-    task = _task(args.task) if args.task else None
+    task = task_by_id(args.task) if args.task else None
     if task is None and not args.instruction:
         raise CliError("give --instruction TEXT or --task ID")
     instruction = args.instruction or task.instruction

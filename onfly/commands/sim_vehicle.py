@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from onfly.cli import CliError
+from onfly.cli import CliError, task_by_id
 from onfly.mavlink.link import LinkError, MavlinkLink
 from onfly.mavlink.sim_vehicle import SimMavlinkVehicle, SimVehicleConfig
 
@@ -57,17 +57,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=Path, help="write the vehicle's ground truth (collisions, events, trace) here at exit")
 
 
-def _task(task_id: str):
-    from onfly.bench.tasks import load_tasks
-
-    tasks = load_tasks()
-    match = [t for t in tasks if t.task_id == task_id]
-    if not match:
-        near = sorted(t.task_id for t in tasks)[:10]
-        raise CliError(f"no task {task_id!r}; some valid ids: {', '.join(near)} (all: `onfly tasks list`)")
-    return match[0]
-
-
 def build_world_model(args: argparse.Namespace):
     """The embedded-world model of ``--scene`` / ``--task`` (None without either)."""
     if args.scene is None and args.task is None:
@@ -78,7 +67,7 @@ def build_world_model(args: argparse.Namespace):
     from onfly.world.scene import SceneFormatError
     from planning.camera import PinholeCamera
 
-    task = _task(args.task) if args.task else None
+    task = task_by_id(args.task) if args.task else None
     if task is not None and args.scene and args.scene != task.scene:
         raise CliError(f"task {task.task_id} is in scene {task.scene!r}, not {args.scene!r}")
     if args.width <= 0 or args.height <= 0:
