@@ -85,6 +85,11 @@ class PilotConfig:
     use_planner : False = goals flown in straight lines without the map (ablation)
     coord_format : how the backend writes points (``vlm.parsing.CoordFormat`` value)
     vlm_deadline_s : per-call deadline handed to the backend (None = backend default)
+    early_start : while the one-time decomposition call is in flight, run the decision agent
+        on the whole instruction and fly its verified goals (ours; the paper does not say what
+        the vehicle does meanwhile). The first subtask's own decisions replace them as soon as
+        the subtask queue exists; the monitor waits for the queue, so nothing can stop or
+        advance the task before it. False = hover until the decomposition lands
     goal_min_z_m : altitude floor for navigation goals, metres above the odometry origin (the
         ground at take-off). A level camera never sees the ground right below and ahead of the
         vehicle, and unobserved space counts as free in the ESDF, so a goal lifted from a pixel
@@ -103,6 +108,7 @@ class PilotConfig:
     use_planner: bool = True
     coord_format: str = CoordFormat.PIXEL.value
     vlm_deadline_s: float | None = None
+    early_start: bool = True
     goal_min_z_m: float | None = 0.7
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     verifier: VerifierConfig = field(default_factory=VerifierConfig)
@@ -142,7 +148,7 @@ class PilotConfig:
 
 
 class PilotMode(str, Enum):
-    STARTING = "starting"  # waiting for the decomposition and the first goal
+    STARTING = "starting"  # waiting for the first goal (and the decomposition)
     NAVIGATING = "navigating"
     HOLDING = "holding"  # no valid goal: hover in place
     RECOVERING = "recovering"  # LOST: stopped, turning to the last normal heading
@@ -209,6 +215,7 @@ class OnFlyPilot:
         self.goal_t_s = -np.inf
         self.latest: Observation | None = None
         self._decision_frame: str | None = None
+        self._speculative = False  # the goal came from a decision on the whole instruction
         self._last_monitor_s = -np.inf
         self._confirm_frame: str | None = None
         self._recovery_yaw: float | None = None
@@ -250,7 +257,7 @@ class OnFlyPilot:
             self._on_frame(obs)
         for landed in self.runtime.poll():
             self._apply(landed, state)
-        if self.mode is not PilotMode.FINISHED and self.tasks is not None:
+        if self.mode is not PilotMode.FINISHED:
             self._start_agents(t_s)
         return self._control(t_s, state)
 
@@ -261,7 +268,10 @@ class OnFlyPilot:
 
     def _start_agents(self, t_s: float) -> None:
         obs = self.latest
-        if obs is None or self.tasks is None:
+        if obs is None:
+            return
+        if self.tasks is None:
+            self._start_early_decision(obs)
             return
         subtask = self.tasks.current
         recovering = self.mode is PilotMode.RECOVERING
@@ -280,6 +290,16 @@ class OnFlyPilot:
             self._last_monitor_s = t_s
             self._confirm_frame = obs.frame_id
             self.runtime.submit(MONITORING, lambda: self.monitor.assess(subtask))
+
+    def _start_early_decision(self, obs: Observation) -> None:
+        """Before the subtask queue exists: decide on the whole instruction (``early_start``),
+        on the decision stream (the single stream in the single-stream ablation)."""
+        key = DECISION if self.config.dual_agent else SINGLE
+        if not self.config.early_start or self.runtime.busy(key) or obs.frame_id == self._decision_frame:
+            return
+        self._decision_frame = obs.frame_id
+        instruction, goal = self.instruction, self.goal_world
+        self.runtime.submit(key, lambda: self.decision.decide(obs, instruction, goal))
 
     def _apply(self, landed: Landed, state: VehicleState) -> None:
         out = landed.outcome
@@ -321,9 +341,12 @@ class OnFlyPilot:
                 "latency_s": out.latency_s,
             },
         )
-        if self.mode in (PilotMode.FINISHED, PilotMode.RECOVERING) or self.tasks is None:
+        if self.mode in (PilotMode.FINISHED, PilotMode.RECOVERING):
             return
-        if out.subtask != self.tasks.current:
+        speculative = out.subtask == self.instruction and (self.tasks is None or self._speculative)
+        if self.tasks is None and not speculative:
+            return
+        if not speculative and out.subtask != self.tasks.current:
             return  # answered about a subtask that has since advanced
         if out.goal_world is not None and self.config.goal_min_z_m is not None and out.goal_world[2] < self.config.goal_min_z_m:
             raised = np.array(out.goal_world, float)
@@ -341,6 +364,7 @@ class OnFlyPilot:
             self._face_yaw = out.pixel_yaw
             return
         self._face_yaw = None
+        self._speculative = speculative
         self.goal_world = np.asarray(out.goal_world, float)
         self.goal_t_s = t_s
         self.mode = PilotMode.NAVIGATING

@@ -76,7 +76,9 @@ def test_stop_ends_the_task_at_the_goal(planner):
     assert r.metrics.success and not r.metrics.collided
     assert r.metrics.navigation_error_m < 3.0
     kinds = [e.kind for e in m.pilot.events]
-    assert kinds[0] == "decomposition" and kinds[-1] == "finished"
+    assert kinds.count("decomposition") == 1 and kinds[-1] == "finished"
+    # nothing but early decisions before the subtask queue exists
+    assert set(kinds[: kinds.index("decomposition")]) <= {"decision"}
     # the episode ended on the monitor's second consecutive STOP
     statuses = [e.data["status"] for e in m.pilot.events if e.kind == "monitor"]
     assert statuses[-2:] == ["STOP", "STOP"]
@@ -104,7 +106,7 @@ def test_multi_subtask_instruction_advances_subtask_by_subtask(planner):
     # decisions asked about subtask 0 until the advance, about subtask 1 after it
     t_adv = advanced[0].t_s
     for e in p.events:
-        if e.kind == "decision":
+        if e.kind == "decision" and e.data["subtask"] != p.instruction:  # early decisions: whole instruction
             expect = p.tasks.subtasks[0] if e.t_s <= t_adv else p.tasks.subtasks[1]
             if e.t_s > t_adv + 1.0 or e.t_s < t_adv - 1.0:
                 assert e.data["subtask"] == expect
@@ -253,10 +255,44 @@ def test_ablation_configs_and_validation():
 
 def test_single_stream_pays_both_latencies(planner):
     m = OnFlyMethod("sim:perfect", ablation_config("onfly_no_dual_agent"), planner=planner)
-    world, r = fly(m, "Fly over to the red van and stop right next to it.", config=EpisodeConfig(time_limit_s=8.0))
-    assert r.vlm_calls.get("single", 0) >= 2 and "decision" not in r.vlm_calls
-    per_call = r.vlm_charged_s["single"] / r.vlm_calls["single"]
-    assert per_call > 0.81 + 1.0  # a decision and a monitoring answer in each call
+    world, r = fly(m, "Fly over to the red van and stop right next to it.", config=EpisodeConfig(time_limit_s=10.0))
+    assert "decision" not in r.vlm_calls and "monitoring" not in r.vlm_calls
+    # before the decomposition lands the one stream only decides (early start); after it,
+    # every call on the stream carries a decision and a monitoring answer
+    early = [e for e in m.pilot.events if e.kind == "decision" and e.data["subtask"] == m.pilot.instruction]
+    full = [e for e in m.pilot.events if e.kind == "monitor"]
+    assert len(early) >= 2 and len(full) >= 2
+    assert r.vlm_calls["single"] in (len(early) + len(full), len(early) + len(full) + 1)  # + one in flight
+    per_full_call = (r.vlm_charged_s["single"] - 0.81 * len(early)) / (r.vlm_calls["single"] - len(early))
+    assert per_full_call == pytest.approx(0.81 + 1.98, abs=0.85)  # both latencies (monitor 1.15-1.98 s)
+    assert per_full_call > 0.81 + 1.15 - 1e-9
+
+
+@pytest.mark.parametrize("early_start", [True, False])
+def test_early_start_flies_before_the_decomposition_lands(planner, early_start):
+    trace = []
+    m = OnFlyMethod("sim:perfect", PilotConfig(early_start=early_start), planner=planner)
+    world = World.from_scene("urban_block", camera=CAM)
+    r = run_episode(
+        world, m, instruction="Fly over to the red van and stop right next to it.", goal=RED_VAN, reference_path_m=10.0,
+        seed=0, error_model="test", config=SHORT,
+        observer=lambda s: trace.append((s.t_s, float(np.linalg.norm(s.state.v)), s.method.pilot.tasks is None)),
+    )
+    p = m.pilot
+    t_dec = next(e.t_s for e in p.events if e.kind == "decomposition")
+    assert t_dec == pytest.approx(3.0, abs=0.11)  # the modelled decomposition latency
+    before = [e for e in p.events if e.t_s < t_dec]
+    speeds_before = [v for t, v, no_queue in trace if no_queue]
+    assert speeds_before
+    if early_start:
+        # decisions on the whole instruction, verified goals flown; no monitoring without a queue
+        assert len(before) >= 2 and all(e.kind == "decision" and e.data["subtask"] == p.instruction for e in before)
+        assert max(speeds_before) > 0.5
+    else:
+        assert before == [] and max(speeds_before) < 1e-6
+    # the first subtask's own decisions took over, and the task still ends at the van
+    assert any(e.kind == "decision" and e.data["subtask"] == p.tasks.subtasks[0] for e in p.events)
+    assert r.end_reason == "stopped" and r.metrics.success and not r.metrics.collided
 
 
 def test_summary_counts_moved_goals_and_survives_missing_shifts():
