@@ -7,7 +7,9 @@ One :meth:`OnFlyPilot.tick` per control period (0.1 s by default):
    logged and ignored when it failed); a monitoring status feeds the task manager
    (stable STOP advances or finishes; LOST starts the stop-and-reorient recovery);
 3. idle agents are started when due: the decision agent as soon as its last call landed and a
-   new frame exists (high rate), the monitoring agent every ``monitor_period_s``;
+   new frame exists (high rate), the monitoring agent every ``monitor_period_s``; before the
+   one-time decomposition has landed only the decision agent runs, on the whole instruction
+   (``early_start``), so the vehicle does not hover through that call;
 4. the planner runs on the latest verified goal, whatever the agents are doing.
 
 Safety rules the loop keeps: no goal yet, a goal older than ``goal_timeout_s`` without a fresh
