@@ -399,6 +399,12 @@ class OnFlyPilot:
                 self._hold_p = state.p.copy()
                 self._face_yaw = None
                 self._event(t_s, "stop_heard", {"position": state.p, "stops": self.tasks.pending_stops})
+        elif event is TaskEvent.NONE and status is Status.LOST:
+            # already recovered toward this normal point (TaskManager): keep navigating
+            self._event(t_s, "lost_repeated", {"position": state.p})
+            if self.mode is PilotMode.CONFIRMING:
+                self.mode = PilotMode.NAVIGATING if self.goal_world is not None else PilotMode.HOLDING
+                self._event(t_s, "stop_withdrawn", {"position": state.p})
         elif event is TaskEvent.NONE and self.mode is PilotMode.CONFIRMING:
             # CONTINUE after an unconfirmed STOP: carry on toward the freshest goal
             self.mode = PilotMode.NAVIGATING if self.goal_world is not None else PilotMode.HOLDING

@@ -4,6 +4,13 @@ The instruction is decomposed once when it arrives (``vlm.decompose``); the mana
 holds the current subtask, counts consecutive STOPs (a *stable* STOP advances), ends the
 episode on the last subtask's stable STOP, and records the last *normal* point (the pose at
 the most recent CONTINUE) that LOST recovery turns back to.
+
+One recovery per normal point (ours; the paper says only "stop, then reorient to the heading of
+the last normal point"): a LOST after which no CONTINUE has given a new normal point, and the
+subtask has not advanced, changes nothing. Turning again to the heading the vehicle has already
+turned to cannot help, and in closed loop a monitor that keeps answering LOST (the target was
+seen earlier in the memory, not now) otherwise stops the vehicle every monitoring period and
+starves navigation for the rest of the episode.
 """
 
 from __future__ import annotations
@@ -31,7 +38,7 @@ class Status(str, Enum):
 class TaskEvent(str, Enum):
     """What a status did to the task."""
 
-    NONE = "none"  # CONTINUE, or a STOP not yet stable
+    NONE = "none"  # CONTINUE, a STOP not yet stable, or a LOST with no new normal point
     ADVANCED = "advanced"  # stable STOP on a non-final subtask: the next one is current
     FINISHED = "finished"  # stable STOP on the last subtask: the episode ends
     LOST = "lost"  # recovery: stop, turn to the last normal heading, resume
@@ -65,6 +72,7 @@ class TaskManager:
         self.finished = False
         self._stops = 0
         self.last_normal: _NormalPoint | None = None
+        self._recovered = False  # a recovery was started since the last normal point / advance
         self.history: list[tuple[float, int, Status, TaskEvent]] = []
 
     @property
@@ -90,6 +98,7 @@ class TaskManager:
         event = TaskEvent.NONE
         if status is Status.CONTINUE:
             self._stops = 0
+            self._recovered = False
             self.last_normal = _NormalPoint(float(t_s), np.asarray(position, float).copy(), float(yaw))
         elif status is Status.STOP:
             self._stops += 1
@@ -103,10 +112,13 @@ class TaskManager:
                     # a normal point belongs to its subtask: recovery never turns back
                     # toward the previous subtask's target
                     self.last_normal = None
+                    self._recovered = False
                     event = TaskEvent.ADVANCED
         else:
             self._stops = 0
-            event = TaskEvent.LOST
+            if not self._recovered:  # one recovery per normal point (module docstring)
+                self._recovered = True
+                event = TaskEvent.LOST
         self.history.append((float(t_s), self.index, status, event))
         return event
 

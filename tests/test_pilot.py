@@ -146,6 +146,24 @@ def test_lost_triggers_stop_and_reorient_recovery(planner):
     assert r.end_reason == "stopped" and r.metrics.success
 
 
+def test_a_monitor_that_keeps_answering_lost_stops_the_vehicle_once(planner):
+    # monitor: two CONTINUEs, then LOST for the rest of the episode (the target was seen in
+    # an earlier frame of the memory, not now): one recovery, then the vehicle flies on
+    def monitor(i, resp):
+        return text("CONTINUE", 1.15) if i < 2 else text("LOST", 1.15)
+
+    trace = []
+    m, r = fly_scripted(ScriptedVlm("perfect", monitor=monitor), planner, lambda s: trace.append((s.t_s, s.state.p.copy())))
+    kinds = [e.kind for e in m.pilot.events]
+    assert kinds.count("lost") == 1 and kinds.count("resumed") == 1
+    assert kinds.count("lost_repeated") >= 5
+    t_resumed = next(e.t_s for e in m.pilot.events if e.kind == "resumed")
+    after = np.array([p for t, p in trace if t > t_resumed])
+    # it keeps flying toward the van instead of braking every monitoring period
+    assert np.linalg.norm(after[-1] - after[0]) > 4.0
+    assert not r.metrics.collided
+
+
 def test_an_unconfirmed_stop_hovers_and_asks_again_on_the_next_frame(planner):
     # monitor: CONTINUE, then one STOP while still far from the van, then CONTINUE
     def monitor(i, resp):

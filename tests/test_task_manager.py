@@ -44,6 +44,34 @@ def test_normal_point_belongs_to_its_subtask():
     assert tm.recovery_yaw(-0.5) == -0.5  # no normal point in subtask "b" yet: just stop
 
 
+def test_one_recovery_per_normal_point():
+    tm = TaskManager(["a", "b"], stop_confirmations=1)
+    p = [0, 0, 1]
+    assert tm.on_status("LOST", 0, p, 0.3) is TaskEvent.LOST  # no normal point yet: stop once
+    assert tm.on_status("LOST", 2, p, 0.3) is TaskEvent.NONE
+    tm.on_status("CONTINUE", 4, p, 1.0)
+    assert tm.on_status("LOST", 6, p, 0.0) is TaskEvent.LOST
+    # LOST again and again at the same normal point: nothing to recover to that was not tried
+    assert [tm.on_status("LOST", t, p, 0.0) for t in (8, 10, 12)] == [TaskEvent.NONE] * 3
+    assert tm.recovery_yaw(0.0) == pytest.approx(1.0)
+    tm.on_status("CONTINUE", 14, p, 2.0)  # a new normal point re-arms recovery
+    assert tm.on_status("LOST", 16, p, 0.0) is TaskEvent.LOST
+    assert tm.on_status("STOP", 18, p, 0.0) is TaskEvent.ADVANCED
+    assert tm.on_status("LOST", 20, p, 0.0) is TaskEvent.LOST  # a new subtask re-arms it too
+    assert tm.on_status("LOST", 22, p, 0.0) is TaskEvent.NONE
+    events = [e for *_, e in tm.history]
+    assert events.count(TaskEvent.LOST) == 4
+
+
+def test_repeated_lost_resets_pending_stops():
+    tm = TaskManager(["a"], stop_confirmations=2)
+    tm.on_status("LOST", 0, [0, 0, 0], 0)
+    tm.on_status("STOP", 1, [0, 0, 0], 0)
+    assert tm.on_status("LOST", 2, [0, 0, 0], 0) is TaskEvent.NONE
+    assert tm.pending_stops == 0
+    assert tm.on_status("STOP", 3, [0, 0, 0], 0) is TaskEvent.NONE and not tm.finished
+
+
 def test_invalid_input():
     with pytest.raises(TaskManagerError, match="non-empty"):
         TaskManager([])
