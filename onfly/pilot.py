@@ -399,16 +399,14 @@ class OnFlyPilot:
                 self._hold_p = state.p.copy()
                 self._face_yaw = None
                 self._event(t_s, "stop_heard", {"position": state.p, "stops": self.tasks.pending_stops})
-        elif event is TaskEvent.NONE and status is Status.LOST:
-            # already recovered toward this normal point (TaskManager): keep navigating
-            self._event(t_s, "lost_repeated", {"position": state.p})
+        elif event is TaskEvent.NONE:
+            if status is Status.LOST:  # already recovered toward this normal point: fly on
+                self._event(t_s, "lost_repeated", {"position": state.p})
             if self.mode is PilotMode.CONFIRMING:
+                # CONTINUE (or a repeated LOST) after an unconfirmed STOP: carry on toward the
+                # freshest goal
                 self.mode = PilotMode.NAVIGATING if self.goal_world is not None else PilotMode.HOLDING
                 self._event(t_s, "stop_withdrawn", {"position": state.p})
-        elif event is TaskEvent.NONE and self.mode is PilotMode.CONFIRMING:
-            # CONTINUE after an unconfirmed STOP: carry on toward the freshest goal
-            self.mode = PilotMode.NAVIGATING if self.goal_world is not None else PilotMode.HOLDING
-            self._event(t_s, "stop_withdrawn", {"position": state.p})
         if event is TaskEvent.FINISHED:
             self.mode = PilotMode.FINISHED
             self._hold_p = state.p.copy()
