@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -13,6 +14,7 @@ from vlm.parsing import (
     MAX_TEXT_CHARS,
     CoordFormat,
     MonitorStatus,
+    PointOutcome,
     parse_point,
     parse_point_depth,
     parse_status,
@@ -82,7 +84,7 @@ def test_point_corpus(text, kwargs, expected):
 # near misses that must fail, with a fragment of the reason
 POINT_FAILURES = [
     ("", "no point"),
-    ("I cannot see the target.", "no point"),
+    ("I cannot determine a point in this image.", "no point"),
     ("The target is slightly to the left of the centre.", "no point"),
     ('{"point_2d": [320, ', "no point"),  # truncated
     ('{"point_2d": "left"}', "not a pair"),
@@ -260,6 +262,99 @@ def test_subtasks_failures(text, reason):
 
 
 # ---------------------------------------------------------------------------------------------
+# "not visible": a third outcome, distinct from a point and from a failure
+
+# (text, kwargs) -- every answer format the parsers accept, saying the target is not visible
+NOT_VISIBLE_CORPUS = [
+    # our prompt's contract (decision/v2) and its structured-output schema
+    ('{"target_visible": false, "point_2d": null}', {}),
+    ('{"target_visible":false,"point_2d":null}', {}),
+    ('```json\n{"target_visible": false, "point_2d": null}\n```', {}),
+    ('The van is out of the picture. {"target_visible": false, "point_2d": null}', {}),
+    # the flag wins over a point in the same object (the model says it is not on the target)
+    ('{"target_visible": false, "point_2d": [320, 240]}', {}),
+    ('{"visible": false}', {}),
+    ('[{"visible": false, "label": "red van"}]', {}),
+    # the same in every coordinate system and axis order (the flag has no coordinates)
+    ('{"target_visible": false, "point_2d": null}', {"coord_format": "rel1000"}),
+    ('{"target_visible": false, "point_2d": null}', {"coord_format": "resized_pixel", "model_input_size": (448, 336)}),
+    ('{"target_visible": false, "point_2d": null}', {"order": "yx"}),
+    ('{"target_visible": false, "bbox_2d": [1, 2, 3, 4]}', {"coord_format": "rel1000"}),
+    # plain text, no point anywhere
+    ("NOT_VISIBLE", {}),
+    ("not visible", {}),
+    ("Not-visible.", {}),
+    ("The red van is not visible in this image.", {}),
+    ("I cannot see the target.", {}),
+    ("I can't see a fuel pump here.", {}),
+    ("I don't see the gate.", {}),
+    ("The gate is not in view.", {}),
+    ("The clock is out of sight.", {}),
+    ("**NOT_VISIBLE**", {"coord_format": "rel1000", "order": "yx"}),
+]
+
+
+@pytest.mark.parametrize("text,kwargs", NOT_VISIBLE_CORPUS)
+def test_not_visible_corpus(text, kwargs):
+    res = parse_point(text, (W, H), **kwargs)
+    assert res.not_visible and not res.ok and res.uv is None and res.candidates == ()
+    assert res.outcome is PointOutcome.NOT_VISIBLE
+    assert res.reason == "target not visible" and res.raw == text
+
+
+# neither a point nor "not visible": a failure with not_visible False
+NOT_VISIBLE_FAILURES = [
+    ('{"target_visible": fal', "no point"),  # truncated
+    ('{"target_visible": false, "point_2d": nu', "no point"),  # truncated
+    ('{"target_visible": "false", "point_2d": null}', "not a JSON boolean"),  # a string is not the flag
+    ('{"target_visible": 0, "point_2d": null}', "not a JSON boolean"),
+    ('{"target_visible": "true", "point_2d": [3, 4]}', "not a JSON boolean"),
+    ('{"visible": null, "point_2d": [3, 4]}', "not a JSON boolean"),
+    ('{"point_2d": null}', "not a pair"),  # no flag
+    ('{"target_visible": true, "point_2d": null}', "not a pair"),
+    ('{"target_visible": true}', "no point"),
+    ("[]", "no point"),
+    ("NOT_VIS", "no point"),
+    ("notvisible", "no point"),
+    ("The target is visible.", "no point"),
+    ("I can see the target.", "no point"),
+    ("invisible", "no point"),
+    # a point and a statement that the target is not visible: contradictory, refused
+    ("The van is not visible; exploring toward (320, 240).", "ambiguous"),
+    ('I cannot see it. {"point_2d": [320, 240]}', "ambiguous"),
+    ('<point x="10" y="20">not visible</point>', "ambiguous"),
+]
+
+
+@pytest.mark.parametrize("text,reason", NOT_VISIBLE_FAILURES)
+def test_not_visible_near_misses_are_failures(text, reason):
+    res = parse_point(text, (W, H))
+    assert not res.ok and not res.not_visible and res.uv is None
+    assert res.outcome is PointOutcome.FAILED
+    assert reason in res.reason
+
+
+def test_points_read_as_before_with_or_without_the_flag():
+    for text in ('{"target_visible": true, "point_2d": [320, 240]}', '{"point_2d": [320, 240]}',
+                 '[{"point_2d": [320, 240], "label": "van", "visible": true}]'):  # fmt: skip
+        res = parse_point(text, (W, H))
+        assert res.ok and res.uv == (320, 240) and not res.not_visible
+        assert res.outcome is PointOutcome.POINT
+    # a flag in another JSON value than the point, in either order, or one the JSON reader
+    # cannot read (Python literals): contradictory, refused
+    for text in ('{"point_2d": [1, 2]} {"target_visible": false}', '{"target_visible": false} {"point_2d": [1, 2]}',
+                 "{'target_visible': False, 'point_2d': [1, 2]}", '{"target_visible": False, "point_2d": [1, 2]}'):  # fmt: skip
+        res = parse_point(text, (W, H))
+        assert res.outcome is PointOutcome.FAILED and "ambiguous" in res.reason
+    assert parse_point('{"target_visible": False, "point_2d": None}', (W, H)).outcome is PointOutcome.FAILED
+
+
+def test_not_visible_is_not_a_point_for_point_depth():
+    res = parse_point_depth('{"target_visible": false, "point_2d": null, "depth": 3}', (W, H))
+    assert not res.ok and res.uv is None
+
+
+# ---------------------------------------------------------------------------------------------
 # fuzzing: total functions, never a pixel outside the image
 
 _num = st.one_of(
@@ -320,8 +415,43 @@ def test_fuzz_parse_point_never_raises_and_stays_inside(text, size, fmt, order, 
         assert res.uv == res.candidates[0]
     else:
         assert res.uv is None and res.reason
+    assert not (res.ok and res.not_visible)
+    if res.not_visible:  # only ever from an explicit statement
+        assert re.search(r"visible|see|view|sight|image|frame", text, re.IGNORECASE)
     for u, v in res.candidates:
         assert 0.0 <= u <= w - 1 and 0.0 <= v <= h - 1
+
+
+_flag_shapes = st.sampled_from(
+    [
+        '{{"target_visible": {f}, "point_2d": {p}}}',
+        '{{"visible": {f}}}',
+        '[{{"target_visible": {f}, "point_2d": {p}}}]',
+        "```json\n{{\"target_visible\": {f}, \"point_2d\": {p}}}\n```",
+    ]
+)
+
+
+@settings(max_examples=1500, deadline=None)
+@given(shape=_flag_shapes, flag=st.sampled_from(["false", "true", '"false"', "0", "null", "False", "no"]),
+       point=st.sampled_from(["null", "[3, 4]", "[3]", '"here"', "[9999, 4]"]), cut=st.integers(0, 200),
+       truncate=st.booleans(), size=_size)  # fmt: skip
+def test_fuzz_not_visible_only_from_a_whole_false_flag(shape, flag, point, cut, truncate, size):
+    """Damaged flag answers: "not visible" only when a complete JSON object carries the JSON
+    boolean false; truncated or mistyped flags are failures (or a point, for a true flag)."""
+    text = shape.format(f=flag, p=point)
+    if truncate:
+        text = text[:cut]
+    res = parse_point(text, size)
+    try:
+        decoded = json.loads(text.removeprefix("```json\n").removesuffix("\n```"))
+    except ValueError:
+        decoded = None
+    obj = decoded[0] if isinstance(decoded, list) and decoded else decoded
+    whole_false = isinstance(obj, dict) and any(obj.get(k) is False for k in ("target_visible", "visible"))
+    assert res.not_visible == whole_false
+    if res.ok:  # a point only under a true flag, or where the flag's value was cut off
+        assert flag == "true" or not re.search(r'visible"\s*:\s*\S', text)
 
 
 @settings(max_examples=1500, deadline=None)

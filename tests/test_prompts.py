@@ -37,7 +37,7 @@ from vlm.types import ChatMessage, VlmImage
 # Editing a template's text without a new version breaks this test on purpose: a logged
 # version must name one exact text. Bump "## version:" in the file and update the pin.
 PINNED = {
-    "decision": ("decision/v1", "043a999f64cf635141b022af3ca0c480178e5f948edbe0a5685404fd51d6f202"),
+    "decision": ("decision/v2", "c21177675bd1af0a03114801867d6506a0118676f7a52b068b0d08e2a72ab022"),
     "monitor": ("monitor/v1", "070bfc0058f6949d6d1c8db906a152960c9e017c4133cc56d078b41ec3a533d0"),
     "decompose": ("decompose/v1", "531dcedca5041025b19524364a85a208ff85a9b1c8c2bf4598b36aff21d5aa4c"),
     "typefly": ("typefly/v1", "91e40abda5ab5999748b97cba358b7ca2d18629e22d4c1efcc17ebc8aa72a563"),
@@ -67,11 +67,15 @@ def test_decision_prompt_content_and_round_trip():
     assert images[0].frame_id == "f7"
     assert count_placeholders(messages) == len(images) == 1
     system, user = messages[0].content, messages[1].content
-    assert "decision agent" in system and '{"point_2d": [x, y]}' in system and "integer pixel" in system
+    assert "decision agent" in system and '"point_2d": [x, y]}' in system and "integer pixel" in system
+    # decision/v2: "not visible" is an answer the model is offered, in the form the parser reads
+    assert '{"target_visible": false, "point_2d": null}' in system
+    assert parse_point('{"target_visible": false, "point_2d": null}', (640, 480)).not_visible
+    assert parse_point('{"target_visible": true, "point_2d": [3, 4]}', (640, 480)).uv == (3, 4)
     # subtask before the image (stable within a subtask), history point after it
     assert user.index("Current subtask: fly to the red van") < user.index(IMAGE_PLACEHOLDER) < user.index("History point: (412, 234)")
     assert "640 x 480 pixels" in user
-    assert parse_prompt(messages) == DecisionPrompt("decision/v1", "fly to the red van", (640, 480), (412, 234))
+    assert parse_prompt(messages) == DecisionPrompt("decision/v2", "fly to the red van", (640, 480), (412, 234))
 
 
 def test_decision_prompt_without_history_and_bad_history():
@@ -90,12 +94,20 @@ def test_decision_prompt_without_history_and_bad_history():
 
 def test_decision_schema_accepts_what_the_parser_reads():
     schema = decision_schema()
-    assert schema["required"] == ["point_2d"]
-    assert schema["properties"]["point_2d"]["minItems"] == 2 == schema["properties"]["point_2d"]["maxItems"]
+    assert schema["required"] == ["target_visible", "point_2d"]
+    assert list(schema["properties"]) == ["target_visible", "point_2d"]  # the flag is decoded first
+    assert schema["additionalProperties"] is False
+    point, null = schema["properties"]["point_2d"]["anyOf"]
+    assert point["minItems"] == 2 == point["maxItems"] and null == {"type": "null"}
     assert decision_schema() is not schema  # fresh dicts, callers may mutate
     assert status_schema()["properties"]["status"]["enum"] == ["CONTINUE", "STOP", "LOST"]
     assert subtasks_schema()["minItems"] == 1
-    assert parse_point('{"point_2d": [3, 4]}', (64, 48)).uv == (3, 4)
+    # every answer the schema allows is a point or "not visible", never a parse failure
+    # (when the point is inside the image), and the flag decides
+    assert parse_point('{"target_visible": true, "point_2d": [3, 4]}', (64, 48)).uv == (3, 4)
+    assert parse_point('{"target_visible": false, "point_2d": null}', (64, 48)).not_visible
+    assert parse_point('{"target_visible": false, "point_2d": [3, 4]}', (64, 48)).not_visible
+    assert parse_point('{"point_2d": [3, 4]}', (64, 48)).uv == (3, 4)  # decision/v1 answers still read
 
 
 def test_monitor_prompt_order_first_keyframes_latest():

@@ -45,6 +45,37 @@ first and last pixel centres); pixel formats use the centre-preserving scale
 pixel. Hence a returned ``uv`` always satisfies ``0 <= u <= W - 1`` and ``0 <= v <= H - 1``,
 and ``round(uv)`` is a valid pixel index.
 
+"Not visible"
+-------------
+The decision prompt lets the model answer that the subtask's target is not visible instead of
+pointing. :func:`parse_point` returns such an answer as ``ok=False, uv=None,
+not_visible=True`` (``outcome`` :attr:`PointOutcome.NOT_VISIBLE`), distinct from a parse
+failure (``not_visible=False``, ``outcome`` :attr:`PointOutcome.FAILED`) and from a point
+(``ok=True``, :attr:`PointOutcome.POINT`); callers that only read ``ok`` treat it like a
+failure (hold the last goal). Accepted forms, and nothing else:
+
+1. JSON (any syntax position of rule 1 above, fences and prose around it ignored): an object
+   with ``"target_visible": false`` or ``"visible": false`` (a JSON boolean; strings such as
+   ``"false"`` do not count, and make the object a failure). The flag is the model's statement and wins over a point in the
+   same object (``{"target_visible": false, "point_2d": [3, 4]}`` is not visible: a point the
+   model says is not on the target is not a target point). ``"target_visible": true`` with a
+   point is a point; with ``"point_2d": null`` or no point it is a failure.
+2. Plain text with no point in any syntax and a whole-word statement: ``NOT_VISIBLE`` /
+   ``not visible`` (any case, ``_``, ``-`` or a space between), ``cannot see`` / ``can't see`` /
+   ``can not see`` / ``do not see`` / ``don't see`` / ``does not see`` / ``doesn't see``,
+   ``not in view`` / ``not in the image`` / ``not in the frame``, ``out of view`` / ``out of
+   sight``.
+
+A point next to a statement that the target is not visible *outside the point's own object*
+is refused as ambiguous (the model both pointed and said it cannot see the target): prose
+(``not visible ... (320, 240)``), a false flag in another JSON value (either order), or a false
+flag the JSON reader could not read (``{'visible': False, 'point_2d': [3, 4]}``, Python
+literals; such a flag alone is a failure, never "not visible"). A flag that is neither JSON
+``true`` nor ``false`` (``"false"``, ``0``, ``null``) makes its object a failure.
+
+Truncated JSON never counts (``{"target_visible": fal`` decodes as nothing and has no statement
+of rule 2), nor does a bare ``{"point_2d": null}`` or an empty list.
+
 Statuses
 --------
 :func:`parse_status` finds the status words CONTINUE / STOP / LOST as whole words, ignoring
@@ -65,6 +96,7 @@ from typing import Any, Iterator
 
 __all__ = [
     "CoordFormat",
+    "PointOutcome",
     "MonitorStatus",
     "PointParse",
     "PointDepthParse",
@@ -98,6 +130,14 @@ class CoordFormat(str, Enum):
 _REL_RANGE = {CoordFormat.REL1000: 1000.0, CoordFormat.REL100: 100.0, CoordFormat.REL1: 1.0}
 
 
+class PointOutcome(str, Enum):
+    """What a pointing answer said: a point, "the target is not visible", or nothing readable."""
+
+    POINT = "point"
+    NOT_VISIBLE = "not_visible"
+    FAILED = "failed"
+
+
 class MonitorStatus(str, Enum):
     """The monitoring agent's forced choice."""
 
@@ -112,12 +152,16 @@ class PointParse:
 
     Attributes
     ----------
-    ok : bool
+    ok : bool, a point was read (``uv`` is set)
     uv : (u, v) floats in pixels of the original image (centre convention), or None
     candidates : tuple of (u, v), every valid point of the winning syntax, in text order
     raw : str, the text as received
-    reason : str, why parsing failed ("" when ok)
-    source : str, which syntax matched (e.g. ``"json:point_2d"``, ``"xml:points"``)
+    reason : str, why no point was read ("" when ok; ``"target not visible"`` when
+        ``not_visible``)
+    source : str, which syntax matched (e.g. ``"json:point_2d"``, ``"xml:points"``,
+        ``"json:target_visible"``, ``"prose:not_visible"``)
+    not_visible : bool, the model answered that the target is not visible (then ``ok`` is
+        False and ``uv`` None); never True for a parse failure
     """
 
     ok: bool
@@ -126,6 +170,14 @@ class PointParse:
     raw: str
     reason: str = ""
     source: str = ""
+    not_visible: bool = False
+
+    @property
+    def outcome(self) -> PointOutcome:
+        """:attr:`PointOutcome.POINT`, :attr:`~PointOutcome.NOT_VISIBLE` or :attr:`~PointOutcome.FAILED`."""
+        if self.ok:
+            return PointOutcome.POINT
+        return PointOutcome.NOT_VISIBLE if self.not_visible else PointOutcome.FAILED
 
 
 @dataclass(frozen=True)
@@ -249,6 +301,10 @@ def _numbers(value: Any, n: int) -> list[float] | None:
 # JSON extraction
 
 _POINT_KEYS = ("point_2d", "point", "points")
+#: keys of an explicit visibility flag (a JSON boolean; false = the target is not visible)
+_VISIBLE_KEYS = ("target_visible", "visible")
+#: the marker :func:`_points_in_json` yields for an object flagged not visible
+_NOT_VISIBLE = "\x00not_visible"
 _BOX_KEYS = ("bbox_2d", "bbox", "box_2d")
 
 
@@ -280,6 +336,10 @@ def _points_in_json(value: Any, frame: _Frame, depth: int = 0) -> Iterator[tuple
     if depth > 8:
         return
     if isinstance(value, dict):
+        for key in _VISIBLE_KEYS:
+            if key in value and value[key] is not True:
+                yield f"json:{key}", _NOT_VISIBLE if value[key] is False else f"{key} is not a JSON boolean"
+                return
         for key in _POINT_KEYS:
             if key in value:
                 yield from _pairs(value[key], frame, f"json:{key}")
@@ -347,6 +407,17 @@ _PROSE_YX_RE = re.compile(
 )
 _TUPLE_RE = re.compile(r"\(\s*(" + _NUM + r")\s*,\s*(" + _NUM + r")\s*\)")
 _BODY_PAIR_RE = re.compile(r"^[\s(\[]*(" + _NUM + r")\s*[,\s]\s*(" + _NUM + r")[\s)\]]*$")
+
+
+_NOT_VISIBLE_RE = re.compile(
+    r"(?<![A-Za-z0-9])(?:not[ _-]visible|(?:cannot|can ?not|can'?t|can\u2019t|do not|don'?t|don\u2019t|does not|doesn'?t"
+    r"|doesn\u2019t) see|not in (?:the )?(?:view|image|frame)|out of (?:view|sight))(?![A-Za-z0-9])",
+    re.IGNORECASE,
+)
+
+
+_FLAG_FALSE_RE = re.compile(r"""\b(?:target_)?visible["']?\s*[:=]\s*(?!(?:true|True|TRUE)\b)\S""")
+_AMBIGUOUS = "ambiguous: a point and a statement that the target is not visible"
 
 
 def _float(s: str) -> float:
@@ -435,15 +506,27 @@ def parse_point(
         return _fail(raw, frame)
     if len(text) > MAX_TEXT_CHARS:
         return _fail(raw, f"text longer than {MAX_TEXT_CHARS} characters")
+    says_not_visible = _NOT_VISIBLE_RE.search(text) is not None
+    # a flag with any value but true anywhere, also one the JSON reader could not read (Python
+    # ``False``, broken JSON): it never makes "not visible" by itself, but refuses a point
+    flags_false = _FLAG_FALSE_RE.search(text) is not None
     for extract in (_json_points, _xml_points, _box_token_points, _prose_points):
         found = extract(text, frame)
         if not found:
             continue
         source, first = found[0]
         candidates = tuple(p for _, p in found if isinstance(p, tuple))
+        if first == _NOT_VISIBLE:
+            if candidates:
+                return PointParse(False, None, candidates, raw, _AMBIGUOUS, source)
+            return PointParse(False, None, (), raw, "target not visible", source, not_visible=True)
         if isinstance(first, str):
             return PointParse(ok=False, uv=None, candidates=candidates, raw=raw, reason=f"first point: {first}", source=source)
+        if says_not_visible or flags_false:
+            return PointParse(False, None, candidates, raw, _AMBIGUOUS, source)
         return PointParse(ok=True, uv=first, candidates=candidates, raw=raw, source=source)
+    if says_not_visible:
+        return PointParse(False, None, (), raw, "target not visible", "prose:not_visible", not_visible=True)
     return _fail(raw, "no point found")
 
 

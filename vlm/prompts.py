@@ -540,13 +540,26 @@ def prompt_segments(messages: Sequence[ChatMessage], images: Sequence[VlmImage])
 
 
 def decision_schema() -> dict:
-    """Schema of the decision answer ``{"point_2d": [x, y]}`` (integer pixels)."""
+    """Schema of the decision answer (``decision/v2``): ``{"target_visible": true, "point_2d":
+    [x, y]}`` (integer pixels) or ``{"target_visible": false, "point_2d": null}``.
+
+    Both keys are required and nothing else is allowed (the form OpenAI-style ``strict``
+    structured output needs); the flag comes first, so a constrained decoder commits to
+    visibility before it writes a point. :func:`vlm.parsing.parse_point` reads a false flag as
+    ``not_visible`` whatever ``point_2d`` holds.
+    """
     return {
         "type": "object",
         "properties": {
-            "point_2d": {"type": "array", "items": {"type": "integer", "minimum": 0}, "minItems": 2, "maxItems": 2}
+            "target_visible": {"type": "boolean"},
+            "point_2d": {
+                "anyOf": [
+                    {"type": "array", "items": {"type": "integer", "minimum": 0}, "minItems": 2, "maxItems": 2},
+                    {"type": "null"},
+                ]
+            },
         },
-        "required": ["point_2d"],
+        "required": ["target_visible", "point_2d"],
         "additionalProperties": False,
     }
 
