@@ -35,6 +35,7 @@ class Obj:
     rect: tuple[int, int, int, int] | None = None  # u0, v0, u1, v1 (exclusive)
     disc: tuple[float, float, float] | None = None  # cu, cv, radius
     aliases: tuple[str, ...] = ()
+    target: bool = True
 
 
 def frame(frame_id: str, objs=(), size=(W, H), bg_depth=30.0, open_cols: tuple[int, int] | None = None, rgb_value=0) -> VlmImage:
@@ -56,7 +57,7 @@ def frame(frame_id: str, objs=(), size=(W, H), bg_depth=30.0, open_cols: tuple[i
         ids[m] = o.iid
         depth[m] = o.depth_m
     present = set(np.unique(ids).tolist())
-    objects = {o.iid: VisibleObject(o.iid, o.name, o.label, o.aliases) for o in objs if o.iid in present}
+    objects = {o.iid: VisibleObject(o.iid, o.name, o.label, o.aliases, o.target) for o in objs if o.iid in present}
     ann = FrameAnnotation(ids, depth, objects)
     return VlmImage(np.full((h, w, 3), rgb_value, np.uint8), frame_id, ann)
 
@@ -206,13 +207,14 @@ def test_perfect_points_on_the_named_target_whenever_visible():
 
 def test_hidden_target_is_never_seen():
     sim = SimulatedVlm("perfect", seed=0)
-    # the red van is behind the tree: not in the annotation at all
+    # the red van is behind the tree: not in the annotation at all -> "not visible", no invented
+    # point, with or without a history point
     hidden = frame("h1", [TREE, BLUE_VAN], open_cols=(0, 10))
     r = decide(sim, "fly to the red van", hidden)
-    assert json.loads(r.text)["point_2d"] == list(exploration_point(hidden.annotation.depth_m))
-    assert json.loads(r.text)["point_2d"][0] < 10
+    assert json.loads(r.text) == {"target_visible": False, "point_2d": None}
+    assert parse_point(r.text, hidden.size).not_visible
     r = decide(sim, "fly to the red van", hidden, history=(130.2, 70.7))
-    assert json.loads(r.text)["point_2d"] == [130, 71]
+    assert json.loads(r.text) == {"target_visible": False, "point_2d": None}
     # an annotation entry without pixels is not seen either
     stale = frame("h2", [TREE])
     ann = stale.annotation
@@ -222,6 +224,37 @@ def test_hidden_target_is_never_seen():
     near = frame("h3", [TREE], bg_depth=0.5)
     assert monitor(sim, "stop next to the red van", [near, near, near]).text == "CONTINUE"
     assert not sim.perceive("fly to the red van", hidden).perceived
+
+
+def test_a_subtask_naming_no_object_points_into_open_space():
+    """No target is named ("fly forward"): pointing into open space is the answer, never
+    "not visible"; the history point is kept when there is one."""
+    sim = SimulatedVlm("perfect", seed=0)
+    img = frame("o1", [TREE, BLUE_VAN], open_cols=(0, 10))
+    for subtask in ("fly forward", "continue through the intersection", "go to the end of the corridor", "turn left"):
+        r = decide(sim, subtask, img)
+        assert json.loads(r.text) == {"target_visible": True, "point_2d": list(exploration_point(img.annotation.depth_m))}
+        assert json.loads(decide(sim, subtask, img, history=(130.2, 70.7)).text)["point_2d"] == [130, 71]
+
+
+def test_not_visible_answers_parse_as_not_visible_in_every_shape():
+    """Format variety and structured output: every well-formed "not visible" answer parses as
+    not_visible; malformed ones (rate ``malformed_prob``) are failures, never a point."""
+    model = PRESETS["nominal"]
+    sim = SimulatedVlm("nominal", seed=3)
+    base = frame("nv", [TREE, BLUE_VAN])
+    outcomes = {"point": 0, "not_visible": 0, "failed": 0}
+    shapes = set()
+    for k in range(N):
+        img = renamed(base, f"nv{k}")
+        text = decide(sim, "fly to the red van", img).text
+        outcomes[parse_point(text, img.size).outcome.value] += 1
+        shapes.add(text[:12])
+        structured = decide(sim, "fly to the red van", img, json_schema=decision_schema()).text
+        assert parse_point(structured, img.size).outcome.value in ("not_visible", "failed")
+    assert outcomes["point"] == 0
+    assert binomial_ok(outcomes["failed"], N, model.malformed_prob)
+    assert len(shapes) >= 4  # plain JSON, fence, NOT_VISIBLE, prose, and malformed shapes
 
 
 def test_perfect_monitoring_stop_lost_continue():
@@ -301,11 +334,14 @@ def test_miss_rates_match_preset(preset):
     assert counts["big_near"] == 0
 
 
-def test_missed_target_answer_is_the_exploration_point():
+def test_missed_target_answer_is_not_visible():
+    """A target in the frame that the error model misses is answered as not visible (the
+    model does not perceive it), not with an invented point."""
     model = dataclasses.replace(PRESETS["perfect"], miss_prob_small=1.0)
     sim = SimulatedVlm(model)
     img = frame("x", [Obj(7, "red van", "van", 5.0, rect=(100, 50, 102, 52))], open_cols=(10, 20))
-    assert json.loads(decide(sim, "fly to the red van", img).text)["point_2d"] == list(exploration_point(img.annotation.depth_m))
+    assert json.loads(decide(sim, "fly to the red van", img).text) == {"target_visible": False, "point_2d": None}
+    assert json.loads(decide(sim, "fly to the red van", img, history=(50, 50)).text)["target_visible"] is False
 
 
 @pytest.mark.parametrize("preset", ["nominal", "noisy", "weak"])

@@ -19,7 +19,17 @@ Works on the instruction with whitespace collapsed. It cuts at
    Not at the first comma of a clause that starts with a subordinator or a place preposition
    (``once``, ``when``, ``after``, ``before``, ``as soon as``, ``until``, ``if``, ``while``,
    ``at``, ``in``, ``on``, ``upon``, ``from``, ``inside``, ``outside``): ``once you reach the
-   top, turn left`` and ``at the landing, turn right`` stay one subtask each.
+   top, turn left`` and ``at the landing, turn right`` stay one subtask each;
+4. a closing clause joined by ``and`` (with or without a comma): ``and`` followed by one of
+   :data:`CLOSING_VERBS` (``stop``, ``land``, ``hover``, ``halt``, ``wait``, ``finish``,
+   ``park``) and at least one more word, or by ``end`` before a place preposition (``and end
+   at the corral``; ``the couch and end table`` is no clause): ``turn left at the yellow forklift and stop
+   in front of the fuel pump`` -> ``turn left at the yellow forklift`` / ``stop in front of the
+   fuel pump``; ``walk past the sofa and wait by the door``. A bare ``... and stop.`` stays
+   whole (it closes the same leg), and so does a clause of one word before it (``stop and
+   wait by the door``).
+   ``then hover in front of ...`` is already cut by rule 2. A closing clause that only
+   refers back (``and stop next to it``) is joined again by :func:`attach_back_references`.
 
 Pieces are stripped of surrounding punctuation and whitespace; pieces without a letter or
 digit are dropped. Nothing else is removed, so the word tokens of the subtasks, in order, are
@@ -64,6 +74,7 @@ __all__ = [
     "CONTEXT_OPENERS",
     "BACK_REFERENCE_WORDS",
     "MOVEMENT_VERBS",
+    "CLOSING_VERBS",
     "CONNECTIVE_WORDS",
 ]
 
@@ -75,6 +86,10 @@ MOVEMENT_VERBS = (
     "make", "move", "navigate", "pass", "proceed", "return", "rise", "rotate", "stand", "step",
     "stop", "take", "travel", "turn", "veer", "wait", "walk",
 )  # fmt: skip
+#: Verbs that open a closing clause ("... and stop at the door"); rule 4 of the splitter.
+CLOSING_VERBS = ("stop", "land", "hover", "halt", "wait", "finish", "park")
+#: ``end`` closes only before a place (``and end at the corral``; ``and end table`` is a noun)
+_END_PLACE = r"end\s+(?:up\s+)?(?:at|in|on|by|near|next|beside|between|under|above|below|behind)\b"
 #: Words the splitter may drop at a cut (and only there).
 CONNECTIVE_WORDS = frozenset({"then", "and", "after", "that", "afterwards"})
 _SUBORDINATORS = (
@@ -87,7 +102,8 @@ _CUT_RE = re.compile(
     r"(?P<sentence>(?<=[.!?])\s+|(?<=[^\W\d_][.!?])(?=(?-i:[A-Z])))"
     r"|(?P<semicolon>\s*;\s*)"
     r"|(?P<connective>\s*,?\s*\b(?:and\s+then|and\s+after\s+that|after\s+that|afterwards|then)\b\s*,?\s*)"
-    r"|(?P<verb>\s*,\s*(?:and\s+)?(?=(?:" + _VERBS + r")\b))",
+    r"|(?P<verb>\s*,\s*(?:and\s+)?(?=(?:" + _VERBS + r")\b))"
+    r"|(?P<closing>\s*,?\s+and\s+(?=(?:" + "|".join(CLOSING_VERBS) + r")\b[ ,]*[^\W_]|" + _END_PLACE + r"))",
     re.IGNORECASE,
 )
 _STRIP = " \t,.;:!?"
@@ -150,6 +166,8 @@ def split_instruction(instruction: str) -> list[str]:
     for m in _CUT_RE.finditer(text):
         clause = text[start : m.start()]
         if m.lastgroup == "verb" and _starts_with_subordinator(clause) and "," not in clause:
+            continue
+        if m.lastgroup == "closing" and len(_WORD_RE.findall(clause)) < 2:
             continue
         pieces.append(clause)
         start = m.end()

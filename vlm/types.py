@@ -88,12 +88,15 @@ class VisibleObject:
     name : str, e.g. ``"red van"``
     label : str, semantic class, e.g. ``"van"``
     aliases : tuple of str, other names a person might use
+    target : bool, False for what a task never names as a goal (ground, walls, roofs, the
+        scene file's ``target = false``); the simulated VLM never grounds a goal on it
     """
 
     instance_id: int
     name: str
     label: str
     aliases: tuple[str, ...] = ()
+    target: bool = True
 
 
 @dataclass(frozen=True, eq=False)

@@ -156,7 +156,7 @@ class Renderer:
         shifts = {int(sd): int(np.random.default_rng([0x5EED, int(sd)]).integers(0, _NOISE_N**3)) for sd in np.unique(seeds)}
         self._tex_shift = np.array([shifts[int(sd)] for sd in seeds], dtype=np.int32)
         self._noise = np.random.default_rng(0x5EED).integers(0, _LEVELS, _NOISE_N**3).astype(np.int32)
-        self._objects = {o.instance_id: VisibleObject(o.instance_id, o.name, o.label, o.aliases) for o in scene.objects}
+        self._objects = {o.instance_id: VisibleObject(o.instance_id, o.name, o.label, o.aliases, o.target) for o in scene.objects}
 
     def world_rays(self, T_world_cam) -> np.ndarray:
         """Camera rays in the world, float32 (H * W, 6) ``[origin, direction]`` in row-major

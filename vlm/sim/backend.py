@@ -36,7 +36,16 @@ from vlm.prompts import (
 )
 from vlm.sim.error_model import ErrorModel, ErrorModelError, LatencyModel, get_preset
 from vlm.sim.features import keyed_rng, synthetic_features
-from vlm.sim.grounding import Region, anchor_pixel, exploration_point, ground, region_of, visible_regions, words
+from vlm.sim.grounding import (
+    Region,
+    anchor_pixel,
+    exploration_point,
+    ground,
+    names_target,
+    region_of,
+    visible_regions,
+    words,
+)
 from vlm.types import (
     CallStatus,
     ChatMessage,
@@ -55,6 +64,10 @@ log = logging.getLogger(__name__)
 _STATUSES = ("CONTINUE", "STOP", "LOST")
 #: words by which a leg of an instruction refers back to the previous leg's target
 _BACK_REFERENCES = frozenset({"it", "there", "them", "that", "this"})
+#: words of a leg that only closes the previous one ("then stop", "then land there")
+_CLOSING_ONLY = frozenset(
+    "stop land hover halt wait finish there here it now please right just and then immediately".split()
+)
 #: the TypeFly sim's exploration move after a full find turn without the target, metres
 TYPEFLY_EXPLORE_M = 3.0
 
@@ -232,16 +245,23 @@ class SimulatedVlm:
         u_malformed, u_variety, u_confuse = rng.random(3)
         ann: FrameAnnotation = image.annotation
         w, h = image.size
-        per = self.perceive(prompt.subtask, image)
+        legs = self._legs(prompt.subtask)
+        # the leg rule of every prompt; the decision prompt has no stop interface, so an
+        # intermediate leg counts as reached at the stop distance without jitter
+        tgt = self.leg_target(prompt.subtask, image, 0.0)
+        leg = min(tgt.leg, len(legs) - 1)
+        per = tgt.perception
         label_name = ""
-        if per.perceived:
+        if per is not None and per.perceived:
             region = per.region
-            lookalikes = self._lookalikes(prompt.subtask, ann, per.named_id)
+            lookalikes = self._lookalikes(legs[leg], ann, per.named_id)
             if lookalikes and u_confuse < m.confusion_prob:
                 region = region_of(ann, lookalikes[int(rng.integers(len(lookalikes)))])
             label_name = ann.objects[region.instance_id].name
             u0, v0 = anchor_pixel(region.mask)
             sigma = m.pixel_sigma_px(w, region.median_depth_m)
+        elif _leg_names_target(legs, leg):
+            return self._not_visible(rng, u_malformed, u_variety, structured, w, h)
         elif prompt.history_uv is not None:
             u0, v0 = prompt.history_uv
             sigma = m.pixel_sigma_px(w, 0.0)
@@ -252,8 +272,8 @@ class SimulatedVlm:
         u = int(np.clip(round(u0 + du), 0, w - 1))
         v = int(np.clip(round(v0 + dv), 0, h - 1))
         if u_malformed < m.malformed_prob:
-            return self._malformed_point(rng, u, v, w, h, structured)
-        plain = json.dumps({"point_2d": [u, v]})
+            return self._malformed_point(rng, u, v, w, h, structured, flag=True)
+        plain = json.dumps({"target_visible": True, "point_2d": [u, v]})
         if structured or u_variety >= m.format_variety_prob:
             return plain
         variants = (
@@ -261,6 +281,20 @@ class SimulatedVlm:
             f"The target is here: {plain}",
             json.dumps([{"point_2d": [u, v], "label": label_name or "waypoint"}]),
         )
+        return variants[int(rng.integers(len(variants)))]
+
+    def _not_visible(
+        self, rng: np.random.Generator, u_malformed: float, u_variety: float, structured: bool, w: int, h: int
+    ) -> str:
+        """The decision answer "the target is not visible" (decision/v2), in a real model's
+        shapes; malformed with ``malformed_prob`` like any answer."""
+        m = self.model
+        if u_malformed < m.malformed_prob:
+            return self._malformed_point(rng, w // 2, h // 2, w, h, structured, flag=True)
+        plain = json.dumps({"target_visible": False, "point_2d": None})
+        if structured or u_variety >= m.format_variety_prob:
+            return plain
+        variants = (f"```json\n{plain}\n```", "NOT_VISIBLE", f"The target is not visible in this image. {plain}")
         return variants[int(rng.integers(len(variants)))]
 
     @staticmethod
@@ -275,8 +309,12 @@ class SimulatedVlm:
         )  # fmt: skip
 
     @staticmethod
-    def _malformed_point(rng: np.random.Generator, u: int, v: int, w: int, h: int, structured: bool) -> str:
-        outside = json.dumps({"point_2d": [w + 1 + int(rng.integers(w)), v]})
+    def _malformed_point(
+        rng: np.random.Generator, u: int, v: int, w: int, h: int, structured: bool, flag: bool = False
+    ) -> str:
+        """A malformed pointing answer; ``flag`` for the decision/v2 form (``target_visible``)."""
+        head = {"target_visible": True} if flag else {}
+        outside = json.dumps({**head, "point_2d": [w + 1 + int(rng.integers(w)), v]})
         if structured:
             return outside
         variants = (
@@ -295,7 +333,9 @@ class SimulatedVlm:
         rng = keyed_rng(self.seed, "monitor", tuple(img.frame_id for img in images), prompt.subtask)
         u_malformed, u_variety, u_flip = rng.random(3)
         jitter = float(rng.normal(0.0, m.stop_jitter_m)) if m.stop_jitter_m > 0 else 0.0
-        seen = [self.perceive(prompt.subtask, img) for img in images]
+        # completion is judged on the last leg's target (the leg rule of every prompt)
+        legs = self._legs(prompt.subtask)
+        seen = [self._leg_perceptions(legs, img)[-1] for img in images]
         latest = seen[-1]
         window = m.lost_window_frames
         if latest.perceived and latest.region.median_depth_m < m.stop_distance_m + m.stop_offset_m + jitter:
@@ -325,8 +365,18 @@ class SimulatedVlm:
             per is not None and per.perceived and per.region.median_depth_m < m.stop_distance_m + m.stop_offset_m + jitter_m
         )
 
-    def _legs(self, instruction: str) -> list[str]:
-        return split_instruction(instruction)
+    @staticmethod
+    def _legs(instruction: str) -> list[str]:
+        """The instruction's legs: :func:`vlm.decompose.split_instruction`, with a leg that
+        only closes the one before it (``then stop``, ``then land there``: words of
+        :data:`_CLOSING_ONLY`) joined back to it."""
+        legs: list[str] = []
+        for piece in split_instruction(instruction):
+            if legs and set(words(piece)) <= _CLOSING_ONLY:
+                legs[-1] = f"{legs[-1]} then {piece}"
+            else:
+                legs.append(piece)
+        return legs
 
     def _leg_perceptions(self, legs: list[str], image: VlmImage) -> list[Perception]:
         """Perception of each leg's target; a leg naming nothing visible that refers back
@@ -570,13 +620,15 @@ def scene_objects_as_visible(
 ) -> tuple[dict[int, VisibleObject], dict[int, int]]:
     """A scene description as grounding input: pseudo instance ids 1..n and box areas (in
     ten-thousandths of the image) as the visible areas. With ``annotation``, a detection whose
-    name an object of the frame has gets that object's aliases (the model's knowledge of
-    synonyms; it adds no object and no position)."""
-    known = {}
+    name an object of the frame has gets that object's aliases and target flag (the model's
+    knowledge of synonyms and of what is structure; it adds no object and no position)."""
+    known: dict[str, tuple[tuple[str, ...], bool]] = {}
     if annotation is not None:
         for obj in annotation.objects.values():
-            known.setdefault(obj.name, tuple(obj.aliases))
-    objs = {k + 1: VisibleObject(k + 1, o.name, o.label, known.get(o.name, ())) for k, o in enumerate(objects)}
+            known.setdefault(obj.name, (tuple(obj.aliases), obj.target))
+    objs = {
+        k + 1: VisibleObject(k + 1, o.name, o.label, *known.get(o.name, ((), True))) for k, o in enumerate(objects)
+    }
     areas = {k + 1: max(1, int(round(o.w * o.h * 1e4))) for k, o in enumerate(objects)}
     return objs, areas
 
@@ -593,6 +645,14 @@ def _detected_per_leg(
             matches = ground(f"{legs[k - 1]} {leg}", objs, areas)
         out.append(objects[matches[0].instance_id - 1] if matches else None)
     return out
+
+
+def _leg_names_target(legs: list[str], k: int) -> bool:
+    """Whether leg ``k`` names something to reach (:func:`vlm.sim.grounding.names_target`); a
+    leg that refers back ("stop next to it") names the previous leg's target."""
+    if names_target(legs[k]):
+        return True
+    return k > 0 and bool(_BACK_REFERENCES & set(words(legs[k]))) and names_target(legs[k - 1])
 
 
 def _skill_text(text: str) -> str:

@@ -16,6 +16,9 @@ from vlm.types import FrameAnnotation, VisibleObject
 
 __all__ = [
     "ATTRIBUTE_WORDS",
+    "PHRASE_END_WORDS",
+    "NON_OBJECT_WORDS",
+    "names_target",
     "Match",
     "Region",
     "words",
@@ -33,7 +36,42 @@ ATTRIBUTE_WORDS = frozenset(
     beige cyan magenta dark light big small large little tall short tiny huge long wide narrow high low
     wooden wood metal metallic glass brick stone concrete plastic steel iron old new round square""".split()
 )
+#: Words that cannot continue a noun phrase: after an object word they end its phrase, so that
+#: word is the phrase's head. Any other word after it (``clock`` in ``wall clock``, ``pump`` in
+#: ``fuel pump``) makes it a modifier, and the object is not named. Also numbers (``door
+#: 103``), ``-ly`` adverbs, and ``-ed`` / ``-ing`` participles (``the sedan parked on the
+#: right``, ``the person standing by``) end a phrase; so does punctuation.
+PHRASE_END_WORDS = frozenset(
+    """a an the this that these those it its it's them they their there here you your me my we our one ones
+    and or but nor so then than as if when while until till once before after because since where which who whose
+    what whether to toward towards into onto in on at of off out by near nearby next beside besides behind between
+    among through past along across around over under underneath beneath above below up down from with without
+    within inside outside against beyond via upon about alongside opposite front back is are was were be been being
+    am has have had do does did can could will would should shall may might must let s
+    go goes went going gone fly flies flew flying move moves moving head heads heading turn turns turned turning
+    stop stops stopping hover hovers hovering land lands landing continue continues continuing keep keeps keeping
+    proceed walk walking travel travelling traveling approach approaching climb climbing descend descending ascend
+    rise rotate cross crossing enter entering exit exiting leave leaving follow following pass passing reach
+    reaching return wait halt stand step veer bear circle face facing find finding look search get come carry
+    finish end stay squeeze duck check take make navigate head
+    left right straight ahead forward forwards backward backwards again slowly quickly carefully directly exactly
+    just only also still very really please now first second third finally last north south east west
+    all both each every some any no not none other another same such more most less least much many few little bit
+    close closer closest far farther further furthest nearest""".split()
+)
+#: Words that name no object to reach: the phrase-end words and places, directions and units.
+#: A subtask whose words are all of these (or numbers) names no target (``fly forward``,
+#: ``continue through the intersection``, ``go to the end of the corridor``).
+NON_OBJECT_WORDS = PHRASE_END_WORDS | frozenset(
+    """corridor hallway hall intersection junction crossing corner end middle center centre side edge lane road street
+    path footpath way area space spot place room level storey story floor ground air altitude height sky top bottom
+    distance direction degree metre meter foot feet yard inch m cm half halfway couple time times view sight
+    zero two three four five six seven eight nine ten few""".split()
+)
+#: nouns ending in -ing or -ed that are not participles (they can continue a noun phrase)
+_ING_NOUNS = frozenset("building ceiling railing awning painting railing sibling shed bed sled".split())
 _WORD_RE = re.compile(r"[a-z0-9]+")
+_BREAK_RE = re.compile(r"[^\sa-z0-9'\u2019-]")
 _ES_STEMS = ("ch", "sh", "x", "z", "ss")
 
 
@@ -50,6 +88,29 @@ def _singular(w: str) -> str:
 def words(text: str) -> list[str]:
     """Lower-case alphanumeric words with a naive singular (``trees`` -> ``tree``)."""
     return [_singular(w) for w in _WORD_RE.findall(text.lower())]
+
+
+def _tokens(text: str) -> tuple[list[str], list[bool]]:
+    """Words as :func:`words`, and per word whether punctuation follows it (a phrase break)."""
+    low = text.lower()
+    found = list(_WORD_RE.finditer(low))
+    out = [_singular(m.group(0)) for m in found]
+    breaks = [bool(_BREAK_RE.search(low[a.end() : b.start()])) for a, b in zip(found, found[1:])] + [True]
+    return out, breaks
+
+
+def _ends_phrase(word: str) -> bool:
+    """Whether ``word`` cannot continue the noun phrase before it (see :data:`PHRASE_END_WORDS`)."""
+    if word in PHRASE_END_WORDS or word.isdigit() or (len(word) > 4 and word.endswith("ly")):
+        return True
+    return len(word) > 4 and word.endswith(("ing", "ed")) and word not in _ING_NOUNS
+
+
+def names_target(text: str) -> bool:
+    """Whether ``text`` names something to reach: a word that is not a number, an attribute or
+    one of :data:`NON_OBJECT_WORDS`. ``fly forward`` and ``continue through the intersection``
+    name none; ``stop at the blue door`` names one (visible or not)."""
+    return any(not (w.isdigit() or w in NON_OBJECT_WORDS or w in ATTRIBUTE_WORDS) for w in words(text))
 
 
 @dataclass(frozen=True)
@@ -96,23 +157,30 @@ def _occurrences(phrase: list[str], text: list[str]) -> list[int]:
 def ground(subtask: str, objects: Mapping[int, VisibleObject], areas_px: Mapping[int, int]) -> list[Match]:
     """Visible objects named by ``subtask``, best first (rule in :mod:`vlm.sim.error_model`).
 
+    An occurrence of an object's name, alias or label counts only as the head of its noun
+    phrase (the next word ends the phrase, :func:`_ends_phrase`): ``wall clock`` names a clock,
+    never a wall. Objects with ``target=False`` are never named.
+
     Parameters
     ----------
     subtask : str
     objects : instance_id -> VisibleObject, the frame's annotation
     areas_px : instance_id -> visible pixel count; objects with no pixel are skipped
     """
-    text = words(subtask)
+    text, breaks = _tokens(subtask)
     best: dict[int, Match] = {}
     for iid, obj in objects.items():
-        if areas_px.get(iid, 0) <= 0:
+        if areas_px.get(iid, 0) <= 0 or not getattr(obj, "target", True):
             continue
         phrases = [(words(obj.name), "name")] + [(words(a), "alias") for a in obj.aliases] + [(words(obj.label), "label")]
         own = {w for p, _ in phrases for w in p}
         for phrase, via in phrases:
             for i in _occurrences(phrase, text):
+                end = i + len(phrase)
+                if end < len(text) and not breaks[end - 1] and not _ends_phrase(text[end]):
+                    continue  # a modifier of a longer noun phrase, not its head
                 j = i
-                while j > 0 and text[j - 1] in ATTRIBUTE_WORDS:
+                while j > 0 and text[j - 1] in ATTRIBUTE_WORDS and not breaks[j - 1]:
                     j -= 1
                 if any(w not in own for w in text[j:i]):
                     continue
