@@ -9,6 +9,7 @@ import pytest
 
 from vlm.decompose import (
     CONNECTIVE_WORDS,
+    MOVEMENT_VERBS,
     attach_back_references,
     attach_context,
     DecompositionError,
@@ -54,6 +55,23 @@ def test_fallback_on_every_r2r_instruction_is_ordered_nonempty_and_covers_the_te
     assert n_multi > 0.9 * len(instructions)
 
 
+def test_r2r_closing_clauses_are_cut():
+    """Every R2R "... and stop/wait <where>" closes a leg of its own: the subtask that holds the
+    closing verb starts with it (R2R phrases it "and stop at ...", "and wait by ...")."""
+    n = 0
+    for ins in _r2r_instructions():
+        flat = " ".join(ins.split())
+        for m in re.finditer(r"\b(?:and|And) (stop|wait) ([a-z]+)", flat):
+            before = re.findall(r"[^\W_]+", flat[: m.start()].lower())
+            if before and before[-1] in MOVEMENT_VERBS:
+                continue  # "stop and wait there", "go and stop in ...": one clause
+            n += 1
+            parts = split_instruction(ins)
+            head = f"{m.group(1)} {m.group(2)}"
+            assert any(p.startswith(head) or p.lower().startswith(f"and {head}") for p in parts), (ins, parts)
+    assert n > 500  # R2R closes most paths this way
+
+
 @pytest.mark.parametrize(
     "instruction,expected",
     [
@@ -66,6 +84,22 @@ def test_fallback_on_every_r2r_instruction_is_ordered_nonempty_and_covers_the_te
         ("fly to the van and then land", ["fly to the van", "land"]),
         ("Then stop.", ["stop"]),
         ("hover", ["hover"]),
+        # closing clauses (rule 4): "and <stop|land|hover|...> <more words>"
+        ("turn left at the yellow forklift and stop in front of the fuel pump",
+         ["turn left at the yellow forklift", "stop in front of the fuel pump"]),
+        ("Fly past the gate, and land next to the bench.", ["Fly past the gate", "land next to the bench"]),
+        ("Walk past the sofa and wait by the door.", ["Walk past the sofa", "wait by the door"]),
+        ("Go to the end of the corridor and stop about a metre from the window.",
+         ["Go to the end of the corridor", "stop about a metre from the window"]),
+        ("Follow the row to the charging station and end at the cart corral.",
+         ["Follow the row to the charging station", "end at the cart corral"]),
+        ("go to the bench then hover in front of the fountain", ["go to the bench", "hover in front of the fountain"]),
+        ("Fly over to the operator panel and stop.", ["Fly over to the operator panel and stop"]),  # nothing after
+        ("Stop and wait by the door.", ["Stop and wait by the door"]),  # one word before "and"
+        ("Walk past the couch and end table.", ["Walk past the couch and end table"]),  # "end table" is a noun
+        ("Fly to the panel, then over to the robot arm, and finally stop at the hydraulic press.",
+         ["Fly to the panel", "over to the robot arm", "finally stop at the hydraulic press"]),
+        ("Go past the landing and hovering drone.", ["Go past the landing and hovering drone"]),  # whole words only
     ],
 )
 def test_fallback_examples(instruction, expected):
@@ -110,7 +144,7 @@ class _FakeBackend:
 def test_vlm_answer_is_used_when_it_parses():
     fake = _FakeBackend(VlmResponse(CallStatus.OK, text='```json\n["take off", "fly to the red van", "land"]\n```', usage=Usage(10, 5)))
     result = decompose_detailed("Take off and fly to the red van, then land.", fake, deadline_s=5.0)
-    assert result.source == "vlm" and result.subtasks == ("take off", "fly to the red van", "land")
+    assert result.source == "vlm" and result.subtasks == ("take off", "fly to the red van, land")  # "land" closes it
     call = fake.calls[0]
     assert parse_prompt(call["messages"]).instruction == "Take off and fly to the red van, then land."
     assert call["deadline_s"] == 5.0 and call["json_schema"]["type"] == "array" and call["images"] == []
@@ -134,7 +168,7 @@ def test_failed_calls_fall_back_to_the_splitter(response, reason):
 
 
 def test_no_backend_uses_the_splitter():
-    assert decompose("Fly up; land") == ["Fly up", "land"]
+    assert decompose("Fly up; land") == ["Fly up, land"]  # "land" only closes the subtask before it
     assert decompose_detailed("Fly up; land").reason == "no backend"
 
 
@@ -162,6 +196,9 @@ def test_a_subtask_that_only_refers_back_is_joined_to_the_one_before():
     assert decompose(text) == ["There's a vending machine somewhere along this corridor, Go to it"]
     got = attach_back_references(["fly to the red car", "stop there", "land right next to it", "turn left"])
     assert got == ("fly to the red car, stop there, land right next to it", "turn left")
+    # a subtask that only closes the one before it names nothing a monitor could complete
+    assert attach_back_references(["go through the gate", "stop", "fly up", "then land"]) == ("go through the gate, stop", "fly up, then land")
+    assert attach_back_references(["stop", "fly to the bench"]) == ("stop", "fly to the bench")
 
 
 @pytest.mark.parametrize(

@@ -20,7 +20,7 @@ from vlm.prompts import (
     status_schema,
 )
 from vlm.sim import PRESETS, ErrorModel, ErrorModelError, LatencyModel, SimulatedVlm, get_preset
-from vlm.sim.grounding import exploration_point, ground, words
+from vlm.sim.grounding import exploration_point, ground, names_target, words
 from vlm.types import CallStatus, ChatMessage, FrameAnnotation, VisibleObject, VlmBackend, VlmImage
 
 W, H = 160, 120
@@ -161,6 +161,68 @@ def test_grounding_rule():
     assert best("land on the roof") == []
     assert best("fly to the red van") == best("fly to the red van") and words("Benches, trees") == ["bench", "tree"]
     assert ground("the red van", objs, {7: 0, 8: 5}) == []  # annotated but no pixel: not visible
+
+
+def test_grounding_on_the_head_of_the_noun_phrase():
+    """A name counts only as the head of its noun phrase: "wall clock" is a clock, never a
+    wall; "fuel pump" a pump, never the fuel tank; participles, numbers, adverbs and
+    punctuation end a phrase."""
+    objs = {
+        1: VisibleObject(1, "wall", "wall"),
+        2: VisibleObject(2, "wall clock", "clock"),
+        3: VisibleObject(3, "fuel tank", "fuel"),
+        4: VisibleObject(4, "fuel pump", "pump"),
+        5: VisibleObject(5, "red sedan", "car"),
+        6: VisibleObject(6, "door 103", "door"),
+        7: VisibleObject(7, "fire exit", "exit"),
+    }
+    every = {k: 100 for k in objs}
+    best = lambda s, areas=every: [m.instance_id for m in ground(s, objs, areas)]  # noqa: E731
+    assert best("hover next to the wall clock") == [2]
+    assert best("hover next to the wall clock", {1: 100}) == []  # the clock unseen: never the wall
+    assert best("stop in front of the fuel pump", {1: 100, 3: 100}) == []
+    assert best("stop in front of the fuel pump") == [4]
+    assert best("fly along the wall, then stop") == [1]  # "wall" heads its phrase here
+    assert best("fly to the wall.") == [1]
+    assert best("head to the red sedan parked on the right") == [5]  # a participle ends the phrase
+    assert best("go to the red sedan quickly") == [5]
+    assert best("stop in front of door 103") == [6]
+    assert best("go to the door 103 and wait") == [6]
+    assert best("go to the fire exit door", {7: 100}) == []  # "fire exit" modifies "door"
+    assert best("go to the fire exit") == [7]
+    assert best("hover above the red sedan's roof") == [5]  # possessive: the sedan
+    # a landmark flown past ranks after every other mention, whatever the order
+    assert best("fly past the red sedan to door 103") == [6, 5]
+    assert best("head down the lane past the red sedan until you see the fire exit") == [7, 5]
+    assert best("fly to the red sedan past door 103") == [5, 6]
+
+
+def test_non_target_objects_are_never_the_goal():
+    """Scene objects with target = false (walls, ground, parked cars) are never grounded."""
+    objs = {
+        1: VisibleObject(1, "warehouse walls", "wall", target=False),
+        2: VisibleObject(2, "parked car 3", "car", target=False),
+        3: VisibleObject(3, "blue car", "car"),
+    }
+    areas = {1: 900, 2: 900, 3: 100}
+    best = lambda s, a=areas: [m.instance_id for m in ground(s, objs, a)]  # noqa: E731
+    assert best("fly to the car") == [3]  # the larger parked car is not a goal
+    assert best("fly to the car", {1: 900, 2: 900}) == []
+    assert best("stop at the wall") == []
+    sim = SimulatedVlm("perfect", seed=0)
+    img = frame("nt", [Obj(2, "parked car 3", "car", 4.0, rect=(10, 40, 80, 90), target=False)])
+    assert json.loads(decide(sim, "fly to the car", img).text)["target_visible"] is False
+    near = frame("nt2", [Obj(2, "parked car 3", "car", 1.0, rect=(10, 40, 80, 90), target=False)])
+    assert monitor(sim, "stop next to the car", [near, near]).text == "CONTINUE"
+
+
+def test_names_target():
+    for text in ("fly forward", "continue through the intersection", "go to the end of the corridor", "turn left",
+                 "go up to the second floor", "stop about a metre ahead", "fly 3 m forward then turn right"):  # fmt: skip
+        assert not names_target(text), text
+    for text in ("stop at the blue door", "fly to it and hover next to the wall clock", "find the fuel pump",
+                 "go to office 105", "approach the person in white"):  # fmt: skip
+        assert names_target(text), text
 
 
 def test_exploration_point_prefers_the_deepest_open_block_near_the_centre():
@@ -640,3 +702,85 @@ def test_baseline_prompts_cost_the_decision_latency():
 
     r = sim.complete(*build_typefly_prompt("go to the van", img, [], []))
     assert r.latency_s == 0.5 and r.status is CallStatus.OK
+
+
+FORKLIFT = Obj(11, "yellow forklift", "forklift", 12.0, rect=(10, 40, 50, 90))
+PUMP = Obj(12, "fuel pump", "pump", 12.0, rect=(110, 40, 130, 90))
+LEGS = "turn left at the yellow forklift and stop in front of the fuel pump"
+
+
+def test_decision_reads_a_multi_clause_subtask_as_legs():
+    """The decision prompt follows the leg rule of the baselines: the last leg's target when
+    seen, else the furthest seen leg not yet reached; "not visible" when nothing named is seen
+    or the seen leg is reached and the next leg's target is unseen."""
+    sim = SimulatedVlm("perfect", seed=0)
+
+    def pointed(img):
+        res = parse_point(decide(sim, LEGS, img).text, img.size)
+        if res.not_visible:
+            return "not visible"
+        u, v = (int(round(c)) for c in res.uv)
+        return int(img.annotation.instance_ids[v, u])
+
+    assert pointed(frame("d1", [FORKLIFT, PUMP])) == PUMP.iid  # the last leg's target wins
+    assert pointed(frame("d2", [FORKLIFT])) == FORKLIFT.iid  # an intermediate landmark, far
+    assert pointed(frame("d3", [dataclasses.replace(FORKLIFT, depth_m=2.0)])) == "not visible"  # reached
+    assert pointed(frame("d4", [TREE])) == "not visible"
+    # a trailing bare "then stop" closes the leg before it (it is not a leg naming nothing)
+    assert pointed(frame("d5", [dataclasses.replace(FORKLIFT, depth_m=2.0)])) == "not visible"
+    gate = Obj(13, "wooden gate", "gate", 2.0, rect=(60, 40, 100, 90))
+    img = frame("d6", [gate])
+    res = parse_point(decide(sim, "go through the wooden gate then stop", img).text, img.size)
+    assert img.annotation.instance_ids[int(res.uv[1]), int(res.uv[0])] == gate.iid
+    assert SimulatedVlm._legs("go through the wooden gate then stop") == ["go through the wooden gate then stop"]
+    assert SimulatedVlm._legs(LEGS) == ["turn left at the yellow forklift", "stop in front of the fuel pump"]
+    # a leg naming no object is flown into open space; its later leg's target still counts
+    open_img = frame("d7", [TREE], open_cols=(0, 10))
+    assert json.loads(decide(sim, "fly forward, then stop at the fuel pump", open_img).text)["target_visible"] is True
+
+
+def test_monitoring_judges_completion_on_the_last_leg():
+    """The landmark of an earlier leg never completes the subtask (it used to: the earliest
+    named object was grounded)."""
+    sim = SimulatedVlm("perfect", seed=0)
+    status = lambda frames: parse_status(monitor(sim, LEGS, frames).text).status  # noqa: E731
+    near_forklift = frame("m1", [dataclasses.replace(FORKLIFT, depth_m=1.5), PUMP])
+    assert status([near_forklift, near_forklift]) is MonitorStatus.CONTINUE
+    near_pump = frame("m2", [FORKLIFT, dataclasses.replace(PUMP, depth_m=2.0)])
+    assert status([near_forklift, near_pump]) is MonitorStatus.STOP
+    # the forklift passed out of view: not LOST (it is not the subtask's target) ...
+    only_tree = frame("m3", [TREE])
+    forklift_only = frame("m1b", [dataclasses.replace(FORKLIFT, depth_m=1.5)])
+    assert status([forklift_only, only_tree, only_tree]) is MonitorStatus.CONTINUE
+    # ... the pump seen and then gone is
+    far_pump = frame("m4", [PUMP])
+    assert status([far_pump, only_tree, only_tree]) is MonitorStatus.LOST
+    # "it" is the object the previous leg names last, even after a landmark passed
+    last = "head down the lane past the oak tree until you see the yellow forklift, then stop next to it"
+    both_near = frame("m6", [dataclasses.replace(TREE, depth_m=1.0), dataclasses.replace(FORKLIFT, depth_m=20.0)])
+    assert parse_status(monitor(sim, last, [both_near, both_near]).text).status is MonitorStatus.CONTINUE
+    assert sim.leg_target(last, both_near, 0.0).perception.named_id == FORKLIFT.iid
+    # "stop next to it" refers back: completion on the forklift
+    back = "find the yellow forklift and stop next to it"
+    assert parse_status(monitor(sim, back, [near_forklift, near_forklift]).text).status is MonitorStatus.STOP
+    # "hover next to the wall clock" next to a wall, the clock unseen: never STOP
+    wall = frame("m5", [Obj(14, "wall", "wall", 0.8, rect=(0, 0, 160, 120))])
+    assert parse_status(monitor(sim, "hover next to the wall clock", [wall, wall]).text).status is MonitorStatus.CONTINUE
+
+
+def test_every_prompt_grounds_the_same_way():
+    """SPF, PIVOT and TypeFly read the same legs, heads and target flags as OnFly's prompts."""
+    from vlm.prompts import SceneObject
+    from vlm.sim.backend import scene_objects_as_visible
+
+    sim = SimulatedVlm("perfect", seed=0)
+    wall = Obj(14, "wall", "wall", 0.8, rect=(0, 0, 160, 120))
+    img = frame("e1", [wall])
+    tgt = sim.leg_target("hover next to the wall clock", img, 0.0)
+    assert tgt.perception is None and not tgt.reached
+    assert _spf(sim, "hover next to the wall clock", img)["depth"] > 0  # never "reached" at the wall
+    car = Obj(2, "parked car 3", "car", 1.0, rect=(10, 40, 80, 90), target=False)
+    img = frame("e2", [car])
+    objs, _ = scene_objects_as_visible([SceneObject("parked car 3", "car", 0.3, 0.5, 0.4, 0.4)], img.annotation)
+    assert objs[1].target is False
+    assert _typefly(sim, "Fly to the car.", img, [SceneObject("parked car 3", "car", 0.3, 0.5, 0.4, 0.4)]).startswith("find")

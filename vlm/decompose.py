@@ -22,14 +22,17 @@ Works on the instruction with whitespace collapsed. It cuts at
    top, turn left`` and ``at the landing, turn right`` stay one subtask each;
 4. a closing clause joined by ``and`` (with or without a comma): ``and`` followed by one of
    :data:`CLOSING_VERBS` (``stop``, ``land``, ``hover``, ``halt``, ``wait``, ``finish``,
-   ``park``) and at least one more word, or by ``end`` before a place preposition (``and end
+   ``park``, and ``find``, which opens the leg to the goal) and at least one more word, or by ``end`` before a place preposition (``and end
    at the corral``; ``the couch and end table`` is no clause): ``turn left at the yellow forklift and stop
    in front of the fuel pump`` -> ``turn left at the yellow forklift`` / ``stop in front of the
-   fuel pump``; ``walk past the sofa and wait by the door``. A bare ``... and stop.`` stays
+   fuel pump``; ``walk past the sofa and wait by the door``; ``, and finally stop at the
+   press`` (``finally`` / ``lastly`` / ``eventually`` may come between). A bare ``... and stop.`` stays
    whole (it closes the same leg), and so does a clause of one word before it (``stop and
    wait by the door``).
    ``then hover in front of ...`` is already cut by rule 2. A closing clause that only
    refers back (``and stop next to it``) is joined again by :func:`attach_back_references`.
+   Rule 3's exception for clauses opening with a subordinator does not apply: ``in the
+   bedroom take a left, and stop in the doorway`` is cut.
 
 Pieces are stripped of surrounding punctuation and whitespace; pieces without a letter or
 digit are dropped. Nothing else is removed, so the word tokens of the subtasks, in order, are
@@ -47,7 +50,9 @@ one before it (``"..., go to it"``); :func:`decompose_detailed` applies it to ev
 decomposition, the model's and the fallback's. A subtask counts as a back-reference when it
 holds one of :data:`BACK_REFERENCE_WORDS` and every other word is a movement verb or a
 function word (:data:`_FILLER_WORDS`): ``go to it``, ``stop there``, ``land right next to
-it``; ``go to that door`` names a door and stays. Likewise a statement that only sets the
+it``; ``go to that door`` names a door and stays. A subtask that only closes the one before it
+(every word in :data:`CLOSING_ONLY_WORDS`: ``stop``, ``then land``) is joined the same way: on
+its own it names nothing a monitor could judge complete. Likewise a statement that only sets the
 scene (``You're at the end of the hall. Fly back past ...``: it opens with one of
 :data:`CONTEXT_OPENERS` and holds no movement verb) has nothing to complete; it is joined to
 the subtask after it (:func:`attach_context`).
@@ -75,6 +80,7 @@ __all__ = [
     "BACK_REFERENCE_WORDS",
     "MOVEMENT_VERBS",
     "CLOSING_VERBS",
+    "CLOSING_ONLY_WORDS",
     "CONNECTIVE_WORDS",
 ]
 
@@ -87,7 +93,12 @@ MOVEMENT_VERBS = (
     "stop", "take", "travel", "turn", "veer", "wait", "walk",
 )  # fmt: skip
 #: Verbs that open a closing clause ("... and stop at the door"); rule 4 of the splitter.
-CLOSING_VERBS = ("stop", "land", "hover", "halt", "wait", "finish", "park")
+CLOSING_VERBS = ("stop", "land", "hover", "halt", "wait", "finish", "park", "find")
+#: Words of a subtask that only closes the one before it (``stop``, ``then land there``); such
+#: a subtask is joined to the previous one like a back-reference.
+CLOSING_ONLY_WORDS = (frozenset(CLOSING_VERBS) - {"find"}) | frozenset(
+    "there here it now please right just and then immediately finally".split()
+)
 #: ``end`` closes only before a place (``and end at the corral``; ``and end table`` is a noun)
 _END_PLACE = r"end\s+(?:up\s+)?(?:at|in|on|by|near|next|beside|between|under|above|below|behind)\b"
 #: Words the splitter may drop at a cut (and only there).
@@ -102,8 +113,9 @@ _CUT_RE = re.compile(
     r"(?P<sentence>(?<=[.!?])\s+|(?<=[^\W\d_][.!?])(?=(?-i:[A-Z])))"
     r"|(?P<semicolon>\s*;\s*)"
     r"|(?P<connective>\s*,?\s*\b(?:and\s+then|and\s+after\s+that|after\s+that|afterwards|then)\b\s*,?\s*)"
-    r"|(?P<verb>\s*,\s*(?:and\s+)?(?=(?:" + _VERBS + r")\b))"
-    r"|(?P<closing>\s*,?\s+and\s+(?=(?:" + "|".join(CLOSING_VERBS) + r")\b[ ,]*[^\W_]|" + _END_PLACE + r"))",
+    r"|(?P<closing>\s*,?\s+and\s+(?=(?:(?:finally|lastly|eventually)\s+)?(?:(?:" + "|".join(CLOSING_VERBS)
+    + r")\b[ ,]*[^\W_]|" + _END_PLACE + r")))"
+    r"|(?P<verb>\s*,\s*(?:and\s+)?(?=(?:" + _VERBS + r")\b))",
     re.IGNORECASE,
 )
 _STRIP = " \t,.;:!?"
@@ -181,6 +193,8 @@ def split_instruction(instruction: str) -> list[str]:
 
 def _is_back_reference(subtask: str) -> bool:
     words = [w.lower() for w in _WORD_RE.findall(subtask)]
+    if words and all(w in CLOSING_ONLY_WORDS for w in words):
+        return True  # "stop", "land there": closes the previous subtask
     return any(w in BACK_REFERENCE_WORDS for w in words) and all(
         w in BACK_REFERENCE_WORDS or w in _FILLER_WORDS for w in words
     )

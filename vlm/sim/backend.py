@@ -20,7 +20,7 @@ from typing import Sequence
 
 import numpy as np
 
-from vlm.decompose import split_instruction
+from vlm.decompose import CLOSING_ONLY_WORDS, split_instruction
 from vlm.prompts import (
     SPF_MAX_DEPTH_M,
     DecisionPrompt,
@@ -63,11 +63,7 @@ log = logging.getLogger(__name__)
 
 _STATUSES = ("CONTINUE", "STOP", "LOST")
 #: words by which a leg of an instruction refers back to the previous leg's target
-_BACK_REFERENCES = frozenset({"it", "there", "them", "that", "this"})
-#: words of a leg that only closes the previous one ("then stop", "then land there")
-_CLOSING_ONLY = frozenset(
-    "stop land hover halt wait finish there here it now please right just and then immediately".split()
-)
+_BACK_REFERENCES = frozenset({"it", "its", "there", "them", "that", "this"})
 #: the TypeFly sim's exploration move after a full find turn without the target, metres
 TYPEFLY_EXPLORE_M = 3.0
 
@@ -217,18 +213,19 @@ class SimulatedVlm:
         return ""
 
     # -- perception -----------------------------------------------------------------------------
-    def perceive(self, subtask: str, image: VlmImage) -> Perception:
+    def perceive(self, subtask: str, image: VlmImage, *, last_mention: bool = False) -> Perception:
         """The target the subtask names in this frame, and whether it is perceived.
 
-        The miss draw is keyed on (seed, frame id, instance id), so one frame is perceived the
-        same way in every call.
+        ``last_mention``: the object named last instead of the grounding order (what "it" in
+        the next leg refers to). The miss draw is keyed on (seed, frame id, instance id), so one
+        frame is perceived the same way in every call.
         """
         ann: FrameAnnotation = image.annotation  # checked by the caller
         areas = visible_regions(ann)
         matches = ground(subtask, ann.objects, areas)
         if not matches:
             return Perception(None, None, False)
-        iid = matches[0].instance_id
+        iid = (max(matches, key=_mention_end) if last_mention else matches[0]).instance_id
         region = region_of(ann, iid)
         w, h = image.size
         small = region.area_px < self.model.small_target_frac * w * h
@@ -369,10 +366,10 @@ class SimulatedVlm:
     def _legs(instruction: str) -> list[str]:
         """The instruction's legs: :func:`vlm.decompose.split_instruction`, with a leg that
         only closes the one before it (``then stop``, ``then land there``: words of
-        :data:`_CLOSING_ONLY`) joined back to it."""
+        :data:`vlm.decompose.CLOSING_ONLY_WORDS`) joined back to it."""
         legs: list[str] = []
         for piece in split_instruction(instruction):
-            if legs and set(words(piece)) <= _CLOSING_ONLY:
+            if legs and set(words(piece)) <= CLOSING_ONLY_WORDS:
                 legs[-1] = f"{legs[-1]} then {piece}"
             else:
                 legs.append(piece)
@@ -380,12 +377,12 @@ class SimulatedVlm:
 
     def _leg_perceptions(self, legs: list[str], image: VlmImage) -> list[Perception]:
         """Perception of each leg's target; a leg naming nothing visible that refers back
-        ("go to it", "stop there") is read together with the previous leg."""
+        ("go to it", "stop there") means the object the previous leg names last."""
         out = []
         for k, leg in enumerate(legs):
             per = self.perceive(leg, image)
             if per.named_id is None and k > 0 and _BACK_REFERENCES & set(words(leg)):
-                per = self.perceive(f"{legs[k - 1]} {leg}", image)
+                per = self.perceive(legs[k - 1], image, last_mention=True)
             out.append(per)
         return out
 
@@ -642,9 +639,16 @@ def _detected_per_leg(
     for k, leg in enumerate(legs):
         matches = ground(leg, objs, areas)
         if not matches and k > 0 and _BACK_REFERENCES & set(words(leg)):
-            matches = ground(f"{legs[k - 1]} {leg}", objs, areas)
+            matches = sorted(ground(legs[k - 1], objs, areas), key=_mention_end, reverse=True)
         out.append(objects[matches[0].instance_id - 1] if matches else None)
     return out
+
+
+def _mention_end(m) -> tuple[int, int]:
+    """Order of mentions by where they end, then by length: the last-named object is the
+    greatest (``the white delivery van`` ends where a bare ``van`` label match does, and is
+    longer)."""
+    return (m.start + m.n_words, m.n_words)
 
 
 def _leg_names_target(legs: list[str], k: int) -> bool:

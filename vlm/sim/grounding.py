@@ -57,7 +57,8 @@ PHRASE_END_WORDS = frozenset(
     left right straight ahead forward forwards backward backwards again slowly quickly carefully directly exactly
     just only also still very really please now first second third finally last north south east west
     all both each every some any no not none other another same such more most less least much many few little bit
-    close closer closest far farther further furthest nearest""".split()
+    close closer closest far farther further furthest nearest somewhere anywhere everywhere nowhere away home
+    too instead already soon later once twice""".split()
 )
 #: Words that name no object to reach: the phrase-end words and places, directions and units.
 #: A subtask whose words are all of these (or numbers) names no target (``fly forward``,
@@ -68,6 +69,11 @@ NON_OBJECT_WORDS = PHRASE_END_WORDS | frozenset(
     distance direction degree metre meter foot feet yard inch m cm half halfway couple time times view sight
     zero two three four five six seven eight nine ten few""".split()
 )
+_DETERMINERS = frozenset("the a an this that these those".split())
+#: a mention after one of these is a landmark flown past, not the goal ("fly past the bench to ...")
+_PAST_WORDS = frozenset("past passed beyond".split())
+#: prepositions that open a place phrase ("on the upper deck, stop beside the chair")
+_PLACE_OPENERS = frozenset("on in at inside outside upon from".split())
 #: nouns ending in -ing or -ed that are not participles (they can continue a noun phrase)
 _ING_NOUNS = frozenset("building ceiling railing awning painting railing sibling shed bed sled".split())
 _WORD_RE = re.compile(r"[a-z0-9]+")
@@ -123,12 +129,16 @@ class Match:
     start : int, index of the first matched word (attributes included) in the subtask
     n_words : int, matched words (phrase + attributes)
     via : ``"name"``, ``"alias"`` or ``"label"``
+    passed : bool, the mention follows ``past`` / ``passed`` / ``beyond`` (a landmark to fly
+        past), or lies in an opening place phrase closed by a comma (``on the upper deck,
+        stop beside the chair``: where, not what); ranked after every other mention
     """
 
     instance_id: int
     start: int
     n_words: int
     via: str
+    passed: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -168,6 +178,10 @@ def ground(subtask: str, objects: Mapping[int, VisibleObject], areas_px: Mapping
     areas_px : instance_id -> visible pixel count; objects with no pixel are skipped
     """
     text, breaks = _tokens(subtask)
+    # an opening place phrase ("On the upper deck, ..."): its words up to the first comma
+    opening = 0
+    if text and text[0] in _PLACE_OPENERS and False in breaks[:-1]:
+        opening = next((k + 1 for k, b in enumerate(breaks[:-1]) if b), 0)
     best: dict[int, Match] = {}
     for iid, obj in objects.items():
         if areas_px.get(iid, 0) <= 0 or not getattr(obj, "target", True):
@@ -184,11 +198,26 @@ def ground(subtask: str, objects: Mapping[int, VisibleObject], areas_px: Mapping
                     j -= 1
                 if any(w not in own for w in text[j:i]):
                     continue
-                m = Match(iid, j, len(phrase) + (i - j), via)
+                p = j
+                while p > 0 and text[p - 1] in _DETERMINERS:
+                    p -= 1
+                landmark = (p > 0 and text[p - 1] in _PAST_WORDS) or end <= opening
+                m = Match(iid, j, len(phrase) + (i - j), via, landmark)
                 cur = best.get(iid)
-                if cur is None or (m.start, -m.n_words) < (cur.start, -cur.n_words):
+                if cur is None or (m.passed, m.start, -m.n_words) < (cur.passed, cur.start, -cur.n_words):
                     best[iid] = m
-    return sorted(best.values(), key=lambda m: (m.start, -m.n_words, -areas_px[m.instance_id], m.instance_id))
+    # ties between mentions at one place (a label shared by look-alikes): the object more of
+    # whose own distinctive words the subtask uses ("the person standing by the entrance" is
+    # "person by the entrance", not "person near the railing")
+    said = set(text)
+    overlap = {
+        iid: len({w for p in [words(objects[iid].name), *map(words, objects[iid].aliases)] for w in p
+                  if w in said and w not in PHRASE_END_WORDS})
+        for iid in best
+    }  # fmt: skip
+    return sorted(
+        best.values(), key=lambda m: (m.passed, m.start, -m.n_words, -overlap[m.instance_id], -areas_px[m.instance_id], m.instance_id)
+    )
 
 
 def _valid_depth(depth_m: np.ndarray) -> np.ndarray:
