@@ -199,6 +199,12 @@ def test_a_subtask_that_only_refers_back_is_joined_to_the_one_before():
     # a subtask that only closes the one before it names nothing a monitor could complete
     assert attach_back_references(["go through the gate", "stop", "fly up", "then land"]) == ("go through the gate, stop", "fly up, then land")
     assert attach_back_references(["stop", "fly to the bench"]) == ("stop", "fly to the bench")
+    # the first reference points back; the rest only says where to stand
+    assert decompose("Fly to the blue bin and stop beside it, across from office 105.") == [
+        "Fly to the blue bin, stop beside it, across from office 105"
+    ]
+    assert attach_back_references(["fly to the tree", "go to that door"]) == ("fly to the tree", "go to that door")
+    assert attach_back_references(["fly to the tree", "land near that, by the bench"]) == ("fly to the tree, land near that, by the bench",)
 
 
 @pytest.mark.parametrize(

@@ -760,6 +760,9 @@ def test_monitoring_judges_completion_on_the_last_leg():
     both_near = frame("m6", [dataclasses.replace(TREE, depth_m=1.0), dataclasses.replace(FORKLIFT, depth_m=20.0)])
     assert parse_status(monitor(sim, last, [both_near, both_near]).text).status is MonitorStatus.CONTINUE
     assert sim.leg_target(last, both_near, 0.0).perception.named_id == FORKLIFT.iid
+    # a leg whose first reference points back: the rest only says where to stand
+    aside = "fly to the yellow forklift and stop beside it, across from the fuel pump"
+    assert parse_status(monitor(sim, aside, [near_forklift, near_forklift]).text).status is MonitorStatus.STOP
     # "stop next to it" refers back: completion on the forklift
     back = "find the yellow forklift and stop next to it"
     assert parse_status(monitor(sim, back, [near_forklift, near_forklift]).text).status is MonitorStatus.STOP

@@ -50,7 +50,8 @@ one before it (``"..., go to it"``); :func:`decompose_detailed` applies it to ev
 decomposition, the model's and the fallback's. A subtask counts as a back-reference when it
 holds one of :data:`BACK_REFERENCE_WORDS` and every other word is a movement verb or a
 function word (:data:`_FILLER_WORDS`): ``go to it``, ``stop there``, ``land right next to
-it``; ``go to that door`` names a door and stays. A subtask that only closes the one before it
+it``; ``go to that door`` names a door and stays. So does one whose first reference points back
+(:func:`opens_with_back_reference`: ``stop beside it, across from office 105``). A subtask that only closes the one before it
 (every word in :data:`CLOSING_ONLY_WORDS`: ``stop``, ``then land``) is joined the same way: on
 its own it names nothing a monitor could judge complete. Likewise a statement that only sets the
 scene (``You're at the end of the hall. Fly back past ...``: it opens with one of
@@ -75,6 +76,7 @@ __all__ = [
     "decompose_detailed",
     "split_instruction",
     "attach_back_references",
+    "opens_with_back_reference",
     "attach_context",
     "CONTEXT_OPENERS",
     "BACK_REFERENCE_WORDS",
@@ -200,6 +202,28 @@ def _is_back_reference(subtask: str) -> bool:
     )
 
 
+_PRONOUNS = frozenset({"it", "there", "them"})
+
+
+def opens_with_back_reference(subtask: str) -> bool:
+    """Whether the subtask's first reference points back: movement verbs and function words,
+    then ``it`` / ``there`` / ``them`` (or ``that`` / ``this`` / ``one`` closed by punctuation
+    or the end). ``stop beside it, across from office 105`` does: its goal is the previous
+    subtask's target, ``office 105`` only says where to stand; ``go to that door`` does not."""
+    low = subtask.lower()
+    found = list(_WORD_RE.finditer(low))
+    for k, m in enumerate(found):
+        w = m.group(0)
+        if w in _PRONOUNS:
+            return True
+        if w in BACK_REFERENCE_WORDS:
+            nxt = found[k + 1] if k + 1 < len(found) else None
+            return nxt is None or bool(re.search(r"[^\w\s']", low[m.end() : nxt.start()]))
+        if w not in _FILLER_WORDS:
+            return False
+    return False
+
+
 def attach_back_references(subtasks: list[str] | tuple[str, ...]) -> tuple[str, ...]:
     """Join every subtask that only refers back (module docstring) to the one before it.
 
@@ -209,7 +233,7 @@ def attach_back_references(subtasks: list[str] | tuple[str, ...]) -> tuple[str, 
     """
     out: list[str] = []
     for sub in subtasks:
-        if out and _is_back_reference(sub):
+        if out and (_is_back_reference(sub) or opens_with_back_reference(sub)):
             out[-1] = f"{out[-1]}, {sub}"
         else:
             out.append(sub)

@@ -20,7 +20,7 @@ from typing import Sequence
 
 import numpy as np
 
-from vlm.decompose import CLOSING_ONLY_WORDS, split_instruction
+from vlm.decompose import CLOSING_ONLY_WORDS, opens_with_back_reference, split_instruction
 from vlm.prompts import (
     SPF_MAX_DEPTH_M,
     DecisionPrompt,
@@ -376,13 +376,17 @@ class SimulatedVlm:
         return legs
 
     def _leg_perceptions(self, legs: list[str], image: VlmImage) -> list[Perception]:
-        """Perception of each leg's target; a leg naming nothing visible that refers back
-        ("go to it", "stop there") means the object the previous leg names last."""
+        """Perception of each leg's target; a leg whose first reference points back ("stop
+        beside it, across from office 105") or naming nothing visible that refers back ("go to
+        it", "stop there") means the object the previous leg names last."""
         out = []
         for k, leg in enumerate(legs):
-            per = self.perceive(leg, image)
-            if per.named_id is None and k > 0 and _BACK_REFERENCES & set(words(leg)):
+            if k > 0 and opens_with_back_reference(leg):
                 per = self.perceive(legs[k - 1], image, last_mention=True)
+            else:
+                per = self.perceive(leg, image)
+                if per.named_id is None and k > 0 and _BACK_REFERENCES & set(words(leg)):
+                    per = self.perceive(legs[k - 1], image, last_mention=True)
             out.append(per)
         return out
 
@@ -637,7 +641,7 @@ def _detected_per_leg(
     objs, areas = scene_objects_as_visible(objects, annotation)
     out: list[SceneObject | None] = []
     for k, leg in enumerate(legs):
-        matches = ground(leg, objs, areas)
+        matches = [] if k > 0 and opens_with_back_reference(leg) else ground(leg, objs, areas)
         if not matches and k > 0 and _BACK_REFERENCES & set(words(leg)):
             matches = sorted(ground(legs[k - 1], objs, areas), key=_mention_end, reverse=True)
         out.append(objects[matches[0].instance_id - 1] if matches else None)
@@ -654,6 +658,8 @@ def _mention_end(m) -> tuple[int, int]:
 def _leg_names_target(legs: list[str], k: int) -> bool:
     """Whether leg ``k`` names something to reach (:func:`vlm.sim.grounding.names_target`); a
     leg that refers back ("stop next to it") names the previous leg's target."""
+    if k > 0 and opens_with_back_reference(legs[k]):
+        return names_target(legs[k - 1])
     if names_target(legs[k]):
         return True
     return k > 0 and bool(_BACK_REFERENCES & set(words(legs[k]))) and names_target(legs[k - 1])

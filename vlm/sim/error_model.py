@@ -9,18 +9,57 @@ whose instance has no pixel in ``instance_ids`` is treated as not visible.
 
 Grounding (which visible object the subtask names)
 --------------------------------------------------
-Rule in :mod:`vlm.sim.grounding`: an object is named when its name, one of its aliases or its
-label occurs as contiguous words in the subtask (lower case, naive singular), and every
-attribute word (colour, size, material: :data:`vlm.sim.grounding.ATTRIBUTE_WORDS`) right
-before that occurrence belongs to the object's own words. ``red van`` thus names the object
-``red van`` (label ``van``) but not ``blue van``; ``the van`` names both. Among named objects
-the earliest mention in the subtask wins, then the longer match, then the larger visible area,
-then the lower instance id.
+Rule in :mod:`vlm.sim.grounding` (:func:`~vlm.sim.grounding.ground`): an object is named when
+its name, one of its aliases or its label occurs as contiguous words in the subtask (lower case,
+naive singular) and
+
+- the occurrence is the *head* of its noun phrase: the word after it ends the phrase
+  (punctuation, a function word, verb, direction or adverb of
+  :data:`vlm.sim.grounding.PHRASE_END_WORDS`, a number, an ``-ly`` adverb or an ``-ed`` /
+  ``-ing`` participle). ``wall clock`` names a clock, never a wall; ``fuel pump`` a pump, never
+  the fuel tank; ``the sedan parked on the right`` the sedan. English compounds are
+  right-headed (E. Williams, "On the notions 'lexically related' and 'head of a word'",
+  *Linguistic Inquiry* 12(2), 1981): a model reading "wall clock" looks for a clock;
+- every attribute word (colour, size, material: :data:`vlm.sim.grounding.ATTRIBUTE_WORDS`)
+  right before it belongs to the object's own words. ``red van`` thus names the object
+  ``red van`` (label ``van``) but not ``blue van``; ``the van`` names both;
+- the object is a target: scene objects with ``target = false`` (ground, walls, roofs, parked
+  cars and street furniture the scene marks as background; :attr:`vlm.types.VisibleObject.target`)
+  are never the goal of a subtask.
+
+Among named objects: mentions after ``past`` / ``passed`` / ``beyond`` (a landmark flown past)
+and inside an opening place phrase closed by a comma (``On the upper deck, stop beside the
+chair``) rank last; then the earliest mention, the longer match, the object more of whose own
+distinctive words the subtask uses (``the person standing by the entrance`` is ``person by
+the entrance``), the larger visible area, the lower instance id.
+
+Legs (one rule for every prompt)
+--------------------------------
+Every prompt's text, the OnFly decision and monitoring subtask as much as a baseline's whole
+instruction, is cut into *legs* by :func:`vlm.decompose.split_instruction` (no merges); a leg
+that only closes the one before it (``then stop``, words of
+:data:`vlm.decompose.CLOSING_ONLY_WORDS`) is joined to it; a leg naming nothing visible that
+refers back (``go to it``, ``stop there``, ``in front of its middle``), or whose first reference
+points back (``stop beside it, across from office 105``:
+:func:`vlm.decompose.opens_with_back_reference`), means the object the previous leg names last. The subtask's target is the *last* leg's target; completion (STOP,
+``depth 0``, PIVOT ``stop``, TypeFly ``stop``) is judged only on it. So ``turn left at the
+yellow forklift and stop in front of the fuel pump`` is never complete at the forklift.
+
+A leg *names a target* when it holds a word that is not a number, an attribute or one of
+:data:`vlm.sim.grounding.NON_OBJECT_WORDS` (movement verbs, function words, directions,
+places such as corridor / intersection / floor, units): ``fly forward``, ``continue through
+the intersection`` and ``go to the end of the corridor`` name none
+(:func:`vlm.sim.grounding.names_target`). This is the model's language knowledge, not
+perception: it needs no object in the frame.
 
 Per call, with ``sigma_px = W * (pixel_noise_frac + pixel_noise_frac_per_m * d)`` where ``W`` is
 the image width and ``d`` the median z-depth of the pointed object's pixels:
 
-Decision (``{"point_2d": [x, y]}``)
+Decision (``decision/v2``: ``{"target_visible": true, "point_2d": [x, y]}`` or ``{"target_visible": false, "point_2d": null}``)
+    0. *Leg*: the leg rule of the baseline prompts below (last leg's target if perceived, else
+       the furthest leg whose target is perceived and not yet within ``stop_distance_m +
+       stop_offset_m``, else the leg after it; nothing perceived: the first leg). The decision
+       prompt has no stop interface: no stop jitter is drawn.
     1. *Miss*: the named target is not perceived with probability ``miss_prob_small`` if its
        visible area is below ``small_target_frac`` of the image, and independently with
        ``miss_prob_far`` if ``d > far_target_m``.
@@ -30,15 +69,25 @@ Decision (``{"point_2d": [x, y]}``)
     3. *Point*: the pixel of the pointed object's region nearest to the region's centroid (on
        the object even for non-convex shapes), plus isotropic Gaussian noise ``sigma_px``,
        rounded and kept inside the image.
-    4. Target not perceived: the history point from the prompt plus noise ``sigma_px`` at
-       ``d = 0``; without a history point, an *exploration point*: the deepest open column
-       block on the horizon band (rows 35-65 % of the height; no depth reading counts as
-       open), at the middle row, plus the same noise. Ties go to the block nearest the centre.
+    4. *Not visible*: the pursued leg names a target (see Legs) and it is not perceived (not in
+       the frame, or missed by rule 1): the answer is ``{"target_visible": false, "point_2d":
+       null}``; no point is invented, whatever the history point. Abstaining on a referring
+       expression with no referent is a trained behaviour of grounding models (gRefCOCO's
+       no-target expressions: C. Liu, H. Ding, X. Jiang, "GRES: Generalized Referring
+       Expression Segmentation", CVPR 2023); the miss rule decides when the model fails to
+       see a present target.
+    5. *No target named* (``fly forward``, ``continue through the intersection``): pointing
+       into open space is the answer, since nothing is to be found: the history point from the
+       prompt plus noise ``sigma_px`` at ``d = 0``; without one, an *exploration point*: the
+       deepest open column block on the horizon band (rows 35-65 % of the height; no depth
+       reading counts as open), at the middle row, plus the same noise. Ties go to the block
+       nearest the centre.
 
 Monitoring (``CONTINUE`` / ``STOP`` / ``LOST``, images ``[first, *keyframes, latest]``)
-    The named target is perceived per frame with the miss rule above (each frame's miss draw is
-    keyed on the seed, the frame id and the instance, so one frame is perceived the same way in
-    every call). Then:
+    The last leg's target (see Legs) is perceived per frame with the miss rule above (each
+    frame's miss draw is keyed on the seed, the frame id and the instance, so one frame is
+    perceived the same way in every call); an earlier leg's landmark never completes the
+    subtask and never makes it LOST. Then:
 
     - STOP if perceived in the latest frame with ``d < stop_distance_m + stop_offset_m + e``,
       ``e ~ N(0, stop_jitter_m)`` per call (``stop_offset_m > 0``: early STOP; ``< 0``: late);
@@ -56,9 +105,7 @@ Decomposition (JSON array of strings)
 
 Baseline prompts (``spf``, ``pivot``, ``typefly`` templates; the paper's Table II baselines)
     These prompts carry the whole instruction and no memory. The instruction is cut into legs
-    by :func:`vlm.decompose.split_instruction` (no merges); a leg naming nothing visible that
-    refers back ("go to it", "stop there") is read together with the previous leg. Per frame,
-    with the miss rule above and one stop jitter ``e`` per call:
+    as above (Legs). Per frame, with the miss rule above and one stop jitter ``e`` per call:
 
     - *Leg rule*: if the last leg's target is perceived, aim at it; else take the furthest leg
       whose target is perceived: aim at it, or, if it is already within the stop distance
