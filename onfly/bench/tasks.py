@@ -500,13 +500,15 @@ def _toml_vec(v) -> str:
     return "[" + ", ".join(_toml_num(x) for x in np.asarray(v, float).reshape(-1)) + "]"
 
 
-def write_task_file(path: str | Path, scene: str, tasks: Sequence[Task], header: str = "") -> None:
+def write_task_file(path: str | Path, scene: str, tasks: Sequence[Task], header: str = "", scene_ref: str | None = None) -> None:
     """Write tasks (with their references, if any) in the format :func:`load_task_file` reads.
 
     Numbers are rounded to millimetres; ``header`` lines are written as comments on top.
+    ``scene_ref`` is written as the file's ``scene`` instead of the name (an external scene's
+    path as the file had it).
     """
     lines = [f"# {h}" if h else "#" for h in header.splitlines()]
-    lines += [f'format = "{TASK_FORMAT}"', f"scene = {_toml_str(scene)}", ""]
+    lines += [f'format = "{TASK_FORMAT}"', f"scene = {_toml_str(scene_ref or scene)}", ""]
     for t in tasks:
         if t.scene != scene:
             raise ValueError(f"task {t.task_id!r} belongs to scene {t.scene!r}, not {scene!r}")
