@@ -329,7 +329,9 @@ def combinations(sweep: SweepConfig) -> list[dict[str, Any]]:
 
 
 def _fmt_value(v: Any) -> str:
-    return f"{v:.4g}" if isinstance(v, float) else str(v)
+    if isinstance(v, float):
+        return repr(v) if len(repr(v)) <= 8 else f"{v:.4g}"
+    return str(v)
 
 
 def _slug(combo: dict[str, Any]) -> str:

@@ -191,17 +191,21 @@ def _check_output(path: Path | None, option: str, overwrite: bool) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from onfly.bench.registry import method_names
-
-    # -- everything checked before the episode starts ------------------------------------------
-    if args.method not in method_names():
-        raise CliError(f"--method must be one of {', '.join(method_names())}; got {args.method!r}")
+    # -- everything checked before the episode starts (plain values first: no import) ----------
     for option, value in (("--width", args.width), ("--height", args.height)):
         if value is not None and value <= 0:
             raise CliError(f"{option} must be a positive number of pixels, got {value}")
     for option, value in (("--time-limit-s", args.time_limit_s), ("--frame-period-s", args.frame_period_s)):
         if value is not None and not (math.isfinite(value) and value > 0):
             raise CliError(f"{option} must be a positive number of seconds, got {value}")
+    if args.task and args.instruction:
+        raise CliError("give --task or --instruction, not both")
+    if not args.task and not args.instruction:
+        raise CliError("give --task ID, or --scene S --instruction TEXT --goal-object NAME")
+    from onfly.bench.registry import method_names
+
+    if args.method not in method_names():
+        raise CliError(f"--method must be one of {', '.join(method_names())}; got {args.method!r}")
     options, episode, world = ({}, {}, {})
     if args.config is not None:
         options, episode, world = read_run_config(args.config, args.method)
@@ -232,8 +236,6 @@ def run(args: argparse.Namespace) -> int:
         where = f"{args.config}: " if args.config else ""
         raise CliError(f"{where}options of method {args.method!r}: {exc}") from None
     if args.task:
-        if args.instruction:
-            raise CliError("give --task or --instruction, not both")
         task = _resolve_task(args)
     elif args.instruction:
         if not args.scene or not args.goal_object:
