@@ -137,9 +137,11 @@ def read_run_config(path: Path, method: str) -> tuple[dict, dict, dict]:
 
         BenchConfig.from_dict({k: v for k, v in data.items() if k != "pilot"}, source=str(path))  # validates its tables
     episode, world = dict(data.get("episode", {})), dict(data.get("world", {}))
-    bad = sorted(set(world) - set(defaults.WORLD))
+    from onfly.bench.runner import _WORLD_KEYS  # the benchmark's [world] keys, one list for both
+
+    bad = sorted(set(world) - set(_WORLD_KEYS))
     if bad:
-        raise ConfigFileError(f"{path}: [world]: unknown key(s) {bad}; valid: {sorted(defaults.WORLD)}")
+        raise ConfigFileError(f"{path}: [world]: unknown key(s) {bad}; valid: {sorted(_WORLD_KEYS)}")
     return options, episode, world
 
 
