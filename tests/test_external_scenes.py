@@ -78,3 +78,24 @@ def test_count_spreads_over_scenes():
     assert len({t.scene for t in ten}) == 10
     thirty = select_tasks(tasks, count=30)
     assert max(Counter(t.scene for t in thirty).values()) - min(Counter(t.scene for t in thirty).values()) <= 2
+
+
+def test_run_shows_a_live_line_and_records_mesh_and_metric_plots(tmp_path, monkeypatch, capsys):
+    import subprocess
+    import sys
+
+    monkeypatch.chdir(tmp_path)
+    argv = ["run", "--task", "parking_lot-o01", "--method", "oracle", "--time-limit-s", "6", "--width", "64", "--height", "43"]
+    assert main(argv) == 0
+    out, err = capsys.readouterr()
+    live = [line for line in err.splitlines() if line.startswith("t ")]
+    assert live[0].startswith("t   0.0 s  goal ") and len(live) == 2  # a line every 5 s of flight (stderr is not a tty)
+    rrd = tmp_path / "runs" / "parking_lot-o01-oracle-sim-nominal-s0.rrd"
+    assert f"recording  runs/{rrd.name}" in out
+    assert main(argv) == 0  # the same run again: a new file, the first kept
+    assert f"recording  runs/parking_lot-o01-oracle-sim-nominal-s0-2.rrd" in capsys.readouterr().out
+    rerun = Path(sys.executable).parent / "rerun"
+    printed = subprocess.run([str(rerun), "rrd", "print", str(rrd)], capture_output=True, text=True, timeout=120).stdout
+    assert "world/scene" in printed  # the scene mesh
+    for name in ("metrics/distance_to_goal_m", "metrics/speed_mps", "metrics/altitude_m"):
+        assert name in printed
