@@ -94,6 +94,8 @@ class OnFlyMethod:
             "verifier_moved": len(moved),
             "monitor_statuses": dict(statuses),
             "planner_fallbacks": p.planner_fallbacks,
+            "search_triggers": dict(Counter(e.data.get("trigger") for e in p.events if e.kind == "search_start")),
+            "goals_clamped": kinds.get("goal_clamped", 0),
         }
 
 
