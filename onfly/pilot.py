@@ -627,9 +627,9 @@ class OnFlyPilot:
             self._explore(t_s, state)
             point, yaw_ref, _ = self.search.control(t_s, state.p, state.yaw)
         elif ev == "explore_done":
-            # look around from the new place: a half turn (the way here was seen on the way)
-            self.search.start(t_s, state.p, state.yaw, self.search.trigger or SearchTrigger.NO_GOAL, total_rad=np.pi)
-            self._event(t_s, "search_scan", {"position": state.p})
+            # chain the next leg at once: the camera faces each leg's direction, so the turn
+            # between legs sweeps new sectors; a scan in place only when nothing is reachable
+            self._explore(t_s, state)
             point, yaw_ref, _ = self.search.control(t_s, state.p, state.yaw)
         return point, yaw_ref
 

@@ -21,7 +21,8 @@ Policy (parameters in :class:`SearchConfig`):
 3. **Explore**: fly toward the reachable point whose view holds the most unknown space (a
    frontier of the map's known space), inside the flight volume, away from places already
    visited; the camera faces the direction of travel, so the flight itself looks for the
-   target. On arrival (or after ``explore_timeout_s``) scan again.
+   target. On arrival (or after ``explore_timeout_s``) the next leg starts at once (the turn
+   onto it sweeps new sectors past the camera); a scan in place only when nothing is reachable.
 4. **Hand back**: any decision that yields a verified goal for the current subtask ends the
    search (the pilot flies that goal). A STOP from the monitor is handled as always.
 
