@@ -609,7 +609,7 @@ class OnFlyPilot:
             z = max(z, self.config.goal_min_z_m)
         target = explore_target(
             state.p,
-            state.yaw,
+            self.search.heading0,
             self.esdf,
             config=self.config.search,
             volume=self.volume,

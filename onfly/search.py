@@ -81,6 +81,8 @@ class SearchConfig:
     visit_spacing_m : the vehicle's track is remembered every this many metres
     stall_window_s, stall_distance_m : less travel than this in that window is a dead end
     gain_lookahead_m : how far beyond a candidate the gain fan reaches, metres
+    forward_weight : score cost of a leg pointing opposite to the heading the search began
+        with (0 = no preference; the gain is a fraction in [0, 1])
     """
 
     enabled: bool = True
@@ -101,6 +103,7 @@ class SearchConfig:
     stall_window_s: float = 12.0
     stall_distance_m: float = 0.6
     gain_lookahead_m: float = 4.0
+    forward_weight: float = 0.3
 
     def __post_init__(self) -> None:
         for name in ("not_visible_streak", "fail_streak", "reject_streak", "explore_headings"):
@@ -123,6 +126,8 @@ class SearchConfig:
                 raise SearchConfigError(f"SearchConfig.{name} must be positive, got {v}")
         if not (np.isfinite(self.scan_dwell_s) and self.scan_dwell_s >= 0):
             raise SearchConfigError(f"SearchConfig.scan_dwell_s must be >= 0, got {self.scan_dwell_s}")
+        if not (np.isfinite(self.forward_weight) and self.forward_weight >= 0):
+            raise SearchConfigError(f"SearchConfig.forward_weight must be >= 0, got {self.forward_weight}")
         if not (np.isfinite(self.explore_clearance_m) and self.explore_clearance_m >= 0):
             raise SearchConfigError(f"SearchConfig.explore_clearance_m must be >= 0, got {self.explore_clearance_m}")
         ranges = tuple(float(r) for r in self.explore_ranges_m)
@@ -174,7 +179,9 @@ def explore_target(
     Parameters
     ----------
     position : (3,) metres, world ENU, the vehicle now
-    yaw : radians, current heading (a mild preference to keep going forward)
+    yaw : radians, the heading to keep going in (the direction of travel when the search
+        began): a route usually goes on the way it was going, and a search that doubles back
+        re-explores where the vehicle came from
     field_map : the distance field (``query(points) -> (d, grad)``; ``known(points)`` if it has
         knownness, see :func:`known_mask`)
     volume : the operator flight volume or None; candidates and gain samples outside it are
@@ -213,7 +220,7 @@ def explore_target(
             if len(visited):
                 near = np.linalg.norm(np.asarray(visited)[:, :2] - cand[None, :2], axis=1)
                 score -= 0.5 * float(np.sum(np.clip(1.0 - near / cfg.visit_radius_m, 0.0, 1.0)))
-            score -= 0.1 * abs(wrap_angle(th - yaw)) / np.pi
+            score -= cfg.forward_weight * abs(wrap_angle(th - yaw)) / np.pi
             if prefer_yaw is not None:
                 score -= 0.3 * abs(wrap_angle(th - prefer_yaw)) / np.pi
             if score > best_score:
@@ -235,6 +242,7 @@ class Search:
     trigger: SearchTrigger | None = None
     started_s: float = 0.0
     searches: int = 0
+    heading0: float = 0.0
     _scan_yaws: list[float] = field(default_factory=list)
     _scan_reached_s: float | None = None
     _hold_p: np.ndarray | None = None
@@ -287,6 +295,8 @@ class Search:
         """Begin with a scan: first toward ``toward_yaw`` when given, then on through
         ``total_rad`` (default ``scan_total_rad``) in steps of ``scan_step_rad``. Without a
         preferred heading, successive scans alternate their direction."""
+        if self.phase is None:
+            self.heading0 = float(yaw)  # the direction of travel when this search began
         self.phase = SearchPhase.SCAN
         self.trigger = trigger
         self.started_s = float(t_s)
