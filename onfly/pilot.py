@@ -592,9 +592,13 @@ class OnFlyPilot:
     def _start_search(self, t_s: float, state: VehicleState, trigger: SearchTrigger, explore_first: bool = False) -> None:
         toward = self._last_seen_yaw(state)
         fresh = not self.search.active
+        travel = self.search.travel_heading(t_s)
         self.search.start(t_s, state.p, state.yaw, trigger, toward_yaw=toward)
         if fresh:
-            self.search.heading0 = open_heading(state.p, state.yaw, self.esdf, clearance_m=self.config.search.explore_clearance_m)
+            # keep going the way the vehicle was going (its heading when it was not moving),
+            # unless that way is closed
+            ahead = travel if travel is not None else state.yaw
+            self.search.heading0 = open_heading(state.p, ahead, self.esdf, clearance_m=self.config.search.explore_clearance_m)
         self.search.reset_stall()
         self._no_goal_streak = self._not_visible_streak = self._rejected_streak = 0
         self.goal_world = None

@@ -274,13 +274,17 @@ def side_to_look(
 
 
 def open_heading(position: np.ndarray, yaw: float, field_map, *, clearance_m: float, min_free_m: float = 2.5) -> float:
-    """The heading a search should keep going in: ``yaw`` when the way ahead is free for
-    ``min_free_m`` (the route goes on), else the opposite (a dead end: back out)."""
+    """The heading a search should keep going in: ``yaw`` when some way ahead (straight on or
+    45 deg to either side) is free for ``min_free_m`` (the route goes on past what is in front),
+    else the opposite (a dead end: back out)."""
     p = np.asarray(position, dtype=float)
-    d = np.array([np.cos(yaw), np.sin(yaw), 0.0])
-    ray = p + np.outer(np.arange(0.25, min_free_m + 1e-9, 0.25), d)
-    dist, _ = field_map.query(ray)
-    return float(yaw) if float(np.min(dist)) >= clearance_m else float(wrap_angle(yaw + np.pi))
+    steps = np.arange(0.25, min_free_m + 1e-9, 0.25)
+    for off in (0.0, np.pi / 4, -np.pi / 4):
+        d = np.array([np.cos(yaw + off), np.sin(yaw + off), 0.0])
+        dist, _ = field_map.query(p + np.outer(steps, d))
+        if float(np.min(dist)) >= clearance_m:
+            return float(yaw)
+    return float(wrap_angle(yaw + np.pi))
 
 
 @dataclass
@@ -333,6 +337,15 @@ class Search:
         if len(recent) < 2:
             return False
         return float(np.max(np.linalg.norm(recent - recent[-1], axis=1))) < self.config.stall_distance_m
+
+    def travel_heading(self, t_s: float, window_s: float = 6.0, min_travel_m: float = 1.0) -> float | None:
+        """Heading of the horizontal displacement over the last ``window_s`` (radians), or None
+        when the vehicle moved less than ``min_travel_m``."""
+        recent = [p for (ts, p) in self._track if ts >= t_s - window_s]
+        if len(recent) < 2:
+            return None
+        d = recent[-1][:2] - recent[0][:2]
+        return float(np.arctan2(d[1], d[0])) if float(np.hypot(*d)) >= min_travel_m else None
 
     def reset_stall(self) -> None:
         """Forget the stall window (after a state change that legitimately holds position)."""
