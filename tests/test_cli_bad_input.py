@@ -144,6 +144,9 @@ def test_bench_checks_everything_before_the_first_episode(cwd, capsys):
     one_line_error(capsys, ["bench", "--config", "b.toml", "--scene", "vila"], "task selection: no tasks for scene(s) ['vila']", before, cwd)
     one_line_error(capsys, ["bench", "--config", "k.toml"], "k.toml: options of method 'oracle' (tables/keys ['planner']): unknown planner config field(s) ['bogus']", before, cwd)
     one_line_error(capsys, ["bench", "--config", "u.toml"], "u.toml: [bench]: unknown field(s) ['run']", before, cwd)
+    _files(cwd, mm__toml=BENCH + "[methods.onfli]\nverify = false\n")
+    before = before | {__import__("pathlib").Path("mm.toml")}
+    one_line_error(capsys, ["bench", "--config", "mm.toml"], "mm.toml: [methods.onfli]: no registered method 'onfli'", before, cwd)
     one_line_error(capsys, ["bench", "--config", "b.toml", "--count", "0"], "--count must be a positive integer, got 0", before, cwd)
     one_line_error(capsys, ["bench", "--config", "missing.toml"], "benchmark config not found: missing.toml", before, cwd)
 

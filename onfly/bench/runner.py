@@ -503,6 +503,9 @@ def check_bench(config: BenchConfig, *, reach_vlm: bool = True) -> list[Task]:
     unknown = [m for m in config.methods if m not in method_names()]
     if unknown:
         raise BenchConfigError(f"{where}unknown method(s) {unknown}; registered methods: {', '.join(method_names())}")
+    unknown = sorted(m for m in config.method_options if m not in method_names())
+    if unknown:
+        raise BenchConfigError(f"{where}[methods.{unknown[0]}]: no registered method {unknown[0]!r}; registered: {', '.join(method_names())}")
     try:
         all_tasks = load_tasks(config.task_files)
         tasks = select_tasks(all_tasks, ids=config.task_ids, scenes=config.scenes, kinds=config.kinds, count=config.count)
