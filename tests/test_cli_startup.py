@@ -71,6 +71,17 @@ def test_value_errors_found_before_the_stack_loads():
     assert r["stderr"].strip() == "onfly run: error: --width must be a positive number of pixels, got 0"
 
 
+def test_flag_value_errors_of_bench_sweep_tasks_load_no_heavy_module():
+    for argv, line in (
+        (["bench", "--config", "x.toml", "--count", "0"], "onfly bench: error: --count must be a positive integer, got 0"),
+        (["sweep", "--config", "x.toml", "--workers", "0"], "onfly sweep: error: --workers must be a positive integer, got 0"),
+        (["bench", "--config", "x.toml", "--ray", " "], "onfly bench: error: --ray needs a cluster address or 'local'"),
+    ):
+        r = _probe(argv)
+        assert r["code"] == 2 and r["heavy"] == [], (argv, r)
+        assert r["stderr"].strip() == line
+
+
 def test_unknown_command_is_an_argument_error():
     r = _probe(["rnu"])
     assert r["code"] == 2 and r["heavy"] == []

@@ -63,8 +63,6 @@ def build_config(args):
 
 
 def run(args) -> int:
-    from onfly.bench.runner import check_bench, format_summary, run_bench
-
     if args.ray is not None and not args.ray.strip():
         raise CliError("--ray needs a cluster address or 'local'")
     for option in ("runs", "workers", "count"):
@@ -73,6 +71,8 @@ def run(args) -> int:
             raise CliError(f"--{option} must be a positive integer, got {v}")
     if args.seed is not None and args.seed < 0:
         raise CliError(f"--seed must be >= 0, got {args.seed}")
+    from onfly.bench.runner import check_bench, format_summary, run_bench
+
     cfg = build_config(args)
     tasks = check_bench(cfg)  # before anything is written or flown
     out = Path(args.out) if args.out else Path("runs") / "bench" / cfg.name

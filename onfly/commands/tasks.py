@@ -55,10 +55,10 @@ def _scene_ref(path: Path) -> str | None:
 
 
 def _selected(args) -> list:
-    from onfly.bench.tasks import load_tasks, select_tasks
-
     if args.count is not None and args.count < 1:
         raise CliError(f"--count must be a positive integer, got {args.count}")
+    from onfly.bench.tasks import load_tasks, select_tasks
+
     tasks = load_tasks(args.files)
     ids = [s for s in args.tasks.split(",") if s] if args.tasks else None
     try:
