@@ -99,3 +99,17 @@ def test_run_shows_a_live_line_and_records_mesh_and_metric_plots(tmp_path, monke
     assert "world/scene" in printed  # the scene mesh
     for name in ("metrics/distance_to_goal_m", "metrics/speed_mps", "metrics/altitude_m"):
         assert name in printed
+
+
+def test_writing_references_keeps_the_scene_path_of_an_external_task_file(external):
+    from onfly.bench.tasks import load_task_file, write_task_file
+    from onfly.commands.tasks import _scene_ref
+
+    path = external / "tasks" / "mine.toml"
+    every = load_task_file(path)
+    assert _scene_ref(path) == "../world/my_lot.toml"
+    write_task_file(path, every[0].scene, every, "header", scene_ref=_scene_ref(path))  # what `tasks check --write` does
+    again = load_task_file(path)
+    assert 'scene = "../world/my_lot.toml"' in path.read_text()
+    assert [t.task_id for t in again] == [t.task_id for t in every]
+    assert again[0].scene_file == every[0].scene_file and again[0].reference.path_length_m == every[0].reference.path_length_m
