@@ -200,7 +200,7 @@ def test_sweep_bad_files(cwd, capsys):
     one_line_error(capsys, ["sweep", "--config", "m.toml"], "m.toml: [sweep] base 'nowhere.toml' not found", before, cwd)
     one_line_error(capsys, ["sweep", "--config", "q.toml"], "q.toml: [search.space] planner.w_yaw: needs finite numbers low < high", before, cwd)
     one_line_error(capsys, ["sweep", "--config", "o.toml"], "o.toml: [search] objective 'SR:up'", before, cwd)
-    one_line_error(capsys, ["sweep", "--config", "g.toml", "--trials", "3"], "--trials applies to a [search] config", before, cwd)
+    one_line_error(capsys, ["sweep", "--config", "g.toml", "--trials", "3"], "--trials and --sampler-seed apply to a [search] config", before, cwd)
     one_line_error(capsys, ["sweep", "--config", "g.toml", "--workers", "0"], "--workers must be a positive integer", before, cwd)
 
 

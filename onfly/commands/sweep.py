@@ -33,6 +33,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", required=True, type=Path, help="sweep TOML (experiments/configs/sweep_*.toml, tune_*.toml)")
     parser.add_argument("--workers", type=int, default=None, help="local worker processes per combination")
     parser.add_argument("--trials", type=int, default=None, help="search: run this many more trials (default: up to [search] trials)")
+    parser.add_argument("--sampler-seed", type=int, default=None,
+                        help="search: the sampler's seed instead of [search] seed (give each of several processes sharing one study its own)")
     parser.add_argument("--out", default=None, help="output folder (default runs/sweep/<name>); reruns resume")
     parser.add_argument("--json", default=None, help="also write the table rows as JSON here")
     parser.add_argument("--ray", default=None, metavar="ADDRESS", help="run episodes as Ray tasks: a cluster address or 'local'")
@@ -49,8 +51,14 @@ def run(args) -> int:
     from onfly.bench.sweep import SweepConfig, combinations, format_sweep, run_sweep
 
     sweep = SweepConfig.from_toml(args.config)
-    if args.trials is not None and sweep.search is None:
-        raise CliError(f"--trials applies to a [search] config; {args.config} has a [grid]")
+    if sweep.search is None and (args.trials is not None or args.sampler_seed is not None):
+        raise CliError(f"--trials and --sampler-seed apply to a [search] config; {args.config} has a [grid]")
+    if args.sampler_seed is not None:
+        if args.sampler_seed < 0:
+            raise CliError(f"--sampler-seed must be >= 0, got {args.sampler_seed}")
+        from dataclasses import replace
+
+        sweep = replace(sweep, search=replace(sweep.search, seed=args.sampler_seed))
     out = Path(args.out) if args.out else Path("runs") / "sweep" / sweep.name
     if sweep.search is None:
         print(f"sweep {sweep.name}: {len(combinations(sweep))} combinations of {', '.join(sweep.keys)}", flush=True)
