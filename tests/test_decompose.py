@@ -18,6 +18,7 @@ from vlm.decompose import (
     split_instruction,
 )
 from vlm.prompts import parse_prompt
+from vlm.sim.grounding import names_target
 from vlm.sim import SimulatedVlm
 from vlm.types import CallStatus, Usage, VlmConnectionError, VlmResponse
 from realdata_paths import REALDATA
@@ -56,8 +57,9 @@ def test_fallback_on_every_r2r_instruction_is_ordered_nonempty_and_covers_the_te
 
 
 def test_r2r_closing_clauses_are_cut():
-    """Every R2R "... and stop/wait <where>" closes a leg of its own: the subtask that holds the
-    closing verb starts with it (R2R phrases it "and stop at ...", "and wait by ...")."""
+    """Every R2R "... and stop/wait <where>" after a clause that names something closes a leg of
+    its own: the subtask that holds the closing verb starts with it (R2R phrases it "and stop
+    at ...", "and wait by ...")."""
     n = 0
     for ins in _r2r_instructions():
         flat = " ".join(ins.split())
@@ -65,11 +67,15 @@ def test_r2r_closing_clauses_are_cut():
             before = re.findall(r"[^\W_]+", flat[: m.start()].lower())
             if before and before[-1] in MOVEMENT_VERBS:
                 continue  # "stop and wait there", "go and stop in ...": one clause
+            if m.group(2) in ("there", "here", "for"):
+                continue  # "... and wait there": closes the same leg
+            if not names_target(re.split(r"[.;,!?]|\bthen\b", flat[: m.start()])[-1]):
+                continue  # "turn left and wait near the couch": the clause before names nothing
             n += 1
             parts = split_instruction(ins)
             head = f"{m.group(1)} {m.group(2)}"
             assert any(p.startswith(head) or p.lower().startswith(f"and {head}") for p in parts), (ins, parts)
-    assert n > 500  # R2R closes most paths this way
+    assert n > 300  # R2R closes many paths this way
 
 
 @pytest.mark.parametrize(
@@ -90,12 +96,18 @@ def test_r2r_closing_clauses_are_cut():
         ("Fly past the gate, and land next to the bench.", ["Fly past the gate", "land next to the bench"]),
         ("Walk past the sofa and wait by the door.", ["Walk past the sofa", "wait by the door"]),
         ("Go to the end of the corridor and stop about a metre from the window.",
-         ["Go to the end of the corridor", "stop about a metre from the window"]),
+         ["Go to the end of the corridor and stop about a metre from the window"]),  # the corridor's end is no target
         ("Follow the row to the charging station and end at the cart corral.",
          ["Follow the row to the charging station", "end at the cart corral"]),
         ("go to the bench then hover in front of the fountain", ["go to the bench", "hover in front of the fountain"]),
         ("Fly over to the operator panel and stop.", ["Fly over to the operator panel and stop"]),  # nothing after
         ("Stop and wait by the door.", ["Stop and wait by the door"]),  # one word before "and"
+        # the clause before names nothing to reach: cutting would leave a subtask no monitor completes
+        ("Fly back past the snack machine, then keep going and stop at the blue door.",
+         ["Fly back past the snack machine", "keep going and stop at the blue door"]),
+        ("after that, go on and stop next to the man in blue", ["go on and stop next to the man in blue"]),
+        ("Go past the pavilion, then keep flying north and stop beside the tree.",
+         ["Go past the pavilion", "keep flying north and stop beside the tree"]),
         ("Walk past the couch and end table.", ["Walk past the couch and end table"]),  # "end table" is a noun
         ("Fly to the panel, then over to the robot arm, and finally stop at the hydraulic press.",
          ["Fly to the panel", "over to the robot arm", "finally stop at the hydraulic press"]),

@@ -28,7 +28,9 @@ Works on the instruction with whitespace collapsed. It cuts at
    fuel pump``; ``walk past the sofa and wait by the door``; ``, and finally stop at the
    press`` (``finally`` / ``lastly`` / ``eventually`` may come between). A bare ``... and stop.`` stays
    whole (it closes the same leg), and so does a clause of one word before it (``stop and
-   wait by the door``).
+   wait by the door``) or one that names nothing to reach (``keep going and stop at the blue
+   door``, ``go on and stop next to the man``: :func:`vlm.sim.grounding.names_target`), which
+   on its own would be a subtask no monitor could complete.
    ``then hover in front of ...`` is already cut by rule 2. A closing clause that only
    refers back (``and stop next to it``) is joined again by :func:`attach_back_references`.
    Rule 3's exception for clauses opening with a subordinator does not apply: ``in the
@@ -181,7 +183,7 @@ def split_instruction(instruction: str) -> list[str]:
         clause = text[start : m.start()]
         if m.lastgroup == "verb" and _starts_with_subordinator(clause) and "," not in clause:
             continue
-        if m.lastgroup == "closing" and len(_WORD_RE.findall(clause)) < 2:
+        if m.lastgroup == "closing" and (len(_WORD_RE.findall(clause)) < 2 or not _names_target(clause)):
             continue
         pieces.append(clause)
         start = m.end()
@@ -191,6 +193,13 @@ def split_instruction(instruction: str) -> list[str]:
     if not out:  # cannot happen for text with a word character; kept as a guard
         raise DecompositionError(f"instruction has no words: {instruction!r}")
     return out
+
+
+def _names_target(text: str) -> bool:
+    """:func:`vlm.sim.grounding.names_target` (imported here: ``vlm.sim`` imports this module)."""
+    from vlm.sim.grounding import names_target
+
+    return names_target(text)
 
 
 def _is_back_reference(subtask: str) -> bool:
