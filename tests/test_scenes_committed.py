@@ -126,3 +126,25 @@ def test_every_target_is_reachable_through_free_space_from_the_start(world):
         lo, hi = world.geometry.object_bounds(o.instance_id)
         d = np.linalg.norm(np.maximum(np.maximum(lo - R, 0.0), R - hi), axis=1).min()
         assert d <= 3.0, f"{o.name}: nearest reachable free voxel is {d:.1f} m away"
+
+
+STRUCTURE = {"wall", "ceiling", "floor", "beam", "duct", "column", "fence"}
+
+
+@pytest.mark.parametrize("name", sorted(HARD))
+def test_hard_scenes_are_indoor_with_low_ceilings_and_beams_and_structure_is_not_a_target(name):
+    """Each harder scene is a closed interior: a ceiling 2.4-3.0 m up (real room heights), a
+    beam or duct hanging lower (2.0-2.35 m: flyable under at 1.5 m, not over), and walls,
+    ceilings, beams, ducts, columns and fences are never targets."""
+    from onfly.bench.tasks import object_bounds
+
+    scene = World.from_scene(name).scene
+    ceilings = [o for o in scene.objects if o.label == "ceiling"]
+    assert ceilings
+    assert 2.4 <= min(object_bounds(scene, o.name)[0][2] for o in ceilings) <= 3.0
+    low = [object_bounds(scene, o.name)[0][2] for o in scene.objects if o.label in {"beam", "duct"}]
+    assert low and 2.0 <= min(low) <= 2.35
+    for o in scene.objects:
+        if o.label in STRUCTURE:
+            assert not o.target, o.name
+    assert scene.bounds.max_m[2] <= 3.0
