@@ -13,8 +13,7 @@ failure classes of the out-of-view episodes. Records are counted as they are in 
 (the latest record of each episode key).
 
 The tasks are the config's selection (``[bench.tasks]``: files, ids, scenes, kinds, count), so
-``experiments/configs/hard.toml`` gives the harder set of ``onfly/data/tasks/hard/``. Run from
-the repository root (task files in configs are relative to it)::
+``experiments/configs/hard.toml`` gives the harder set of ``onfly/data/tasks/hard/``. Run::
 
     .venv/bin/python experiments/task_visibility.py --config experiments/configs/paper_tables.toml \\
         [--runs runs/paper_final] [--json PATH]
