@@ -45,6 +45,7 @@ from onfly.bench.episode import EpisodeConfig, run_episode
 from onfly.bench.metrics import EpisodeMetrics, summarize
 from onfly.bench.registry import get_factory, method_names
 from onfly.bench.tasks import KINDS, Task, load_tasks, select_tasks
+from onfly.world.realism import PROFILES, realism_profile
 from onfly.world.render import RenderConfig
 from onfly.world.scene import Scene, load_scene, resolve_scene
 from onfly.world.world import World
@@ -72,7 +73,7 @@ log = logging.getLogger(__name__)
 
 EPISODES_FILE = "episodes.jsonl"
 SHARED_TABLES = ("planner", "esdf", "verifier")
-_WORLD_KEYS = ("width_px", "height_px", "hfov_deg", "vfov_deg", "render_threads")
+_WORLD_KEYS = ("width_px", "height_px", "hfov_deg", "vfov_deg", "render_threads", "realism")
 
 
 class BenchConfigError(ValueError):
@@ -95,7 +96,8 @@ class BenchConfig:
     vlm : VLM spec for every method (``sim:<preset>``, see :mod:`vlm.factory`)
     workers : local worker processes
     episode : EpisodeConfig fields; world : camera and renderer (``width_px``, ``height_px``,
-        ``hfov_deg``, ``vfov_deg``, ``render_threads``)
+        ``hfov_deg``, ``vfov_deg``, ``render_threads``) and the realism profile (``realism``:
+        ``"ideal"``, the default, or ``"realistic"``; see ``docs/realism.md``)
     shared : ``planner`` / ``esdf`` / ``verifier`` override tables passed to every method
     method_options : method name -> its own option table (``[methods.<name>]``)
     source : the file it was read from
@@ -139,6 +141,9 @@ class BenchConfig:
         bad = sorted(set(self.world) - set(_WORLD_KEYS))
         if bad:
             raise BenchConfigError(f"{where}[world]: unknown field(s) {bad}; valid: {list(_WORLD_KEYS)}")
+        realism = self.world.get("realism", "ideal")
+        if not isinstance(realism, str) or realism not in PROFILES:
+            raise BenchConfigError(f"{where}[world] realism: unknown profile {realism!r}; valid: {', '.join(PROFILES)}")
         bad = sorted(set(self.shared) - set(SHARED_TABLES))
         if bad:
             raise BenchConfigError(f"{where}unknown shared table(s) {bad}; valid: {list(SHARED_TABLES)}")
@@ -214,20 +219,24 @@ class BenchConfig:
         return opts
 
     def method_hash(self, method: str) -> str:
-        """Hash of everything that can change ``method``'s results (see the module docstring)."""
+        """Hash of everything that can change ``method``'s results (see the module docstring).
+        The ideal realism profile is left out, so hashes of runs before profiles still match."""
+        world = self.world_settings()
+        if world.get("realism") == "ideal":
+            del world["realism"]
         return _digest(
             {
                 "method": method,
                 "options": self.method_options_for(method),
                 "episode": asdict(EpisodeConfig(**self.episode)),
-                "world": self.world_settings(),
+                "world": world,
                 "vlm": self.vlm,
                 "seed": self.seed,
             }
         )
 
     def world_settings(self) -> dict:
-        w = {"width_px": 640, "height_px": 427, "hfov_deg": 90.0, "vfov_deg": 60.0, "render_threads": 1}
+        w = {"width_px": 640, "height_px": 427, "hfov_deg": 90.0, "vfov_deg": 60.0, "render_threads": 1, "realism": "ideal"}
         w.update(self.world)
         return w
 
@@ -324,7 +333,9 @@ def run_job(job: EpisodeJob) -> dict:
     w = job.world
     camera = PinholeCamera.from_fov(int(w["width_px"]), int(w["height_px"]), float(w["hfov_deg"]), float(w["vfov_deg"]))
     start = VehicleState(0.0, task.start.position_m.copy(), np.zeros(3), float(task.start.yaw_rad))
-    world = World(_scene(task.scene), camera=camera, render_config=RenderConfig(threads=int(w["render_threads"])), initial_state=start)
+    realism = realism_profile(w.get("realism", "ideal"))
+    world = World(_scene(task.scene), camera=camera, render_config=RenderConfig(threads=int(w["render_threads"])), initial_state=start,
+                  realism=realism, seed=job.seed)
     cpu0 = time.process_time()
     factory = get_factory(job.method)
     method = factory(job.vlm, job.seed, **{k: (dict(v) if isinstance(v, dict) else v) for k, v in job.options.items()})
@@ -354,6 +365,7 @@ def run_job(job: EpisodeJob) -> dict:
             "seed": job.seed,
             "vlm": job.vlm,
             "error_model": error_model_name(job.vlm),
+            "realism": realism.name,
             "metrics": rec.pop("metrics"),
             "end_reason": rec.pop("end_reason"),
             "failure": _failure(result.end_reason, result.metrics),
