@@ -240,10 +240,12 @@ class OdometryDrift:
 class ControllerModel:
     """PX4 multicopter position controller (``mc_pos_control``) in its default tuning.
 
-    Cascade: ``v_sp = v_ref + K_pos (p_ref - p_est)``, ``a_sp = a_ref + K_vel (v_sp - v)``,
-    clipped to ``accel_limit_mps2``; the vehicle's acceleration follows ``a_sp`` through a
-    first-order lag ``tau_s`` (the attitude loop: 1 / MC_ROLL_P = 1 / 6.5 s). Gains are PX4's
-    defaults: MPC_XY_P 0.95, MPC_XY_VEL_P_ACC 1.8, MPC_Z_P 1.0, MPC_Z_VEL_P_ACC 4.0.
+    Cascade: ``v_sp = v_ref + K_pos (p_ref - p_est)``, ``e = v_sp - v``,
+    ``a_sp = a_ref + K_vel e + K_int integral(e)``, clipped to ``accel_limit_mps2``; the
+    vehicle's acceleration follows ``a_sp`` through a first-order lag ``tau_s`` (the attitude
+    loop: 1 / MC_ROLL_P = 1 / 6.5 s). Gains are PX4's defaults: MPC_XY_P 0.95,
+    MPC_XY_VEL_P_ACC 1.8, MPC_XY_VEL_I_ACC 0.4, MPC_Z_P 1.0, MPC_Z_VEL_P_ACC 4.0,
+    MPC_Z_VEL_I_ACC 2.0 (the velocity-loop derivative terms are left out).
     The position feedback uses the odometry estimate, so drift moves the executed path.
     ``accel_limit_mps2`` is ``g tan(MPC_TILTMAX_AIR = 45 deg)``.
     """
@@ -252,11 +254,14 @@ class ControllerModel:
     k_vel_xy_per_s: float = 1.8
     k_pos_z_per_s: float = 1.0
     k_vel_z_per_s: float = 4.0
+    k_int_xy_per_s2: float = 0.4
+    k_int_z_per_s2: float = 2.0
     tau_s: float = 1.0 / 6.5
     accel_limit_mps2: float = 9.81
 
     def __post_init__(self) -> None:
-        _check_nonneg(self, "k_pos_xy_per_s", "k_vel_xy_per_s", "k_pos_z_per_s", "k_vel_z_per_s", "tau_s")
+        _check_nonneg(self, "k_pos_xy_per_s", "k_vel_xy_per_s", "k_pos_z_per_s", "k_vel_z_per_s", "k_int_xy_per_s2",
+                      "k_int_z_per_s2", "tau_s")
         if not (math.isfinite(self.accel_limit_mps2) and self.accel_limit_mps2 > 0):
             raise RealismError(f"ControllerModel.accel_limit_mps2 must be positive, got {self.accel_limit_mps2!r}")
 
@@ -267,6 +272,10 @@ class ControllerModel:
     @property
     def k_vel(self) -> np.ndarray:
         return np.array([self.k_vel_xy_per_s, self.k_vel_xy_per_s, self.k_vel_z_per_s])
+
+    @property
+    def k_int(self) -> np.ndarray:
+        return np.array([self.k_int_xy_per_s2, self.k_int_xy_per_s2, self.k_int_z_per_s2])
 
 
 @dataclass(frozen=True)

@@ -22,8 +22,8 @@ valid initial state) is braked at ``a_max``.
 Realistic tracking (optional, from a realism profile; the law above is untouched without it):
 with a :class:`onfly.world.realism.ControllerModel` the vehicle runs PX4's cascaded position
 controller on the *estimated* position (``p + estimate_offset_m``, the odometry's drift),
-``v_sp = v_ref + K_pos (p_ref - p_est)``, ``a_sp = a_ref + K_vel (v_sp - v)`` clipped to the
-tilt limit, and its acceleration follows ``a_sp`` through a first-order lag; a
+``v_sp = v_ref + K_pos (p_ref - p_est)``, ``a_sp = a_ref + K_vel e + K_int integral(e)`` with
+``e = v_sp - v``, clipped to the tilt limit, and its acceleration follows ``a_sp`` through a first-order lag; a
 :class:`onfly.world.realism.GustProcess` adds the gust acceleration. Neither the speed limit
 nor ``a_max`` bounds the result (they are the planner's limits, not physics). Without a plan
 the controller holds the estimated position where the plan ended.
@@ -118,6 +118,7 @@ class SimVehicle:
         self._yaw_rate = 0.0
         self._a = np.zeros(3)
         self._a_thrust = np.zeros(3)
+        self._vel_integral = np.zeros(3)
         self._traj: Trajectory | None = None
 
     @property
@@ -157,7 +158,9 @@ class SimVehicle:
         else:
             p_r, v_r, a_r, yaw_r, yaw_rate_r = self._reference(h)
         v_sp = v_r + ctl.k_pos * (p_r - p_est)
-        a_sp = _clip_norm(a_r + ctl.k_vel * (v_sp - self._v), ctl.accel_limit_mps2)
+        e_v = v_sp - self._v
+        self._vel_integral = self._vel_integral + e_v * h
+        a_sp = _clip_norm(a_r + ctl.k_vel * e_v + ctl.k_int * self._vel_integral, ctl.accel_limit_mps2)
         lag = 1.0 - math.exp(-h / ctl.tau_s) if ctl.tau_s > 0 else 1.0
         self._a_thrust = self._a_thrust + lag * (a_sp - self._a_thrust)
         a = self._a_thrust
