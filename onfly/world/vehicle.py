@@ -185,7 +185,8 @@ class SimVehicle:
         if self._traj is None:
             a = -c.kd_per_s * self._v
         else:
-            a = a_r + c.kp_per_s2 * (p_r - self._p) + c.kd_per_s * (v_r - self._v)
+            # the position the autopilot reads: truth + the odometry's drift (0 when ideal)
+            a = a_r + c.kp_per_s2 * (p_r - (self._p + self.estimate_offset_m)) + c.kd_per_s * (v_r - self._v)
         a = _clip_norm(a, c.a_max_mps2)
         v_next = self._v + a * h
         if np.linalg.norm(v_next) > c.v_max_mps:
