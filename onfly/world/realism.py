@@ -141,23 +141,25 @@ class DepthModel:
         z = np.asarray(depth_m, dtype=np.float32)
         valid = z > 0
         if material is not None and len(self.no_reading_materials):
-            valid &= ~np.isin(material, self.no_reading_codes())
+            reads = np.ones(len(MATERIALS), dtype=bool)
+            reads[self.no_reading_codes()] = False
+            valid &= np.take(reads, material)
         z = np.where(valid, z, np.float32(0.0))
         out = z.copy()
         if self.edge_jump_ratio > 0:
             self._flying_pixels(z, valid, out, rng)
-        noise = rng.standard_normal(z.shape).astype(np.float32)
+        noise = rng.standard_normal(z.shape, dtype=np.float32)
         out += noise * np.float32(self.sigma_per_m) * z * z
         # the range gate reads the true depth: a surface nearer than MinZ gives no reading
         keep = valid & (z >= self.min_range_m) & (z <= self.max_range_m) & (out > 0)
         if self.dropout_prob > 0:
-            keep &= rng.random(z.shape) >= self.dropout_prob
+            keep &= rng.random(z.shape, dtype=np.float32) >= self.dropout_prob
         out[~keep] = 0.0
         return out
 
     def _flying_pixels(self, z: np.ndarray, valid: np.ndarray, out: np.ndarray, rng: np.random.Generator) -> None:
         """Replace, in ``out``, the far-side pixel of each depth edge by a mixed depth."""
-        mix = rng.random(z.shape).astype(np.float32)
+        mix = rng.random(z.shape, dtype=np.float32)
         for axis in (0, 1):
             a = z[:-1, :] if axis == 0 else z[:, :-1]
             b = z[1:, :] if axis == 0 else z[:, 1:]
