@@ -35,7 +35,10 @@ REALISTIC = PROFILES["realistic"]
 def test_profiles_by_name_and_unknown_names_list_the_valid_ones():
     assert realism_profile(None) is PROFILES["ideal"] and PROFILES["ideal"].is_ideal
     assert realism_profile("realistic") is REALISTIC and not REALISTIC.is_ideal
-    with pytest.raises(RealismError, match=r"unknown realism profile 'foggy'; valid: ideal, realistic"):
+    calm = realism_profile("realistic_calm")
+    assert calm.wind is None and (calm.depth, calm.odometry, calm.controller, calm.frames) == (
+        REALISTIC.depth, REALISTIC.odometry, REALISTIC.controller, REALISTIC.frames)
+    with pytest.raises(RealismError, match=r"unknown realism profile 'foggy'; valid: ideal, realistic, realistic_calm"):
         realism_profile("foggy")
     with pytest.raises(RealismError, match="no_reading_materials: unknown material"):
         DepthModel(no_reading_materials=("velvet",))
@@ -306,7 +309,7 @@ def _bench(world: dict):
 def test_the_config_key_selects_the_profile_and_unknown_names_name_the_key():
     from onfly.bench.runner import BenchConfigError
 
-    with pytest.raises(BenchConfigError, match=r"\[world\] realism: unknown profile 'foggy'; valid: ideal, realistic"):
+    with pytest.raises(BenchConfigError, match=r"\[world\] realism: unknown profile 'foggy'; valid: ideal, realistic, realistic_calm"):
         _bench({"realism": "foggy"})
     plain, ideal, real = _bench({}), _bench({"realism": "ideal"}), _bench({"realism": "realistic"})
     assert plain.world_settings()["realism"] == "ideal"

@@ -97,7 +97,7 @@ class BenchConfig:
     workers : local worker processes
     episode : EpisodeConfig fields; world : camera and renderer (``width_px``, ``height_px``,
         ``hfov_deg``, ``vfov_deg``, ``render_threads``) and the realism profile (``realism``:
-        ``"ideal"``, the default, or ``"realistic"``; see ``docs/realism.md``)
+        ``"ideal"``, the default, ``"realistic"`` or ``"realistic_calm"``; see ``docs/realism.md``)
     shared : ``planner`` / ``esdf`` / ``verifier`` override tables passed to every method
     method_options : method name -> its own option table (``[methods.<name>]``)
     source : the file it was read from

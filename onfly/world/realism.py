@@ -1,7 +1,7 @@
 """Realism profiles of the embedded world: what a real depth camera, odometry and autopilot do.
 
 A :class:`RealismProfile` is a world setting (never a pilot setting), chosen by name in the
-benchmark config (``[world] realism = "ideal" | "realistic"``):
+benchmark config (``[world] realism = "ideal" | "realistic" | "realistic_calm"``):
 
 - ``ideal``: today's world, bit for bit: exact depth everywhere but the sky, exact odometry,
   the vehicle follows every plan with the PD law of :mod:`onfly.world.vehicle`, every frame
@@ -9,6 +9,8 @@ benchmark config (``[world] realism = "ideal" | "realistic"``):
 - ``realistic``: an Intel RealSense D435 depth camera, a LiDAR-inertial odometry and a PX4
   multicopter position controller in gusty air (figures and sources in ``docs/realism.md``;
   each model's docstring names its source).
+- ``realistic_calm``: ``realistic`` in still air, to tell the gusts' share of a result from the
+  sensors' and the controller's.
 
 Every random draw comes from ``numpy.random.default_rng([seed, stream, key])`` with the
 episode seed, a fixed stream id per model and a per-draw key (frame index, step index), so
@@ -415,6 +417,15 @@ PROFILES: dict[str, RealismProfile] = {
         wind=WindModel.dryden(7.7, _ALTITUDE_M),
         frames=FrameModel(),
         description="RealSense D435 depth, LiDAR-inertial odometry, PX4 position control, light Dryden turbulence outdoors",
+    ),
+    "realistic_calm": RealismProfile(
+        "realistic_calm",
+        depth=DepthModel(),
+        odometry=OdometryModel(),
+        controller=ControllerModel(),
+        wind=None,
+        frames=FrameModel(),
+        description="the realistic profile in still air (separates the gusts' effect from the sensors' and the controller's)",
     ),
 }
 
