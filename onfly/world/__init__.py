@@ -1,6 +1,7 @@
 """The embedded world: scenes as data, CPU ray-cast RGB-D + semantics, vehicle, collisions, clock.
 
-See ``docs/scene_format.md`` for the scene files and ``DESIGN.md`` ("The embedded world").
+See ``docs/scene_format.md`` for the scene files, ``docs/realism.md`` for the realism profiles
+(``ideal``, ``realistic``, ``realistic_calm``) and ``DESIGN.md`` ("The embedded world").
 """
 
 from onfly.world.clock import DECISION, MONITORING, LatencyModel, PendingCall, SimClock
