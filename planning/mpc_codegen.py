@@ -15,7 +15,8 @@ version, the compiler flags, the problem sizes, and the bytes of every affine ma
 ``<cache>`` is ``$ONFLY_CACHE_DIR``, else ``$XDG_CACHE_HOME/onfly``, else ``~/.cache/onfly``.
 Concurrent builders (two benchmark workers) each write into their own temporary directory and
 publish with an atomic ``os.replace``, so a reader never sees a partial file; both produce the
-same bytes. Every load is checked against the NumPy path on one input before use.
+same bytes; an advisory lock file makes the second wait instead of compiling again. Every
+load is checked against the NumPy path on one input before use.
 
 The library is called through ``ctypes`` with persistent buffers (CasADi's C API:
 ``f(const double** arg, double** res, long long* iw, double* w, int mem)``), a few
@@ -39,6 +40,11 @@ from typing import TYPE_CHECKING, Callable
 import casadi as ca
 import numpy as np
 import scipy.sparse as sp
+
+try:  # POSIX only; elsewhere concurrent builders just build twice
+    import fcntl
+except ImportError:  # pragma: no cover
+    fcntl = None  # type: ignore[assignment]
 
 from planning.mpc_model import NU, NX
 
@@ -253,31 +259,43 @@ def max_rel_diff(a: np.ndarray, b: np.ndarray) -> float:
 def compile_qp_data(qp: "MpcQp") -> _CompiledData:
     """Load the compiled step data of ``qp`` from the cache, building it once if missing.
 
-    Raises :class:`CodegenError` when no compiler is available, the build fails, or the loaded
-    library disagrees with the NumPy path (a corrupt cache entry is then removed).
+    A cache entry that cannot be loaded or disagrees with the NumPy path (a corrupt file) is
+    removed and rebuilt once. Raises :class:`CodegenError` when no compiler is available, the
+    build fails, or the rebuilt library still disagrees.
     """
     digest = formulation_hash(qp)
     name = f"onfly_qpdata_{digest[:16]}"
     target = cache_dir() / f"{name}.so"
     DL = qp.data_layout
-    if not target.exists():
-        compiler = find_compiler()
-        if compiler is None:
-            raise CodegenError("no C compiler found ($CC, gcc or cc); run scripts/setup.sh to install gcc")
-        logger.info("compiling the MPC step data once into %s", target)
+    last_error = ""
+    for attempt in range(2):
+        if not target.exists():
+            compiler = find_compiler()
+            if compiler is None:
+                raise CodegenError("no C compiler found ($CC, gcc or cc); run scripts/setup.sh to install gcc")
+            try:
+                target.parent.mkdir(parents=True, exist_ok=True)
+                # an advisory lock: a second process waits for the first build instead of
+                # repeating it (correctness does not depend on it: publishing is atomic)
+                with open(target.parent / f".{name}.lock", "a") as lock:
+                    if fcntl is not None:
+                        fcntl.flock(lock, fcntl.LOCK_EX)
+                    if not target.exists():
+                        logger.info("compiling the MPC step data once into %s", target)
+                        _build(qp, name, target, compiler)
+            except (OSError, subprocess.SubprocessError) as exc:
+                raise CodegenError(f"cannot build {target}: {exc}") from exc
         try:
-            _build(qp, name, target, compiler)
-        except OSError as exc:
-            raise CodegenError(f"cannot build {target}: {exc}") from exc
-    try:
-        compiled = _CompiledData(target, name, DL.n_w, DL.n_out)
-    except (OSError, AttributeError) as exc:
-        raise CodegenError(f"cannot load {target}: {exc}") from exc
-    err = _self_check(qp, compiled)
-    if not err <= 1e-9:
+            compiled = _CompiledData(target, name, DL.n_w, DL.n_out)
+            err = _self_check(qp, compiled)
+            if err <= 1e-9:
+                return compiled
+            last_error = f"{target} disagrees with the NumPy step data (max rel diff {err:.3g})"
+        except (OSError, AttributeError, CodegenError) as exc:
+            last_error = f"cannot load {target}: {exc}"
+        logger.warning("%s; removing it%s", last_error, " and rebuilding" if attempt == 0 else "")
         try:
             target.unlink()
         except OSError:
             pass
-        raise CodegenError(f"{target} disagrees with the NumPy step data (max rel diff {err:.3g}); removed it")
-    return compiled
+    raise CodegenError(last_error)
