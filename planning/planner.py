@@ -214,7 +214,7 @@ def _query(field: DistanceField, points: np.ndarray) -> tuple[np.ndarray, np.nda
         raise PlannerInputError(
             f"field.query returned shapes {d.shape}, {g.shape}; expected ({n},), ({n}, 3)"
         )
-    if not (np.all(np.isfinite(d)) and np.all(np.isfinite(g))):
+    if not (np.isfinite(d).all() and np.isfinite(g).all()):
         raise PlannerInputError("field.query returned NaN or inf distance/gradient")
     return d, g
 
@@ -276,6 +276,11 @@ def adjust_goal(
     if ok.size:
         return pts[ok[0]].copy(), True
     return pts[int(np.argmax(dd))].copy(), True
+
+
+def _row_norms(M: np.ndarray) -> np.ndarray:
+    """Euclidean norm of each row of ``M`` (n, 3) (cheaper than ``np.linalg.norm`` on small arrays)."""
+    return np.sqrt(np.einsum("ij,ij->i", M, M))
 
 
 class ShiftedField:
@@ -709,7 +714,7 @@ class Planner:
         path = self._guide
         n_seg = pts.shape[0] - (0 if path is None else path.shape[0])
         skip = 0.3 + max(0.0, c.d_safe_m - d0)
-        far = np.linalg.norm(pts[:n_seg] - origin, axis=1) > skip
+        far = _row_norms(pts[:n_seg] - origin) > skip
         if segment_clear(d[:n_seg][far], c.d_safe_m):
             self._guide = None
             return goal
@@ -757,16 +762,16 @@ class Planner:
         U = np.clip(U, -self._u_max, self._u_max)
         if self._norm_accel:
             a_max = self.config.a_max_mps2
-            n = np.linalg.norm(U[:, 0:3], axis=1)
+            n = _row_norms(U[:, 0:3])
             over = n > a_max
-            if np.any(over):
+            if over.any():
                 U[over, 0:3] *= (a_max / n[over])[:, None]
         return U
 
     @staticmethod
     def _directions(vectors: np.ndarray, floor: float, default: np.ndarray) -> np.ndarray:
         """Unit directions of ``vectors`` (n, 3); ``default`` where the norm is below ``floor``."""
-        norm = np.linalg.norm(vectors, axis=1)
+        norm = _row_norms(vectors)
         moving = norm > floor
         return np.where(moving[:, None], vectors / np.where(moving, norm, 1.0)[:, None], default)
 
@@ -813,7 +818,7 @@ class Planner:
             # tangents at small or arbitrary directions: a cold start with every knot's tangent
             # at the goal direction measured 4x the ADMM iterations.
             a_bar = u_bar[:, 0:3]
-            norm = np.linalg.norm(a_bar, axis=1)
+            norm = _row_norms(a_bar)
             near = norm > (0.5 if cuts_mode == "fresh" or self._acuts is None else 0.05) * c.a_max_mps2
             adirs = np.where(near[:, None], a_bar / np.where(near, norm, 1.0)[:, None], 0.0)
             if cuts_mode == "fresh" or self._acuts is None:
@@ -882,7 +887,7 @@ class Planner:
             sol = qp.solve_data(out, z_warm_scaled, y_warm, update_vectors)
             iterations += sol.iterations
             solves += 1
-            if not np.all(np.isfinite(sol.z)):
+            if not np.isfinite(sol.z).all():
                 return SolveStatus.FAILED, None, iterations, solves, None, theta, z_init
             if "infeasible" in sol.status:
                 return SolveStatus.INFEASIBLE, None, iterations, solves, None, theta, z_init
@@ -891,12 +896,12 @@ class Planner:
             if not sol.converged:
                 return SolveStatus.NOT_CONVERGED, None, iterations, solves, None, theta, z_init
             V = sol.z[self._idx_v1]
-            speed = np.linalg.norm(V, axis=1)
+            speed = _row_norms(V)
             bad = np.flatnonzero(speed > limit)
             bad_a = np.empty(0, dtype=int)
             if self._norm_accel:
                 A = sol.z[self._idx_a]
-                a_norm = np.linalg.norm(A, axis=1)
+                a_norm = _row_norms(A)
                 bad_a = np.flatnonzero(a_norm > a_limit)
             if bad.size == 0 and bad_a.size == 0:
                 return SolveStatus.SOLVED, sol.z, iterations, solves, sol.y, theta, z_init
@@ -916,7 +921,7 @@ class Planner:
             out = qp.data(self._w)
             update_vectors = False  # only A changed
             z_warm_scaled, y_warm = sol.z / qp._D, sol.y
-        speed_ok = bool(np.all(np.linalg.norm(sol.z[self._idx_v1], axis=1) <= limit))
+        speed_ok = bool((_row_norms(sol.z[self._idx_v1]) <= limit).all())
         status = SolveStatus.SOLVED if speed_ok else SolveStatus.UNSAFE
         return status, sol.z, iterations, solves, sol.y, theta, z_init
 
@@ -924,17 +929,17 @@ class Planner:
         """Speed within tolerance everywhere; clearance over the braking horizon; knots inside
         the position box (vehicle-centred frame) within ``safety_tolerance_m``."""
         c = self.config
-        speed = np.linalg.norm(X[1:, 3:6], axis=1)
+        speed = _row_norms(X[1:, 3:6])
         d_knots, _ = _query(field, X[1:, 0:3] + origin)
-        if np.any(speed > bound * (1.0 + c.speed_tolerance_rel)):
+        if (speed > bound * (1.0 + c.speed_tolerance_rel)).any():
             return False, float(d_knots.min()), d_knots
-        if pos_lo is not None and np.isfinite(pos_lo).any() or pos_hi is not None and np.isfinite(pos_hi).any():
+        if pos_lo is not None and pos_lo is not self._pos_lo:
             P = X[1:, 0:3]
             tol = c.safety_tolerance_m
-            if np.any(P < pos_lo - tol) or np.any(P > pos_hi + tol):
+            if (P < pos_lo - tol).any() or (P > pos_hi + tol).any():
                 return False, float(d_knots.min()), d_knots
         floor = min(c.d_safe_m, d0) - c.safety_tolerance_m
-        ok = bool(np.all(d_knots[: self._check_steps] >= floor))
+        ok = bool((d_knots[: self._check_steps] >= floor).all())
         return ok, float(d_knots.min()), d_knots
 
     def _braking_inputs(self, v0: np.ndarray) -> np.ndarray:
