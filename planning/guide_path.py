@@ -17,7 +17,10 @@ ours, kept small:
   to fine and stops refining before a level it predicts will overrun (:func:`guide_search`).
 - Limits: the grid can be clipped to a box (the operator's flight volume shrunk by the body
   radius) and to a floor and a ceiling, so the path never leaves them; cells the field
-  reports as unknown space (``field.is_unknown(points)``, when the field has it) are blocked.
+  reports as unknown space (``field.is_unknown(points)``, or ``not field.known(points)`` as
+  :class:`planning.esdf.EsdfMap` answers) are blocked. With the ESDF's default unknown policy
+  ("occupied") its distance already makes unknown space an obstacle; the mask matters with
+  the "free" policy, where the MPC may cross unknown space but the guide will not route it.
 - :func:`carrot_on_path` picks the point a fixed arc length ahead of the vehicle's nearest
   path point: the MPC's attractor for this step.
 
@@ -36,7 +39,10 @@ from scipy.sparse.csgraph import dijkstra
 
 from planning.field import DistanceField
 
-__all__ = ["segment_points", "segment_clear", "search_guide_path", "guide_search", "GuideResult", "carrot_on_path"]
+__all__ = [
+    "segment_points", "segment_clear", "search_guide_path", "guide_search", "GuideResult", "carrot_on_path",
+    "unknown_mask",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -114,11 +120,8 @@ def _grid_level(
     s_idx, g_idx = cell_of(start), cell_of(goal)
     free = dist >= clearance_m
     if unknown_blocked:
-        is_unknown = getattr(field, "is_unknown", None)
-        if callable(is_unknown):
-            unknown = np.asarray(is_unknown(centres), dtype=bool).reshape(-1)
-            if unknown.shape != free.shape:
-                raise ValueError(f"field.is_unknown returned shape {unknown.shape}, expected {free.shape}")
+        unknown = unknown_mask(field, centres)
+        if unknown is not None:
             free &= ~unknown
     free[s_idx] = free[g_idx] = True
     free3 = free.reshape(nx, ny, nz)
@@ -156,6 +159,21 @@ def _grid_level(
     return path
 
 
+def unknown_mask(field: DistanceField, points: np.ndarray) -> np.ndarray | None:
+    """Which ``points`` (n, 3) the field reports as unknown space, bool (n,), or None when it
+    cannot say. Uses ``field.is_unknown(points)`` if present, else ``~field.known(points)``
+    (:meth:`planning.esdf.EsdfMap.known`: the voxel was hit, passed through by a ray or inside
+    the vehicle's body sphere). Public methods only; an analytic field has neither."""
+    for name, negate in (("is_unknown", False), ("known", True)):
+        fn = getattr(field, name, None)
+        if callable(fn):
+            mask = np.asarray(fn(points), dtype=bool).reshape(-1)
+            if mask.shape != (points.shape[0],):
+                raise ValueError(f"field.{name} returned shape {mask.shape}, expected ({points.shape[0]},)")
+            return ~mask if negate else mask
+    return None
+
+
 def _cells(extent: np.ndarray, res: float) -> float:
     return float(np.prod(np.floor(extent / res + 1e-9) + 1))
 
@@ -180,8 +198,9 @@ def guide_search(
 
     Parameters
     ----------
-    field : DistanceField; if it also has ``is_unknown(points (n, 3)) -> bool (n,)``, cells it
-        reports unknown are blocked (``unknown_blocked``)
+    field : DistanceField; if it also has ``is_unknown(points (n, 3)) -> bool (n,)`` or
+        ``known(points) -> bool (n,)`` (the ESDF's), cells it reports unknown are blocked
+        (``unknown_blocked``; see :func:`unknown_mask`)
     start, goal : arrays (3,), metres, world ENU
     clearance_m : cells with distance below this are blocked (the start and goal cells are
         always allowed, so a start inside the margin can leave it)

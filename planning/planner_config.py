@@ -116,7 +116,8 @@ class PlannerConfig:
         metres, world ENU (None = no limit). With a flight volume its z-extent shrunk by
         ``body_radius_m`` is used (intersected with these when both are set)
     guide_unknown_blocked : cells the distance field reports as unknown (when it exposes
-        ``is_unknown(points)``) are blocked for the guide search
+        ``is_unknown(points)`` or ``known(points)``, as :class:`planning.esdf.EsdfMap` does)
+        are blocked for the guide search
     step_time_budget_ms : wall-time budget of one step, milliseconds (0 = none): OSQP's time
         limit is the budget left, and a step past it returns the shifted previous plan (status
         ``timeout``; a braking plan if the shifted plan fails its check)

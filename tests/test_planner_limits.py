@@ -134,6 +134,19 @@ class UnknownLeft:
         return np.asarray(points)[:, 1] > 0.3
 
 
+class KnownRight:
+    """The ESDF's form of the same thing: ``known(points)`` true only at y <= 0.3."""
+
+    def __init__(self, field: AnalyticField) -> None:
+        self._field = field
+
+    def query(self, points):
+        return self._field.query(points)
+
+    def known(self, points):
+        return np.asarray(points)[:, 1] <= 0.3
+
+
 def wall_with_gaps() -> AnalyticField:
     """A wall across x = 3 (y in [-2, 2], z up to 1.6) with open space around its ends and
     above it: the shortest way is over the top."""
@@ -160,8 +173,9 @@ def test_guide_search_respects_the_ceiling_floor_and_box():
 def test_guide_search_treats_unknown_space_as_blocked():
     field = wall_with_gaps()
     start, goal = np.array([0.0, 0.0, 1.0]), np.array([6.0, 0.0, 1.0])
-    path = guide_search(UnknownLeft(field), start, goal, 0.55, 1.0, z_max_m=1.8).path
-    assert path is not None and path[1:-1, 1].max() <= 0.3
+    for wrapped in (UnknownLeft(field), KnownRight(field)):
+        path = guide_search(wrapped, start, goal, 0.55, 1.0, z_max_m=1.8).path
+        assert path is not None and path[1:-1, 1].max() <= 0.3 and path[1:-1, 1].min() < -2.5
     assert guide_search(UnknownLeft(field), start, goal, 0.55, 1.0, z_max_m=1.8, unknown_blocked=False).path is not None
 
 
