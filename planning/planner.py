@@ -556,7 +556,10 @@ class Planner:
             solves += sol[3]
             status, z, y = sol[0], sol[1], sol[4]
             self._qp_healthy = status in (SolveStatus.SOLVED, SolveStatus.UNSAFE)
-            if status is not SolveStatus.SOLVED or z is None:
+            # a cold start's early iterations may end with the speed norm not yet cut tight
+            # enough (its cuts start at one guessed direction): re-linearize and go on
+            more = status is SolveStatus.UNSAFE and z is not None and outer < n_outer - 1
+            if (status is not SolveStatus.SOLVED or z is None) and not more:
                 break
             u_bar = self._clip_inputs(z[self._idx_u])
             s_warm = z[self._idx_s]
