@@ -118,7 +118,7 @@ def main() -> int:
     # the problem each solver solves rather than the fast path's allowed inexactness
     tight_cfg = dataclasses.replace(
         cfg, qp_eps_abs=1e-6, qp_eps_rel=1e-6, qp_max_iter=100000, speed_tolerance_rel=1e-4,
-        max_speed_refinements=10,
+        accel_tolerance_rel=1e-4, max_speed_refinements=10,
     )
     tight = Planner(tight_cfg)
     ref = MpcNlp(fast.formulation)
