@@ -1,20 +1,24 @@
 """The receding-horizon planner: build once, step every control period.
 
-``Planner(config, solver="qp")`` builds the CasADi formulation and its solver once;
-``planner.step(state, goal_world, field)`` returns a :class:`PlanResult` with the trajectory,
+``Planner(config, solver="qp")`` builds the CasADi formulation and its solver once (the fast
+path's QP data compiled once per formulation and cached, :mod:`planning.mpc_codegen`);
+``planner.step(state, goal_world, field, volume=None)`` returns a :class:`PlanResult` with the trajectory,
 the first command and everything a log needs. One step (the fast path) is one real-time
 iteration:
 
 1. **Goal check.** A goal with clearance below ``d_safe + goal_clearance_margin`` is moved to
    the nearest point with that clearance: Newton steps along the field gradient
    (``g += (target - d) grad``), and if that fails within ``goal_search_max_m``, a line search
-   back along the segment toward the vehicle. ``PlanResult.goal_adjusted`` says so.
+   back along the segment toward the vehicle. With a flight volume the goal is also clamped into
+   it (shrunk by ``body_radius_m``). ``PlanResult.goal_adjusted`` says so.
 2. **Attractor.** If the straight segment from the vehicle to the goal keeps ``d_safe``, the
    progress terms pull toward the goal. Otherwise the front-end (:mod:`planning.guide_path`, a
    clearance-aware grid search run when the goal changes or the path is blocked) supplies a
    path and the attractor is the point ``guide_lookahead_m`` ahead on it: a linearized-distance
    MPC alone stops at a wall it could fly around (Fast-Planner pairs its optimizer with a search
-   front-end for the same reason). The yaw term always uses the goal itself.
+   front-end for the same reason). The search stays inside the volume, above
+   ``guide_floor_m`` and below ``guide_ceiling_m``, out of unknown space, within its node
+   budget (``guide_max_cells``) and, if set, its time budget. The yaw term always uses the goal.
 3. **Linearization point.** The previous plan's inputs shifted by one knot, rolled out from the
    *measured* state with the exact model (so it is dynamically consistent even after a
    disturbance). On the first step (or after :meth:`Planner.reset`) the vehicle coasts
@@ -22,13 +26,18 @@ iteration:
 4. **One QP.** Field distance and gradient at the linearized knots give
    ``d(pbar_k) + grad_k . (p_k - pbar_k) + s_k >= d_safe`` for knots 1..N (knot 0 is the
    measured state, pinned, never softened); the speed norm is cut by the half-space at the
-   previous direction plus cutting planes kept from earlier solves; OSQP is updated in place and
+   previous direction plus cutting planes kept from earlier solves, and so is the acceleration
+   norm (``accel_limit_mode = "norm"``); the flight volume bounds every knot's position; the
+   QP data come from one call of the compiled (or NumPy) step data; OSQP is updated in place and
    warm-started from the shifted previous primal (its last dual iterate is kept). If the true
-   speed norm of the result exceeds the limit by more than ``speed_tolerance_rel`` a cut is
-   added at the violating knots and the QP is solved again (at most ``max_speed_refinements``
-   times). After a failed solve the next one starts from zero duals and the configured rho.
-5. **Check.** The inputs are clipped to their (exact) bounds, rolled out with the exact model,
-   and the plan is accepted only if the solve converged, the speed norm is within tolerance, and
+   speed (acceleration) norm of the result exceeds the limit by more than
+   ``speed_tolerance_rel`` (``accel_tolerance_rel``) a cut is added at the violating knots and the
+   QP is solved again (at most ``max_speed_refinements`` times). After a failed solve the next
+   one starts from zero duals and the configured rho. With ``step_time_budget_ms`` OSQP gets the
+   time left, and a step out of time skips to the fallback with status ``timeout``.
+5. **Check.** The inputs are clipped to their (exact) bounds (the acceleration scaled onto the
+   norm ball), rolled out with the exact model, and the plan is accepted only if the solve
+   converged, the speed norm is within tolerance, the knots are inside the volume, and
    the field's true clearance over the braking horizon stays above
    ``min(d_safe, d(p_0)) - safety_tolerance_m``.
 6. **Fallback.** Otherwise the shifted previous plan is used if it passes the same check, and
