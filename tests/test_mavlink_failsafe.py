@@ -87,7 +87,7 @@ def flight():
     port = bridge_link.local_address[1]
     vehicle = SimMavlinkVehicle(
         MavlinkLink(f"udpout:127.0.0.1:{port}", 1, 1),
-        SimVehicleConfig(heartbeat_period_s=0.2, offboard_prestream_s=0.25, offboard_loss_timeout_s=LOSS_TIMEOUT_S,
+        SimVehicleConfig(heartbeat_period_s=0.2, offboard_loss_timeout_s=LOSS_TIMEOUT_S,
                          k_pos=4.0, k_vel=8.0, a_max_mps2=8.0),
     ).start()
     bridge = MavlinkBridge(bridge_link, BridgeConfig(failsafe=FailsafeConfig(odometry_max_age_s=0.3, link_timeout_s=0.3, vlm_hold_after_s=0.6))).start()

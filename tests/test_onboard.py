@@ -399,7 +399,7 @@ def test_vlm_dies_mid_flight_the_flight_holds_then_a_takeover_stops_the_companio
     clock = MonotonicClock()
     model = WorldVehicleModel.from_scene("urban_block", position_m=[1.0, -24.0, 1.5], yaw_rad=np.deg2rad(75))
     comp, veh = memory_link_pair(1, 191, 1, 1)
-    vehicle = SimMavlinkVehicle(veh, SimVehicleConfig(heartbeat_period_s=0.2, offboard_prestream_s=0.3), model=model).start()
+    vehicle = SimMavlinkVehicle(veh, SimVehicleConfig(heartbeat_period_s=0.2), model=model).start()
     bridge = MavlinkBridge(comp, BridgeConfig(failsafe=FailsafeConfig(vlm_hold_after_s=1.0)), clock=clock.now_s).start()
     camera = CameraFeed(PolledSource(model.observe, 0.5, clock), clock=clock.now_s).start()
     backend = DyingBackend(SimulatedVlm("perfect", seed=0), die_after=3)
