@@ -730,15 +730,16 @@ class SimMavlinkVehicle:
                     self._target = self._setpoint
             elif self.custom_mode == px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["takeoff"]):
                 if self._takeoff_alt_m is not None and self.model.p[2] >= self._takeoff_alt_m - 0.1:
-                    self._takeoff_alt_m = None
+                    alt, self._takeoff_alt_m = self._takeoff_alt_m, None
                     self._set_mode(px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["loiter"]), "takeoff complete")
+                    self._target = _Target(p=np.array([*self.model.p[:2], alt]), yaw=self.model.yaw)
             return
         if self.custom_mode != ARDUCOPTER_MODE["guided"] or not self.armed:
             return
         if self._takeoff_alt_m is not None:
             if self.model.p[2] >= self._takeoff_alt_m - 0.1:
-                self._takeoff_alt_m = None
-                self._target = self._hold_here()
+                alt, self._takeoff_alt_m = self._takeoff_alt_m, None
+                self._target = _Target(p=np.array([*self.model.p[:2], alt]), yaw=self.model.yaw)
                 self._event("takeoff complete")
             return
         sp = self._setpoint
