@@ -61,14 +61,16 @@ marks failsafe events after the hand-over with ``after_handover: true``.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import math
 import time
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
 
-from onfly.mavlink.autopilot import ARDUCOPTER_MODE, PX4_AUTO_SUB, PX4_MAIN, AutopilotSession, Px4Offboard
+from onfly.mavlink.autopilot import ARDUCOPTER_MODE, PX4_AUTO_SUB, PX4_MAIN, AutopilotSession, Px4Offboard, px4_custom_mode
 from onfly.mavlink.bridge import BridgeError, MavlinkBridge
 from onfly.mavlink.failsafe import FailsafeCause
 from onfly.mavlink.link import mavlink2
@@ -84,6 +86,10 @@ __all__ = ["OnboardConfig", "OnboardConfigError", "OnboardFlight", "FlightSummar
 
 log = logging.getLogger(__name__)
 _M = mavlink2
+
+def px4_custom_mode_of(main: str, sub: str | None = None) -> int:
+    return px4_custom_mode(PX4_MAIN[main], PX4_AUTO_SUB[sub] if sub else 0)
+
 
 #: failsafe causes after which the bridge's state cannot be trusted for planning
 _UNTRUSTED = (FailsafeCause.LINK_LOST, FailsafeCause.HEARTBEAT_LOST, FailsafeCause.ODOMETRY_STALE)
@@ -113,6 +119,14 @@ class OnboardConfig:
         ``"land"`` (hand over to the autopilot's landing, straight down where the vehicle
         stopped: only where the ground below is clear; the goal is often next to an object)
     land_timeout_s : wait this long for the disarm after commanding the landing
+    land_search_radius_m, land_search_step_m : the landing site is searched on a grid of this
+        step within this radius of where the vehicle stopped (then the take-off point)
+    land_clear_radius_m : a site's column, from ``land_crash_height_m`` above the ground up
+        to the flight height, must be this far from every mapped (or unknown) obstacle
+    land_handover_height_m : the planner descends to this height above the take-off ground
+        over the site; the autopilot's landing (NAV_LAND) does the last part straight down
+    land_approach_timeout_s : give up moving over the site after this long (then hold)
+    land_crash_height_m : a disarm higher than this above the ground is a crash, not a landing
     observe_after_takeover_s : after a takeover, keep the pilot running (no commands) this long
     link_lost_abort_s : a link lost for this long ends the flight
     """
@@ -129,10 +143,18 @@ class OnboardConfig:
     land_timeout_s: float = 30.0
     observe_after_takeover_s: float = 5.0
     link_lost_abort_s: float = 10.0
+    land_search_radius_m: float = 8.0
+    land_search_step_m: float = 0.5
+    land_clear_radius_m: float = 0.6
+    land_handover_height_m: float = 0.7
+    land_approach_timeout_s: float = 40.0
+    land_crash_height_m: float = 0.3
 
     def __post_init__(self) -> None:
         positive = ("control_period_s", "connect_timeout_s", "takeoff_tolerance_m", "takeoff_speed_tolerance_mps",
-                    "takeoff_timeout_s", "time_limit_s", "land_timeout_s", "link_lost_abort_s")
+                    "takeoff_timeout_s", "time_limit_s", "land_timeout_s", "link_lost_abort_s", "land_search_radius_m",
+                    "land_search_step_m", "land_clear_radius_m", "land_handover_height_m", "land_approach_timeout_s",
+                    "land_crash_height_m")
         for name in positive:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
@@ -177,6 +199,9 @@ class FlightSummary:
     camera: dict
     loop: dict
     metrics: dict | None
+    crashed: bool = False
+    landed: bool = False
+    frames: dict = field(default_factory=dict)
     trace_t_x_y_z: list = field(repr=False, default_factory=list)
 
     def to_dict(self) -> dict:
@@ -184,11 +209,14 @@ class FlightSummary:
 
 
 def pose_source(bridge: MavlinkBridge):
-    """``() -> T_world_body (4, 4)`` from the bridge's newest position and attitude, or None
-    (for cameras without a pose of their own, e.g. a RealSense)."""
+    """``() -> T_local_body (4, 4)``: the body pose in the estimator's local frame (the
+    autopilot's LOCAL_POSITION_NED as ENU) from the bridge's newest telemetry, or None (for
+    cameras without a pose of their own, e.g. a RealSense). Frames reach
+    :class:`OnboardFlight` posed in that local frame, as a camera stamped by the vehicle's
+    estimator is; the flight maps them into the pilot's world frame."""
 
     def pose() -> np.ndarray | None:
-        state, R = bridge.state(), bridge.reader.attitude()
+        state, R = bridge.reader.state(), bridge.reader.attitude()
         if state is None or R is None:
             return None
         return make_transform(R, state.p)
@@ -240,6 +268,8 @@ class OnboardFlight:
         self.t_handover_s: float | None = None
         self.t_takeover_s: float | None = None
         self.crash_suspected = False
+        self.landed = False
+        self._frames_reposed = 0
         self._t_start = self.clock.now_s()
         self._next_s = self._t_start
         self._trace: list[tuple[float, np.ndarray]] = []
@@ -261,6 +291,9 @@ class OnboardFlight:
         self.bridge.wait_for_vehicle(cfg.connect_timeout_s)
         self.bridge.wait_for_state(cfg.connect_timeout_s)
         self.bridge.request_message_intervals()
+        if hasattr(self.bridge, "anchor_world"):
+            T_local_world = self.bridge.anchor_world()
+            self._event("world_anchored", {"T_local_world": np.asarray(T_local_world).round(6).tolist()})
         self._event("engage", {"autopilot": self.autopilot})
         t_engage = self.clock.now_s()
         self.session.engage()  # ArduPilot: includes its NAV_TAKEOFF
@@ -278,6 +311,18 @@ class OnboardFlight:
             if not self.bridge.released:
                 self.bridge.set_trajectory(None)  # hold where we are; the caller stops the bridge
         return self._summary(end)
+
+    def to_world(self, obs):
+        """A camera frame posed in the estimator's local frame, re-posed in the pilot's world
+        frame (the bridge's anchor; identity for a bridge without one)."""
+        T_local_world = getattr(self.bridge, "T_local_world", None)
+        if T_local_world is None:
+            return obs
+        T = np.asarray(T_local_world, dtype=float)
+        if np.array_equal(T, np.eye(4)):
+            return obs
+        self._frames_reposed += 1
+        return dataclasses.replace(obs, T_world_cam=np.linalg.inv(T) @ obs.T_world_cam)
 
     # -- phases -----------------------------------------------------------------------------
     def _wait_next(self) -> float:
@@ -373,6 +418,8 @@ class OnboardFlight:
             self._paused_ticks += 1
             return False
         obs, self._pending_obs = self._pending_obs, None
+        if obs is not None:
+            obs = self.to_world(obs)
         w0 = time.perf_counter()
         try:
             tick = self.pilot.tick(t, state, obs)
@@ -427,8 +474,12 @@ class OnboardFlight:
         self.t_takeover_s = t
         status = self.bridge.status()
         disarmed = status is not None and not status.armed
-        # The autopilot disarmed mid-mission: from the companion's view, a crash (or a kill switch).
-        self.crash_suspected = disarmed and self.t_begin_s is not None and self.t_finished_s is None and self.t_handover_s is None
+        # The autopilot disarmed during the mission, or anywhere above the ground: from the
+        # companion's view a crash (or a kill switch), never a success.
+        state = self.bridge.state()
+        high = state is not None and float(state.p[2]) > self.config.land_crash_height_m
+        mid_mission = self.t_begin_s is not None and self.t_finished_s is None and self.t_handover_s is None
+        self.crash_suspected = self.crash_suspected or (disarmed and (mid_mission or high))
         self._event("takeover", {"reason": self.bridge.release_reason, "armed": None if status is None else status.armed})
 
     def _finish(self, end: str) -> None:
@@ -445,29 +496,140 @@ class OnboardFlight:
             if self.t_begin_s is not None:
                 self._tick(t, commanding=True)  # a finished pilot plans to its hold point
         if cfg.on_finish == "hold":
-            self._event("handover_hold", {})
-            self.t_handover_s = self.clock.now_s()
-            self.bridge.stop_streaming()
+            self._hand_over_hold()
+        else:
+            self._land()
+
+    # -- the end of the flight: our own hold, or a landing over clear ground ----------------------
+    def _land_mode(self, status) -> bool:
+        if self.autopilot == "px4":
+            return status.custom_mode == px4_custom_mode_of("auto", "land")
+        return status.custom_mode == ARDUCOPTER_MODE["land"]
+
+    def _hand_over_hold(self) -> None:
+        """Leave the vehicle holding by its own rule, never by a loss failsafe: PX4 is switched to
+        Hold (AUTO.LOITER, which needs the position estimate it has); ArduCopter stays in GUIDED
+        with a position-only target, which GUID_TIMEOUT never drops."""
+        self.t_handover_s = self.clock.now_s()
+        self.bridge.set_trajectory(None)  # the bridge holds the current point (position-only HOLD)
+        self._wait_next()
+        self._wait_next()
+        if self.autopilot == "px4":
+            loiter = px4_custom_mode_of("auto", "loiter")
+            self.session.expect(lambda st: st.custom_mode == loiter and st.armed, "hold hand-over")
+            try:
+                self.bridge.command(_M.MAV_CMD_DO_SET_MODE, (_M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, PX4_MAIN["auto"], PX4_AUTO_SUB["loiter"]))
+            except BridgeError as exc:
+                self._event("hold_refused", {"error": str(exc), "then": "land"})
+                self._land()
+                return
+        self.bridge.stop_streaming()
+        self._event("handover_hold", {"mode": "AUTO.LOITER" if self.autopilot == "px4" else "GUIDED position target"})
+
+    def _planner_step(self, state: VehicleState, goal: np.ndarray):
+        """One plan toward ``goal`` in the pilot's map (MPC over the ESDF), or a straight line
+        when the pilot has no planner."""
+        pilot = self.pilot
+        pc = pilot.config.planner
+        if getattr(pilot.config, "use_planner", False) and getattr(pilot, "planner", None) is not None:
+            return pilot.planner.step(state, goal, pilot.esdf, yaw_ref=state.yaw).trajectory
+        return straight_line_plan(state, goal, v_max_mps=pc.v_max_mps, a_max_mps2=pc.a_max_mps2, yaw_rate_max_rps=pc.yaw_rate_max_rps,
+                                  dt_s=pc.dt_s, steps=pc.horizon_steps, yaw_ref=state.yaw)
+
+    def landing_site(self, p_now: np.ndarray) -> tuple[np.ndarray, str]:
+        """The nearest point (world, on the take-off ground z = 0) whose column is clear in the
+        pilot's map, and how it was found: ``"map"``, ``"takeoff_point"`` (nothing clear in the
+        search radius: back over the take-off point, a column the vehicle flew up through), or
+        ``"no_map"`` (a pilot without a map: straight down)."""
+        cfg = self.config
+        esdf = getattr(self.pilot, "esdf", None)
+        if esdf is None:
+            return np.array([p_now[0], p_now[1], 0.0]), "no_map"
+        top = max(float(p_now[2]), cfg.land_handover_height_m + 0.1)
+        zs = np.arange(cfg.land_crash_height_m, top + 1e-9, 0.25)
+        r, step = cfg.land_search_radius_m, cfg.land_search_step_m
+        g = np.arange(-r, r + 1e-9, step)
+        dx, dy = np.meshgrid(g, g, indexing="ij")
+        offsets = np.stack([dx.ravel(), dy.ravel()], axis=1)
+        dist = np.linalg.norm(offsets, axis=1)
+        keep = dist <= r
+        offsets, dist = offsets[keep], dist[keep]
+        order = np.argsort(dist, kind="stable")
+        offsets = offsets[order]
+        xy = p_now[:2] + offsets  # (k, 2), nearest first
+        k, nz = len(xy), len(zs)
+        pts = np.column_stack([np.repeat(xy, nz, axis=0), np.tile(zs, k)])
+        free = np.asarray(esdf.is_free(pts, margin_m=cfg.land_clear_radius_m)).reshape(k, nz).all(axis=1)
+        if free.any():
+            i = int(np.argmax(free))
+            return np.array([xy[i, 0], xy[i, 1], 0.0]), "map"
+        return np.zeros(3), "takeoff_point"
+
+    def _fly_to(self, goal: np.ndarray, tol_xy_m: float, tol_z_m: float, t_end: float) -> bool:
+        """Plan toward ``goal`` every tick until within tolerance and slow; False on timeout or
+        when the vehicle is taken over / loses its link."""
+        while True:
+            t = self._wait_next()
+            if self.bridge.released:
+                self._on_takeover(t)
+                return False
+            if t > t_end:
+                return False
+            state = self._trusted_state(t)
+            if state is None:
+                if self._link_lost_since is not None and t - self._link_lost_since > self.config.link_lost_abort_s:
+                    return False
+                continue
+            self._trace.append((t, state.p.copy()))
+            d = state.p - goal
+            if np.linalg.norm(d[:2]) <= tol_xy_m and abs(d[2]) <= tol_z_m and np.linalg.norm(state.v) < 0.2:
+                return True
+            self.bridge.set_trajectory(self._planner_step(state, goal))
+
+    def _land(self) -> None:
+        cfg = self.config
+        state = self.bridge.state()
+        if state is None:
+            self._event("land_failed", {"error": "no vehicle state"})
+            return
+        site, how = self.landing_site(state.p)
+        self._event("land_site", {"site_m": site.tolist(), "found_by": how, "from_m": state.p.tolist()})
+        t_end = self.clock.now_s() + cfg.land_approach_timeout_s
+        over = np.array([site[0], site[1], max(float(state.p[2]), cfg.land_handover_height_m)])
+        low = np.array([site[0], site[1], cfg.land_handover_height_m])
+        if not (self._fly_to(over, 0.3, 0.3, t_end) and self._fly_to(low, 0.3, 0.15, t_end)):
+            if self.bridge.released:
+                return
+            self._event("land_approach_failed", {"site_m": site.tolist(), "then": "hold"})
+            self._hand_over_hold()
             return
         self.t_handover_s = self.clock.now_s()
-        self.bridge.release("mission finished: landing handed to the autopilot")
-        if self.autopilot == "px4":
-            params = (_M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, PX4_MAIN["auto"], PX4_AUTO_SUB["land"])
-        else:
-            params = (_M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, ARDUCOPTER_MODE["land"])
+        self.session.expect(self._land_mode, "commanded landing")
         try:
-            self.bridge.command(_M.MAV_CMD_DO_SET_MODE, params)
+            self.bridge.command(_M.MAV_CMD_NAV_LAND, (0.0, 0.0, 0.0, math.nan, math.nan, math.nan, math.nan))
         except BridgeError as exc:
-            self._event("land_failed", {"error": str(exc)})
+            self._event("land_failed", {"error": str(exc), "then": "hold"})
+            self._hand_over_hold()
             return
-        self._event("land", {})
+        self.bridge.stop_streaming()
+        self._event("land", {"height_m": float(self.bridge.state().p[2])})
         t_land = self.clock.now_s()
         while True:
             t = self._wait_next()
-            status = self.bridge.status()
+            if self.bridge.released:  # someone else changed the mode during the landing
+                self._on_takeover(t)
+                return
+            status, state = self.bridge.status(), self.bridge.state()
+            if state is not None:
+                self._trace.append((t, state.p.copy()))
             if status is not None and not status.armed:
-                state = self.bridge.state()
-                self._event("landed", {"duration_s": t - t_land, "position_m": None if state is None else state.p.tolist()})
+                height = None if state is None else float(state.p[2])
+                if height is not None and height > cfg.land_crash_height_m:
+                    self.crash_suspected = True
+                    self._event("disarmed_in_the_air", {"height_m": height, "position_m": state.p.tolist()})
+                else:
+                    self.landed = True
+                    self._event("landed", {"duration_s": t - t_land, "position_m": None if state is None else state.p.tolist()})
                 return
             if t - t_land > cfg.land_timeout_s:
                 self._event("land_timeout", {"timeout_s": cfg.land_timeout_s})
@@ -547,5 +709,11 @@ class OnboardFlight:
                 "bridge_errors": list(self.bridge.errors[-10:]),
             },
             metrics=metrics,
+            crashed=bool(self.crash_suspected),
+            landed=bool(self.landed),
+            frames={"world": "anchored at the estimator pose when the flight started (x along the heading, z up, "
+                             "heights relative to the start)",
+                    "T_local_world": np.asarray(getattr(self.bridge, "T_local_world", np.eye(4))).round(6).tolist(),
+                    "camera_frames_reposed": self._frames_reposed},
             trace_t_x_y_z=[[self._rel(t), *map(float, x)] for t, x in self._trace],
         )

@@ -135,6 +135,8 @@ class AutopilotSession(abc.ABC):
         self.engaged = False
         self.takeover_s: float | None = None
         self._watching = False
+        self._expected = None  # (predicate, why): a mode change the companion commands itself
+        self.handover_status: VehicleStatus | None = None
         self._lock = threading.Lock()
         bridge.add_status_listener(self._on_status)
 
@@ -174,11 +176,23 @@ class AutopilotSession(abc.ABC):
     def _arm(self) -> None:
         self.bridge.command(_M.MAV_CMD_COMPONENT_ARM_DISARM, (1,))
 
+    def expect(self, predicate, why: str) -> None:
+        """The companion is about to hand the vehicle over itself (a commanded landing or hold):
+        a HEARTBEAT for which ``predicate(status)`` is true is that hand-over, not a takeover.
+        Anything else that leaves the companion's mode still is one."""
+        with self._lock:
+            self._expected = (predicate, why)
+
     def _on_status(self, status: VehicleStatus) -> None:
         with self._lock:
             if not self._watching:
                 return
             if self.in_companion_mode(status) and status.armed:
+                return
+            if self._expected is not None and self._expected[0](status):
+                if self.handover_status is None:
+                    log.info("hand-over seen (%s): custom_mode %#x armed=%s", self._expected[1], status.custom_mode, status.armed)
+                self.handover_status = status
                 return
             self._watching = False
             self.takeover_s = self.bridge.clock()

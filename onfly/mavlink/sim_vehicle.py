@@ -1254,3 +1254,10 @@ class SimMavlinkVehicle:
     @staticmethod
     def _battery_voltage_v(frac: float) -> float:
         return 4 * (3.5 + 0.7 * frac)  # 4S LiPo, 3.5-4.2 V per cell
+
+    def observation_in_local(self, obs):
+        """``obs`` (posed in the scene) re-posed in the estimator's local frame, as the frames of a
+        camera stamped by the vehicle's estimator are (what a companion receives)."""
+        import dataclasses
+
+        return dataclasses.replace(obs, T_world_cam=self.T_local_scene @ obs.T_world_cam)
