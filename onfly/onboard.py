@@ -80,7 +80,7 @@ from onfly.sources.camera import CameraFeed
 from planning.frames import make_transform
 from planning.planner import Fallback
 from planning.straight_line import straight_line_plan
-from planning.trajectory import VehicleState
+from planning.trajectory import Trajectory, VehicleState
 
 __all__ = ["OnboardConfig", "OnboardConfigError", "OnboardFlight", "FlightSummary", "GroundTruth", "pose_source"]
 
@@ -170,12 +170,15 @@ class OnboardConfig:
 @dataclass(frozen=True, eq=False)
 class GroundTruth:
     """What a benchmark task knows about success (for the summary only; never shown to the
-    pilot): the goal region, the reference path length and the success radius."""
+    pilot): the goal region (scene frame), the reference path length, the success radius, and
+    ``T_scene_world`` (4, 4): where the pilot's world frame (anchored at the start pose) sits in
+    the scene, so the flown trace is scored in the scene's frame (identity if None)."""
 
     goal: Any  # onfly.bench.metrics.GoalRegion
     reference_path_m: float
     success_radius_m: float = 5.0
     task_id: str = ""
+    T_scene_world: Any = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -201,6 +204,7 @@ class FlightSummary:
     metrics: dict | None
     crashed: bool = False
     landed: bool = False
+    t_begin_abs_s: float | None = None
     frames: dict = field(default_factory=dict)
     trace_t_x_y_z: list = field(repr=False, default_factory=list)
 
@@ -237,6 +241,10 @@ class OnboardFlight:
     config : OnboardConfig
     clock : :class:`PlaybackClock` driving the loop (monotonic by default)
     ground_truth : optional :class:`GroundTruth` for benchmark metrics in the summary
+    writer : optional :class:`onfly.logs.writer.LogWriter`: every frame the pilot gets (posed in
+        the pilot's world frame), the pilot's events, this flight's events and the failsafes,
+        all stamped on the loop's clock (the camera feed restamps frames on it)
+    recorder : optional :class:`onfly.viz.RerunRecorder` (frames, map, state, plans, events)
     """
 
     def __init__(
@@ -249,6 +257,8 @@ class OnboardFlight:
         config: OnboardConfig = OnboardConfig(),
         clock: PlaybackClock | None = None,
         ground_truth: GroundTruth | None = None,
+        writer=None,
+        recorder=None,
     ) -> None:
         if not isinstance(instruction, str) or not instruction.strip():
             raise OnboardConfigError("instruction must be a non-empty string")
@@ -260,6 +270,8 @@ class OnboardFlight:
         self.config = config
         self.clock = clock if clock is not None else MonotonicClock()
         self.ground_truth = ground_truth
+        self.writer = writer
+        self.recorder = recorder
         # PX4 climbs in offboard (phase 3); ArduPilot took off inside engage()
         self.autopilot = "px4" if session.MODE_NAME == Px4Offboard.MODE_NAME else "ardupilot"
         self.events: list[dict] = []
@@ -429,6 +441,7 @@ class OnboardFlight:
             self.bridge.failsafe.report_planner(t, ok=False, detail=f"pilot tick raised {exc!r}")
             return False
         self._tick_ms.append((time.perf_counter() - w0) * 1e3)
+        self._record(t, state, obs, tick)
         self._ticks += 1
         if not commanding:
             self.pilot_ticks_after_takeover += 1
@@ -440,6 +453,28 @@ class OnboardFlight:
         if commanding and tick.trajectory is not None:
             self.bridge.set_trajectory(tick.trajectory)
         return bool(tick.finished)
+
+    def _record(self, t: float, state: VehicleState, obs, tick) -> None:
+        """Frames, state, plan and the pilot's new events to the log and the recording; a
+        recording problem is logged, never allowed to stop the flight."""
+        try:
+            if self.writer is not None:
+                if obs is not None:
+                    self.writer.write(obs)
+                for ev in self.pilot.events[self._n_events :]:
+                    self.writer.event(ev.kind, ev.data, t_s=ev.t_s)
+            if self.recorder is not None:
+                if obs is not None:
+                    self.recorder.log_frame(obs)
+                    esdf = getattr(self.pilot, "esdf", None)
+                    if esdf is not None:
+                        self.recorder.log_map(t, esdf.occupied_points())
+                self.recorder.log_state(state)
+                if tick.trajectory is not None:
+                    self.recorder.log_plan(t, tick.trajectory)
+                self.recorder.log_pilot_events(self.pilot.events)
+        except Exception as exc:  # noqa: BLE001 - a full disk must not crash the vehicle
+            log.warning("recording failed at t=%.2f: %s", t, exc)
 
     def _report_pilot_events(self, t: float) -> None:
         """Feed the pilot's new events to the bridge's failsafe monitor (VLM health)."""
@@ -526,27 +561,47 @@ class OnboardFlight:
         self.bridge.stop_streaming()
         self._event("handover_hold", {"mode": "AUTO.LOITER" if self.autopilot == "px4" else "GUIDED position target"})
 
-    def _planner_step(self, state: VehicleState, goal: np.ndarray):
+    def _planner_step(self, state: VehicleState, goal: np.ndarray, face_goal: bool = False):
         """One plan toward ``goal`` in the pilot's map (MPC over the ESDF), or a straight line
-        when the pilot has no planner."""
+        when the pilot has no planner. ``face_goal``: turn toward the goal (the camera sees the
+        way), else keep the heading."""
         pilot = self.pilot
         pc = pilot.config.planner
+        d = goal[:2] - state.p[:2]
+        yaw_ref = float(np.arctan2(d[1], d[0])) if face_goal and np.linalg.norm(d) > 0.5 else state.yaw
         if getattr(pilot.config, "use_planner", False) and getattr(pilot, "planner", None) is not None:
-            return pilot.planner.step(state, goal, pilot.esdf, yaw_ref=state.yaw).trajectory
+            return pilot.planner.step(state, goal, pilot.esdf, yaw_ref=yaw_ref).trajectory
         return straight_line_plan(state, goal, v_max_mps=pc.v_max_mps, a_max_mps2=pc.a_max_mps2, yaw_rate_max_rps=pc.yaw_rate_max_rps,
-                                  dt_s=pc.dt_s, steps=pc.horizon_steps, yaw_ref=state.yaw)
+                                  dt_s=pc.dt_s, steps=pc.horizon_steps, yaw_ref=yaw_ref)
 
-    def landing_site(self, p_now: np.ndarray) -> tuple[np.ndarray, str]:
-        """The nearest point (world, on the take-off ground z = 0) whose column is clear in the
-        pilot's map, and how it was found: ``"map"``, ``"takeoff_point"`` (nothing clear in the
-        search radius: back over the take-off point, a column the vehicle flew up through), or
-        ``"no_map"`` (a pilot without a map: straight down)."""
+    def _column_clear(self, xy: np.ndarray, top_m: float) -> np.ndarray:
+        """(k,) True where the column above each ``xy`` (k, 2), from ``land_crash_height_m`` to
+        ``top_m``, is free by ``land_clear_radius_m`` and known (where the map tells knownness)."""
+        from onfly.search import known_mask
+
+        cfg = self.config
+        esdf = self.pilot.esdf
+        zs = np.arange(cfg.land_crash_height_m, max(top_m, cfg.land_handover_height_m + 0.1) + 1e-9, 0.25)
+        k, nz = len(xy), len(zs)
+        pts = np.column_stack([np.repeat(xy, nz, axis=0), np.tile(zs, k)])
+        ok = np.asarray(esdf.is_free(pts, margin_m=cfg.land_clear_radius_m)) & known_mask(esdf, pts)
+        return ok.reshape(k, nz).all(axis=1)
+
+    def landing_site(self, p_now: np.ndarray, yaw: float | None = None, exclude=()) -> tuple[np.ndarray, str]:
+        """Where to land (world, on the take-off ground z = 0) and how it was chosen.
+
+        Candidates on a grid within ``land_search_radius_m``: those in front of the camera
+        (within 40 deg of ``yaw``: seen, not guessed) first, each group nearest first. A site
+        needs a clear column (:meth:`_column_clear`) and a clear straight way to it at the
+        current height; sites within a step of one in ``exclude`` are skipped (seen blocked
+        after turning toward them). ``"map"``; ``"takeoff_point"`` when nothing qualifies (back over the
+        take-off point, a column the vehicle flew up through); ``"no_map"`` for a pilot without a
+        map (straight down).
+        """
         cfg = self.config
         esdf = getattr(self.pilot, "esdf", None)
         if esdf is None:
             return np.array([p_now[0], p_now[1], 0.0]), "no_map"
-        top = max(float(p_now[2]), cfg.land_handover_height_m + 0.1)
-        zs = np.arange(cfg.land_crash_height_m, top + 1e-9, 0.25)
         r, step = cfg.land_search_radius_m, cfg.land_search_step_m
         g = np.arange(-r, r + 1e-9, step)
         dx, dy = np.meshgrid(g, g, indexing="ij")
@@ -554,22 +609,93 @@ class OnboardFlight:
         dist = np.linalg.norm(offsets, axis=1)
         keep = dist <= r
         offsets, dist = offsets[keep], dist[keep]
-        order = np.argsort(dist, kind="stable")
-        offsets = offsets[order]
-        xy = p_now[:2] + offsets  # (k, 2), nearest first
-        k, nz = len(xy), len(zs)
-        pts = np.column_stack([np.repeat(xy, nz, axis=0), np.tile(zs, k)])
-        free = np.asarray(esdf.is_free(pts, margin_m=cfg.land_clear_radius_m)).reshape(k, nz).all(axis=1)
-        if free.any():
-            i = int(np.argmax(free))
-            return np.array([xy[i, 0], xy[i, 1], 0.0]), "map"
+        behind = np.zeros(len(offsets), dtype=bool)
+        if yaw is not None:
+            bearing = np.arctan2(offsets[:, 1], offsets[:, 0])
+            off_axis = np.abs((bearing - yaw + np.pi) % (2 * np.pi) - np.pi)
+            behind = (off_axis > np.deg2rad(40.0)) & (dist > step)
+        order = np.lexsort((dist, behind))
+        xy = p_now[:2] + offsets[order]
+        for ex in exclude:
+            far = np.linalg.norm(xy - np.asarray(ex)[:2], axis=1) > step * 1.01
+            xy, order = xy[far], order[far]
+        free = self._column_clear(xy, float(p_now[2]))
+        for i in np.flatnonzero(free):
+            if self._way_clear(p_now, xy[i]):
+                return np.array([xy[i, 0], xy[i, 1], 0.0]), "map"
         return np.zeros(3), "takeoff_point"
 
-    def _fly_to(self, goal: np.ndarray, tol_xy_m: float, tol_z_m: float, t_end: float) -> bool:
-        """Plan toward ``goal`` every tick until within tolerance and slow; False on timeout or
-        when the vehicle is taken over / loses its link."""
+    def _way_clear(self, p_now: np.ndarray, xy: np.ndarray) -> bool:
+        """The straight way at the current height to above ``xy``: as clear as where the vehicle
+        is now, up to the column's clearance (it may have stopped closer than that to its goal
+        object)."""
+        esdf = self.pilot.esdf
+        p_now = np.asarray(p_now, dtype=float)
+        d_now = float(esdf.query(p_now[None])[0][0])
+        margin = min(self.config.land_clear_radius_m, max(0.3, d_now - 0.05))
+        end = np.array([xy[0], xy[1], p_now[2]])
+        seg = np.linspace(p_now, end, max(2, int(np.ceil(np.linalg.norm(end - p_now) / 0.25)) + 1))
+        return bool(np.all(esdf.is_free(seg, margin_m=margin)))
+
+    def site_still_clear(self, site: np.ndarray, p_now: np.ndarray) -> bool:
+        """The chosen site's column and the way to it, checked again in the current map."""
+        return bool(self._column_clear(np.asarray(site)[None, :2], float(p_now[2]))[0]) and self._way_clear(p_now, site[:2])
+
+    def _turn_toward(self, target_xy: np.ndarray, t_end: float) -> bool:
+        """Hold position and turn to face ``target_xy`` (the camera then sees the way and the
+        site); True once within 0.15 rad, False on timeout / takeover."""
+        pc = self.pilot.config.planner
+        hold = None
         while True:
             t = self._wait_next()
+            self._map_frame(t)
+            if self.bridge.released:
+                self._on_takeover(t)
+                return False
+            if t > t_end:
+                return False
+            state = self._trusted_state(t)
+            if state is None:
+                continue
+            hold = state.p.copy() if hold is None else hold
+            d = np.asarray(target_xy) - hold[:2]
+            bearing = float(np.arctan2(d[1], d[0]))
+            if abs((bearing - state.yaw + np.pi) % (2 * np.pi) - np.pi) < 0.15 and abs(state.yaw_rate) < 0.1:
+                return True
+            # a hold at ``hold`` with the final heading: the autopilot turns at its own yaw-rate limit
+            n = pc.horizon_steps
+            yaw_to = state.yaw + ((bearing - state.yaw + np.pi) % (2 * np.pi) - np.pi)
+            self.bridge.set_trajectory(Trajectory(t, pc.dt_s, np.tile(hold, (n + 1, 1)), np.zeros((n + 1, 3)), np.full(n + 1, yaw_to),
+                                                  np.zeros((n, 3)), np.zeros(n)))
+
+    def _map_frame(self, t: float) -> None:
+        """During the landing the pilot no longer ticks: keep its map fed with the newest frame
+        (and the log / recording)."""
+        obs = self.camera.latest() if self.camera is not None else None
+        esdf = getattr(self.pilot, "esdf", None)
+        if obs is None:
+            return
+        obs = self.to_world(obs)
+        if esdf is not None:
+            esdf.integrate(obs.depth_m, obs.camera, obs.T_world_cam, center_world=obs.position)
+        try:
+            if self.writer is not None:
+                self.writer.write(obs)
+            if self.recorder is not None:
+                self.recorder.log_frame(obs)
+        except Exception as exc:  # noqa: BLE001
+            log.warning("recording failed at t=%.2f: %s", t, exc)
+
+    def _fly_to(self, goal: np.ndarray, tol_xy_m: float, tol_z_m: float, t_end: float, face_goal: bool = False) -> bool | None:
+        """Plan toward ``goal`` every tick until within tolerance and slow; False on timeout or
+        when the vehicle is taken over / loses its link; None when the site's column (``goal``'s
+        x, y) no longer looks clear in the map the new frames build."""
+        esdf = getattr(self.pilot, "esdf", None)
+        while True:
+            t = self._wait_next()
+            self._map_frame(t)
+            if esdf is not None and not bool(self._column_clear(goal[None, :2], float(goal[2]))[0]):
+                return None
             if self.bridge.released:
                 self._on_takeover(t)
                 return False
@@ -584,7 +710,7 @@ class OnboardFlight:
             d = state.p - goal
             if np.linalg.norm(d[:2]) <= tol_xy_m and abs(d[2]) <= tol_z_m and np.linalg.norm(state.v) < 0.2:
                 return True
-            self.bridge.set_trajectory(self._planner_step(state, goal))
+            self.bridge.set_trajectory(self._planner_step(state, goal, face_goal))
 
     def _land(self) -> None:
         cfg = self.config
@@ -592,12 +718,32 @@ class OnboardFlight:
         if state is None:
             self._event("land_failed", {"error": "no vehicle state"})
             return
-        site, how = self.landing_site(state.p)
-        self._event("land_site", {"site_m": site.tolist(), "found_by": how, "from_m": state.p.tolist()})
         t_end = self.clock.now_s() + cfg.land_approach_timeout_s
-        over = np.array([site[0], site[1], max(float(state.p[2]), cfg.land_handover_height_m)])
-        low = np.array([site[0], site[1], cfg.land_handover_height_m])
-        if not (self._fly_to(over, 0.3, 0.3, t_end) and self._fly_to(low, 0.3, 0.15, t_end)):
+        rejected: list = []
+        for attempt in range(8):
+            site, how = self.landing_site(state.p, state.yaw, exclude=rejected)
+            if how == "map" and np.linalg.norm(site[:2] - state.p[:2]) > 0.5:
+                # look before moving: face the site, let the new frames update the map, check again
+                if not self._turn_toward(site[:2], t_end):
+                    reached = False
+                    break
+                state = self.bridge.state() or state
+                if not self.site_still_clear(site, state.p):
+                    self._event("land_site_blocked", {"site_m": site.tolist(), "seen_from_m": state.p.tolist()})
+                    rejected.append(site.copy())
+                    continue
+            self._event("land_site", {"site_m": site.tolist(), "found_by": how, "from_m": state.p.tolist(), "attempt": attempt})
+            over = np.array([site[0], site[1], max(float(state.p[2]), cfg.land_handover_height_m)])
+            low = np.array([site[0], site[1], cfg.land_handover_height_m])
+            reached = self._fly_to(over, 0.3, 0.3, t_end, face_goal=True)
+            if reached:
+                reached = self._fly_to(low, 0.3, 0.15, t_end)
+            if reached is not None:
+                break
+            self._event("land_site_blocked", {"site_m": site.tolist()})  # the new frames show something there: choose again
+            rejected.append(site.copy())
+            state = self.bridge.state() or state
+        if not reached:
             if self.bridge.released:
                 return
             self._event("land_approach_failed", {"site_m": site.tolist(), "then": "hold"})
@@ -647,6 +793,11 @@ class OnboardFlight:
         t = self.clock.now_s() if t_s is None else t_s
         self.events.append({"t_abs_s": float(t), "kind": kind, "data": data})
         log.info("onboard %s: %s", kind, data)
+        if self.writer is not None:
+            try:
+                self.writer.event(f"onboard.{kind}", data, t_s=t)
+            except Exception as exc:  # noqa: BLE001
+                log.warning("log event failed: %s", exc)
 
     def _summary(self, end: str) -> FlightSummary:
         p = self.pilot
@@ -654,6 +805,11 @@ class OnboardFlight:
             e["t_s"] = self._rel(e.pop("t_abs_s"))
         failsafes = []
         for e in self.bridge.failsafe.events:
+            if self.writer is not None:
+                try:
+                    self.writer.event("failsafe", e.as_dict(), t_s=e.t_s)
+                except Exception as exc:  # noqa: BLE001
+                    log.warning("log event failed: %s", exc)
             d = e.as_dict()
             d["t_s"] = self._rel(d["t_s"])
             d["after_handover"] = self.t_handover_s is not None and e.t_s >= self.t_handover_s
@@ -666,6 +822,9 @@ class OnboardFlight:
 
             times = np.array([self.t_begin_s] + [t for t, _ in trace]) - self.t_begin_s
             pos = np.vstack([trace[0][1]] + [x for _, x in trace])
+            if self.ground_truth.T_scene_world is not None:
+                T = np.asarray(self.ground_truth.T_scene_world, dtype=float)
+                pos = pos @ T[:3, :3].T + T[:3, 3]
             finished = self.t_finished_s is not None and end == "finished"
             m = episode_metrics(
                 EpisodeTrace(times, pos, stopped_by_method=finished and not self.crash_suspected, collided=self.crash_suspected),
@@ -711,6 +870,7 @@ class OnboardFlight:
             metrics=metrics,
             crashed=bool(self.crash_suspected),
             landed=bool(self.landed),
+            t_begin_abs_s=None if self.t_begin_s is None else float(self.t_begin_s),
             frames={"world": "anchored at the estimator pose when the flight started (x along the heading, z up, "
                              "heights relative to the start)",
                     "T_local_world": np.asarray(getattr(self.bridge, "T_local_world", np.eye(4))).round(6).tolist(),

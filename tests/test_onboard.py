@@ -383,10 +383,12 @@ class BoxField:
     def __init__(self, lo, hi):
         self.lo, self.hi = np.asarray(lo, float), np.asarray(hi, float)
 
-    def is_free(self, points, margin_m=0.0):
+    def query(self, points):
         P = np.asarray(points, float)
-        d = np.linalg.norm(np.maximum(np.maximum(self.lo - P, P - self.hi), 0.0), axis=1)
-        return d > margin_m
+        return np.linalg.norm(np.maximum(np.maximum(self.lo - P, P - self.hi), 0.0), axis=1), np.zeros_like(P)
+
+    def is_free(self, points, margin_m=0.0):
+        return self.query(points)[0] > margin_m
 
 
 def test_landing_moves_off_an_obstacle_under_the_stopping_point():
