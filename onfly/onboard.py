@@ -16,7 +16,10 @@ must never wait for the others:
 
 Phases
 ------
-1. **connect**: wait for the autopilot's HEARTBEAT and telemetry; ask for telemetry rates.
+1. **connect**: wait for the autopilot's HEARTBEAT and telemetry; ask for telemetry rates;
+   anchor the pilot's world frame at the vehicle's estimated pose (origin at its position, x
+   along its heading, z up: heights relative to the start). Camera frames arrive posed in the
+   estimator's local frame and are re-posed into the world frame (:meth:`OnboardFlight.to_world`).
 2. **engage**: the autopilot session (PX4: stream, arm, OFFBOARD; ArduPilot: GUIDED, arm,
    NAV_TAKEOFF to ``takeoff_alt_m``).
 3. **takeoff** (PX4): climb straight up by ``takeoff_alt_m`` on a rate-limited straight-line
@@ -27,12 +30,14 @@ Phases
    :meth:`MavlinkBridge.set_trajectory`. Ends when the pilot finishes (its stable STOP), at
    ``time_limit_s``, on a takeover, or when the link stays lost for ``link_lost_abort_s``.
 5. **finish**: hold (the pilot's hold plans keep streaming) for ``hold_after_finish_s``, then
-   ``on_finish``: ``"hold"`` (default) stops streaming so the autopilot's own hover takes over
-   (PX4 leaves OFFBOARD for AUTO.LOITER after COM_OF_LOSS_T; ArduPilot holds after its guided
-   timeout); ``"land"`` hands the vehicle to the autopilot's landing (PX4 AUTO.LAND, ArduPilot
-   LAND) and waits for the disarm. Landing is straight down where the pilot stopped, which is
-   next to its goal object: in the embedded world a landing beside the red van of
-   ``urban_block-o01`` touched a parked car, hence not the default.
+   ``on_finish``: ``"hold"`` (default): a position-only HOLD setpoint, then PX4 is switched to
+   Hold (AUTO.LOITER) and ArduPilot keeps that position target in GUIDED (GUID_TIMEOUT never
+   drops a position target); the vehicle is never left to a loss failsafe. ``"land"``: a site
+   whose column is clear in the pilot's map (:meth:`OnboardFlight.landing_site`), the vehicle
+   turns to face it and checks it again in the fresh map, the planner flies over it and down
+   to ``land_handover_height_m``, then MAV_CMD_NAV_LAND hands the touchdown to the autopilot
+   (an expected hand-over, not a takeover) and the flight waits for the disarm. A disarm
+   above ``land_crash_height_m`` is a crash (``crashed`` in the summary).
 
 Failsafes (every one lands in the summary with its time and cause)
 ------------------------------------------------------------------
@@ -54,9 +59,10 @@ pilot takeover (mode change)      the session releases the bridge: no motion com
                                   ``observe_after_takeover_s``
 ================================  ==========================================================
 
-A mode change the companion itself commands (the landing hand-over) shows in the bridge's log
-as a ``pilot_takeover`` event too (the session's watch cannot tell who switched); the summary
-marks failsafe events after the hand-over with ``after_handover: true``.
+A mode change the companion commands itself (Hold, the landing) is announced to the session
+(:meth:`AutopilotSession.expect`) and is not a takeover; any other mode change still is. A
+disarm during the mission or above the ground is reported as a crash. Every event and failsafe
+of the summary is on the loop's clock, relative to the mission start.
 """
 
 from __future__ import annotations

@@ -31,6 +31,14 @@ How the pilot plugs in::
             # VLM outcomes: bridge.failsafe.report_vlm_ok(t) / report_vlm_failure(t, cause)
     summary = [e.as_dict() for e in bridge.failsafe.events]
 
+Frames
+------
+Telemetry arrives in the autopilot's estimator frame (LOCAL_POSITION_NED, relative to the
+EKF origin). :meth:`MavlinkBridge.anchor_world` anchors the pilot's world frame at the
+vehicle's current pose (origin at its position, x along its heading, z up); from then on
+:meth:`~MavlinkBridge.state`, :meth:`~MavlinkBridge.attitude` and every setpoint are in that
+world frame and converted at the MAVLink boundary (``T_local_world``).
+
 type_mask (POSITION_TARGET_TYPEMASK: a set bit means *ignore* that field)
 -----------------------------------------------------------------------------
 ============  ==========================================  ================
