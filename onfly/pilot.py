@@ -37,7 +37,7 @@ from onfly.agents import DecisionAgent, DecisionOutcome, MonitoringAgent, Monito
 from onfly.memory import MemoryConfig, make_memory
 from onfly.observation import Observation
 from onfly.runtime import AgentRuntime, Landed
-from onfly.search import Search, SearchConfig, SearchPhase, SearchTrigger, explore_target
+from onfly.search import Search, SearchConfig, SearchPhase, SearchTrigger, explore_target, open_heading, side_to_look
 from onfly.serialize import config_from_tables, to_jsonable
 from onfly.task_manager import Status, TaskEvent, TaskManager
 from planning.esdf import EsdfMap
@@ -591,7 +591,14 @@ class OnFlyPilot:
 
     def _start_search(self, t_s: float, state: VehicleState, trigger: SearchTrigger, explore_first: bool = False) -> None:
         toward = self._last_seen_yaw(state)
+        fresh = not self.search.active
+        travel = self.search.travel_heading(t_s)
         self.search.start(t_s, state.p, state.yaw, trigger, toward_yaw=toward)
+        if fresh:
+            # keep going the way the vehicle was going (its heading when it was not moving),
+            # unless that way is closed
+            ahead = travel if travel is not None else state.yaw
+            self.search.heading0 = open_heading(state.p, ahead, self.esdf, clearance_m=self.config.search.explore_clearance_m)
         self.search.reset_stall()
         self._no_goal_streak = self._not_visible_streak = self._rejected_streak = 0
         self.goal_world = None
@@ -609,7 +616,7 @@ class OnFlyPilot:
             z = max(z, self.config.goal_min_z_m)
         target = explore_target(
             state.p,
-            state.yaw,
+            self.search.heading0,
             self.esdf,
             config=self.config.search,
             volume=self.volume,
@@ -627,9 +634,14 @@ class OnFlyPilot:
             self._explore(t_s, state)
             point, yaw_ref, _ = self.search.control(t_s, state.p, state.yaw)
         elif ev == "explore_done":
-            # look around from the new place: a half turn (the way here was seen on the way)
-            self.search.start(t_s, state.p, state.yaw, self.search.trigger or SearchTrigger.NO_GOAL, total_rad=np.pi)
-            self._event(t_s, "search_scan", {"position": state.p})
+            # the camera faced forward all the leg: look to the side with the most unknown
+            # space, then the next leg (the turn onto it sweeps more sectors)
+            side = side_to_look(state.p, state.yaw, self.esdf, config=self.config.search, volume=self.volume)
+            if side is None:
+                self._explore(t_s, state)
+            else:
+                self.search.look(t_s, state.p, [side])
+                self._event(t_s, "search_look", {"yaw": side, "position": state.p})
             point, yaw_ref, _ = self.search.control(t_s, state.p, state.yaw)
         return point, yaw_ref
 
