@@ -234,3 +234,35 @@ def test_a_second_sim_vehicle_on_a_busy_udp_port_is_a_one_line_error(capsys):
     finally:
         stop.set()
         first.join(5)
+
+
+def test_fly_volume_from_the_flag_or_the_config_reaches_the_pilot(tmp_path, monkeypatch):
+    from onfly.cli import CliError
+    import onfly.pilot
+
+    cfg = tmp_path / "fly.toml"
+    cfg.write_text('volume = [-5, -5, 0, 20, 10, 4]\n[pilot]\n')
+    args = parse(fly_cmd, ["--connect", "udpout:127.0.0.1:9", "--instruction", "go", "--config", str(cfg)])
+    vol = fly_cmd._volume(args)
+    np.testing.assert_allclose(vol.min_m, [-5, -5, 0])
+    np.testing.assert_allclose(vol.max_m, [20, 10, 4])
+    args = parse(fly_cmd, ["--connect", "udpout:127.0.0.1:9", "--instruction", "go", "--config", str(cfg), "--volume", "0,0,0,1,1,1"])
+    np.testing.assert_allclose(fly_cmd._volume(args).max_m, [1, 1, 1])  # the flag wins
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def fake_pilot(config, backend, runtime, volume=None):
+        seen["volume"] = volume
+        raise Stop
+
+    monkeypatch.setattr(onfly.pilot, "OnFlyPilot", fake_pilot)
+    with pytest.raises(Stop):
+        fly_cmd.run(parse(fly_cmd, ["--connect", "udpout:127.0.0.1:9", "--instruction", "go", "--volume=-1,-2,0,3,4,2.5"]))
+    np.testing.assert_allclose(seen["volume"].min_m, [-1, -2, 0])
+    np.testing.assert_allclose(seen["volume"].max_m, [3, 4, 2.5])
+    bad = tmp_path / "bad.toml"
+    bad.write_text('volume = "1,2"\n')
+    with pytest.raises(CliError, match="--volume: flight volume '1,2'"):
+        fly_cmd._volume(parse(fly_cmd, ["--connect", "udpout:127.0.0.1:9", "--instruction", "go", "--config", str(bad)]))
