@@ -164,7 +164,7 @@ class MavproxyStyle:
         self.m = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=255, source_component=190)
         self.m.wait_heartbeat(timeout=5)
 
-    def ack(self, command, timeout_s=2.0):
+    def ack(self, command, timeout_s=5.0):  # generous: the machine runs many jobs
         msg = self.m.recv_match(type="COMMAND_ACK", blocking=True, timeout=timeout_s, condition=f"COMMAND_ACK.command=={command}")
         assert msg is not None, f"no COMMAND_ACK for {command}"
         return msg.result
