@@ -450,3 +450,23 @@ def test_estimator_frame_is_not_the_scene_frame_and_the_bridge_anchors_its_world
     finally:
         bridge.stop()
         vehicle.stop()
+
+
+def test_px4_takeoff_accepted_disarmed_climbs_once_armed_to_mis_takeoff_alt():
+    c, v = rig(autopilot="px4", params=(("MIS_TAKEOFF_ALT", 1.0),))
+    try:
+        nan = float("nan")
+        assert c.command(M.MAV_CMD_NAV_TAKEOFF, nan, nan, nan, nan, nan, nan, nan) == M.MAV_RESULT_ACCEPTED
+        assert v.mode_name == "auto.takeoff" and not v.armed
+        time.sleep(0.3)
+        assert v.position_enu()[2] == 0.0  # disarmed: motors off
+        assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+        assert _wait(lambda: v.mode_name == "auto.loiter", 4.0)  # take-off complete -> Hold
+        assert v.position_enu()[2] == pytest.approx(1.0, abs=0.1)
+        # a fresh arm in AUTO.LAND is refused: the mode prevents arming
+        assert c.command(M.MAV_CMD_NAV_LAND) == M.MAV_RESULT_ACCEPTED
+        assert _wait(lambda: not v.armed, 8.0)
+        assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_FAILED
+    finally:
+        c.stop()
+        v.stop()

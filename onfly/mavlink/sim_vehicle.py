@@ -23,7 +23,8 @@ treat NaN as "unchanged / default"). Unknown commands answer UNSUPPORTED.
   ``Mode::requires_GPS``). PX4 OFFBOARD is refused unless a setpoint arrived within
   COM_OF_LOSS_T (PX4 ``Commander`` offboard-signal check: "recent setpoint", no pre-stream
   duration; the >2 Hz rule of docs.px4.io flight_modes/offboard is COM_OF_LOSS_T).
-- NAV_TAKEOFF: PX4 switches to AUTO.TAKEOFF and climbs at MPC_TKO_SPEED to param7 (AMSL,
+- NAV_TAKEOFF: PX4 switches to AUTO.TAKEOFF (``Commander.cpp``: a user-intended mode change,
+  accepted armed or not, TEMPORARILY_REJECTED when the mode cannot run) and, armed, climbs at MPC_TKO_SPEED to param7 (AMSL,
   needs a global origin) or, when param7 is NaN, MIS_TAKEOFF_ALT above home, then holds in
   AUTO.LOITER (docs.px4.io flight_modes_mc/takeoff). ArduCopter accepts it only in GUIDED,
   armed and landed, param7 = altitude above home, climbing at WPNAV_SPEED_UP
@@ -1011,7 +1012,11 @@ class SimMavlinkVehicle:
             self._home = self.model.p.copy()
             self._event("armed")
             self._statustext(_M.MAV_SEVERITY_INFO, "Armed")
-            if not (self.px4 and px4_main_mode(self.custom_mode) == PX4_MAIN["offboard"]):
+            takeoff = self.px4 and self.custom_mode == px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["takeoff"])
+            if takeoff and self._takeoff_alt_m is not None:
+                self._target = _Target(p=np.array([*self.model.p[:2], self._takeoff_alt_m]), yaw=self.model.yaw,
+                                       v_limit_mps=float(self.params["MPC_TKO_SPEED"]))
+            elif not (self.px4 and px4_main_mode(self.custom_mode) == PX4_MAIN["offboard"]):
                 self._target = self._hold_here()
             return _M.MAV_RESULT_ACCEPTED
         if self.armed and not self.model.on_ground and not force:
@@ -1062,8 +1067,8 @@ class SimMavlinkVehicle:
     def _cmd_takeoff(self, alt: float) -> int:
         m = self.model
         if self.px4:
-            if not self.armed:
-                return _M.MAV_RESULT_TEMPORARILY_REJECTED
+            # Commander: a user-intended switch to AUTO.TAKEOFF, accepted whenever the mode can
+            # run (armed or not; a disarmed vehicle climbs once armed), else TEMPORARILY_REJECTED
             if not self._position_valid:
                 return _M.MAV_RESULT_TEMPORARILY_REJECTED
             home_z = (self._home if self._home is not None else m.p)[2]
