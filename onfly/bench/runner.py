@@ -32,6 +32,7 @@ import hashlib
 import json
 import logging
 import multiprocessing as mp
+import os
 import time
 import tomllib
 from dataclasses import asdict, dataclass, field, fields, replace
@@ -669,8 +670,31 @@ class BenchResult:
     errored: tuple = ()
 
 
-def _worker_init(level: int) -> None:
+#: Compute threads per local worker process (BLAS/OpenMP, Open3D, torch), set deliberately so
+#: two workers on two cores do not spin extra pools (issue 22); ``ONFLY_WORKER_THREADS``
+#: overrides it.
+WORKER_THREADS = 1
+
+
+def worker_threads() -> int:
+    """Threads per worker: ``$ONFLY_WORKER_THREADS`` (an int >= 1) or :data:`WORKER_THREADS`."""
+    raw = os.environ.get("ONFLY_WORKER_THREADS")
+    if raw is None:
+        return WORKER_THREADS
+    try:
+        n = int(raw)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise BenchConfigError(f"ONFLY_WORKER_THREADS must be an integer >= 1, got {raw!r}")
+    return n
+
+
+def _worker_init(level: int, threads: int = WORKER_THREADS) -> None:
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    from planning.threads import limit_threads
+
+    limit_threads(threads)
 
 
 def _run_local(jobs: list[EpisodeJob], workers: int, on_record: Callable[[dict], None]) -> None:
@@ -679,7 +703,10 @@ def _run_local(jobs: list[EpisodeJob], workers: int, on_record: Callable[[dict],
             on_record(run_job(job))
         return
     ctx = mp.get_context("spawn")
-    pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init, initargs=(logging.getLogger().level,))
+    pool = cf.ProcessPoolExecutor(
+        max_workers=workers, mp_context=ctx, initializer=_worker_init,
+        initargs=(logging.getLogger().level, worker_threads()),
+    )
     try:
         futures = [pool.submit(run_job, j) for j in jobs]
         for fut in cf.as_completed(futures):
