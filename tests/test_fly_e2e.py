@@ -10,6 +10,7 @@ offboard, flight, STOP, hold.
 
 import argparse
 import json
+import re
 import signal
 import socket
 import subprocess
@@ -266,3 +267,25 @@ def test_fly_volume_from_the_flag_or_the_config_reaches_the_pilot(tmp_path, monk
     bad.write_text('volume = "1,2"\n')
     with pytest.raises(CliError, match="--volume: flight volume '1,2'"):
         fly_cmd._volume(parse(fly_cmd, ["--connect", "udpout:127.0.0.1:9", "--instruction", "go", "--config", str(bad)]))
+
+
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("[planner]\nv_max_mps = 0.3\n", r"unknown table\(s\) or key\(s\) \['planner'\]"),
+        ("[pilot]\nv_max_mps = 0.3\n", r"\[pilot\]: .*v_max_mps"),
+        ("[fly]\nvolume = [0, 0, 0, 1, 1, 1]\ngeofence = 1\n", r"unknown key\(s\) in \[fly\] \['geofence'\]"),
+        ("pilot = 3\n", r"'pilot' must be a table"),
+        ("volume = [0, 0, 0, 1, 1, 1]\n[fly]\nvolume = [0, 0, 0, 2, 2, 2]\n", "both at the top level and in"),
+        ("[pilot\n", "not valid TOML"),
+    ],
+)
+def test_fly_config_is_strict_and_names_the_file(tmp_path, capsys, text, match):
+    from onfly.cli import main
+
+    cfg = tmp_path / "fly.toml"
+    cfg.write_text(text)
+    assert main(["fly", "--connect", "udpout:127.0.0.1:9", "--instruction", "go", "--config", str(cfg)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(cfg) in err[0]
+    assert re.search(match, err[0]), err[0]

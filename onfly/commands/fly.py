@@ -96,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
         config = OnboardConfig(
             takeoff_alt_m=takeoff, time_limit_s=args.time_limit_s, hold_after_finish_s=args.hold_s, on_finish=args.on_finish
         )
-        pilot_config = PilotConfig.from_toml(args.config) if args.config else PilotConfig()
+        pilot_config = _fly_config(args.config)[0] if args.config else PilotConfig()
         bridge_config = BridgeConfig(target_system=args.system_id, source_system=args.system_id)
         offboard = OffboardConfig(takeoff_alt_m=max(takeoff, 0.5))
     except ValueError as exc:
@@ -184,13 +184,7 @@ def _volume(args):
 
     text = args.volume
     if text is None and args.config is not None:
-        import tomllib
-
-        try:
-            data = tomllib.loads(args.config.read_text())
-        except (OSError, tomllib.TOMLDecodeError) as exc:
-            raise CliError(f"--config {args.config}: {exc}") from exc
-        raw = data.get("volume", data.get("fly", {}).get("volume"))
+        raw = _fly_config(args.config)[1]
         if raw is not None:
             text = ",".join(str(v) for v in raw) if isinstance(raw, (list, tuple)) else str(raw)
     if text is None:
@@ -199,6 +193,39 @@ def _volume(args):
         return FlightVolume.parse(text)
     except FlightVolumeError as exc:
         raise CliError(f"--volume: {exc}") from exc
+
+
+#: What a ``fly --config`` file may hold: the pilot's table and the operator volume (top level
+#: or in a ``[fly]`` table).
+FLY_CONFIG_KEYS = ("pilot", "fly", "volume")
+
+
+def _fly_config(path):
+    """``(PilotConfig, volume or None)`` of a ``fly --config`` file; unknown tables and keys are
+    errors naming the file and the key (CliError)."""
+    from onfly.pilot import PilotConfig
+    from onfly.serialize import ConfigFileError, read_toml
+
+    try:
+        data = read_toml(path)
+    except ConfigFileError as exc:
+        raise CliError(str(exc)) from exc
+    bad = sorted(set(data) - set(FLY_CONFIG_KEYS))
+    if bad:
+        raise CliError(f"{path}: unknown table(s) or key(s) {bad}; valid: {list(FLY_CONFIG_KEYS)}")
+    for table in ("pilot", "fly"):
+        if table in data and not isinstance(data[table], dict):
+            raise CliError(f"{path}: {table!r} must be a table ([{table}])")
+    fly = data.get("fly", {})
+    if sorted(set(fly) - {"volume"}):
+        raise CliError(f"{path}: unknown key(s) in [fly] {sorted(set(fly) - {'volume'})}; valid: ['volume']")
+    if "volume" in data and "volume" in fly:
+        raise CliError(f"{path}: 'volume' given both at the top level and in [fly]")
+    try:
+        pilot = PilotConfig.from_dict(data.get("pilot", {}))
+    except ValueError as exc:
+        raise CliError(f"{path}: [pilot]: {exc}") from exc
+    return pilot, data.get("volume", fly.get("volume"))
 
 
 def _task_start_frame(task, start=None):
