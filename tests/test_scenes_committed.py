@@ -148,3 +148,22 @@ def test_hard_scenes_are_indoor_with_low_ceilings_and_beams_and_structure_is_not
         if o.label in STRUCTURE:
             assert not o.target, o.name
     assert scene.bounds.max_m[2] <= 3.0
+
+
+def test_committed_scenes_carry_the_materials_a_depth_camera_misses():
+    from onfly.world.scene import load_scene, resolve_scene
+
+    scenes = {name: load_scene(resolve_scene(name)) for name in EXPECTED}
+    urban = scenes["urban_block"]
+    assert urban.object_by_name("glass door").material == "glass"
+    assert urban.object_by_name("glass office tower").material == "mirror"  # a mirror-like facade
+    assert scenes["villa"].object_by_name("glass door").material == "glass"
+    assert scenes["corridor"].object_by_name("window at the end of the corridor").material == "glass"
+    assert scenes["factory_hall"].object_by_name("conveyor belt").material == "dark"
+    # van and car windscreens are glass, tyres and forklift masts dark
+    van = urban.object_by_name("red van")
+    assert {van.part_material(p) for p in van.parts} == {"opaque", "glass", "dark"}
+    assert {n for n, s in scenes.items() if s.indoor} == {"factory_hall", "corridor", "warehouse"} | HARD
+    # the harder scenes' windows and glass doors are glass
+    assert scenes["apartment"].object_by_name("living room window").material == "glass"
+    assert scenes["office_floor"].object_by_name("glass entrance door").material == "glass"
