@@ -16,6 +16,14 @@ Gaussian noise whose std follows the simulated VLM's error model (``vlm.sim``, p
   ``unsafe_rate_after_own_rule`` uses the verifier's own reference (its guarantee: 0);
   the ``path_`` variants measure the straight segment camera -> goal instead of the goal point;
 * ``region_kept_rate``: fraction of accepted goals whose refined pixel lies on the target's label;
+* per feature source, in one run on the same candidates (``per_source``): ``ground_truth``
+  (one random unit vector per box, the perfect segmentation), ``degraded`` (the simulated ViT
+  features of :func:`vlm.sim.features.degraded_features`: blurred boundaries, colour/texture
+  similarity, look-alike labels shared by several boxes), ``none`` (geometric-only: the target's
+  surface). For each: ``unsafe_rate`` (goal closer than r to a true-rule obstacle),
+  ``off_target_rate`` (accepted goals whose refined pixel is not on the target box, over all
+  candidates), ``moved_off_target_rate`` (the pixel was on the target and refinement moved it
+  off), ``accept_rate``;
 * a reference in the same run: an exhaustive exact verifier (brute-force ray clearance against
   every obstacle point, scipy labelling) on a subset, for timing and for how much farther the
   fast path's conservative dilation moves the pixel.
@@ -88,6 +96,30 @@ def make_scene(rng: np.random.Generator, camera: PinholeCamera, min_target_px: i
                 targets.append(k)
         if targets:
             return depth, labels, targets
+
+
+#: Look-alike vocabulary and palette of the boxes (several boxes share a label and a colour).
+_BOX_LABELS = ("crate", "crate", "van", "bin")
+_PALETTE = ((180, 40, 40), (60, 60, 170), (200, 180, 60), (120, 120, 120))
+
+
+def degraded_scene_features(labels: np.ndarray, depth: np.ndarray, patch: int, dim: int, seed: int, frame: str):
+    """:func:`vlm.sim.features.degraded_features` of a bench scene: boxes get a look-alike label
+    and a colour from small shared sets (seeded), ground and wall their own."""
+    from vlm.sim.features import degraded_features
+    from vlm.types import FrameAnnotation, VisibleObject
+
+    rng = np.random.default_rng([seed, 7])
+    n = int(labels.max()) + 1
+    names = ["ground", "wall"] + [str(rng.choice(_BOX_LABELS)) for _ in range(2, n)]
+    colours = [(110, 100, 90), (170, 160, 150)] + [_PALETTE[int(rng.integers(len(_PALETTE)))] for _ in range(2, n)]
+    ids = np.where(labels >= 0, labels + 1, 0).astype(np.int32)
+    objects = {k + 1: VisibleObject(k + 1, f"{names[k]} {k}", names[k]) for k in range(n)}
+    rgb = np.full(labels.shape + (3,), (135, 190, 235), np.uint8)  # sky
+    for k in range(n):
+        rgb[labels == k] = colours[k]
+    ann = FrameAnnotation(ids, depth, objects)
+    return degraded_features(ann, rgb, frame, seed=seed, dim=dim, patch_px=patch).grid
 
 
 def label_features(labels: np.ndarray, patch: int, dim: int, rng: np.random.Generator) -> np.ndarray:
@@ -200,6 +232,9 @@ def _ray_ok(P: np.ndarray, dirs: np.ndarray, r: float) -> np.ndarray:
 # -- main ----------------------------------------------------------------------------------------
 
 
+SOURCES = ("ground_truth", "degraded", "none")
+
+
 def run(args) -> dict:
     rng = np.random.default_rng(args.seed)
     cam = PinholeCamera.from_fov(args.width, args.height, 90.0, 60.0)
@@ -212,9 +247,15 @@ def run(args) -> dict:
     error_model = get_preset(args.error_model)
     counts = Counter()
     shifts, ref_rows = [], []
+    per_source = {name: Counter() for name in SOURCES}
     for _scene in range(args.scenes):
         depth, labels, targets = make_scene(rng, cam, args.min_target_px)
         feats = label_features(labels, args.patch, args.feature_dim, rng)
+        source_feats = {
+            "ground_truth": feats,
+            "degraded": degraded_scene_features(labels, depth, args.patch, args.feature_dim, args.seed, f"scene{_scene}"),
+            "none": None,
+        }
         T = cam_transform_from_body(body_transform(rng.uniform(-20, 20, 3), rng.uniform(-math.pi, math.pi)))
         T_cam_world = invert_transform(T)
         for _ in range(args.candidates):
@@ -239,6 +280,22 @@ def run(args) -> dict:
             times_us.append((time.perf_counter() - t0) * 1e6)
 
             P_true = obstacle_points(cam, depth, threshold_for(config, depth, (col_t, row_t)))
+            on_target_px = labels[int(math.floor(uv[1] + 0.5)), int(math.floor(uv[0] + 0.5))] == target
+            for name, f_src in source_feats.items():
+                c = per_source[name]
+                r_src = res if name == "ground_truth" else ver.verify(CandidateGoal(uv, depth, f_src, float(args.patch), T, cam))
+                c["n"] += 1
+                if not r_src.accepted:
+                    c["rejected"] += 1
+                    continue
+                c["accepted"] += 1
+                X_src = transform_points(T_cam_world, r_src.goal_world)
+                c["unsafe"] += point_clearance(P_true, X_src) < r
+                c["path_unsafe"] += segment_clearance(P_true, X_src) < r
+                u_s, v_s = r_src.record.refined_uv
+                kept_src = labels[int(math.floor(v_s + 0.5)), int(math.floor(u_s + 0.5))] == target
+                c["off_target"] += not kept_src
+                c["moved_off_target"] += bool(on_target_px and not kept_src)
             X_naive = naive_goal_cam(cam, depth, uv, config.d_max_m)
             counts["n"] += 1
             counts["unsafe_before"] += point_clearance(P_true, X_naive) < r
@@ -284,6 +341,17 @@ def run(args) -> dict:
 
     n = counts["n"]
     acc = max(counts["accepted"], 1)
+    sources_out = {
+        name: {
+            "candidates": c["n"],
+            "accept_rate": c["accepted"] / max(c["n"], 1),
+            "unsafe_rate": c["unsafe"] / max(c["n"], 1),
+            "path_unsafe_rate": c["path_unsafe"] / max(c["n"], 1),
+            "off_target_rate": c["off_target"] / max(c["n"], 1),
+            "moved_off_target_rate": c["moved_off_target"] / max(c["n"], 1),
+        }
+        for name, c in per_source.items()
+    }
     ref = np.array(ref_rows) if ref_rows else np.zeros((0, 4))
     finite = ref[np.isfinite(ref[:, 3])] if len(ref) else ref
     out = {
@@ -322,6 +390,7 @@ def run(args) -> dict:
         "accept_rate": counts["accepted"] / n,
         "moved_rate": counts["moved"] / n,
         "shift_px_median_when_moved": statistics.median(shifts) if shifts else 0.0,
+        "per_source": sources_out,
         "notes": {k[5:]: v for k, v in sorted(counts.items()) if k.startswith("note:")},
         "rejections": {k[9:]: v for k, v in sorted(counts.items()) if k.startswith("rejected:")},
         "reference": {
@@ -394,6 +463,11 @@ def print_table(out: dict) -> None:
     for name, value, target in rows:
         print(f"  {name:<{width}}  {value:>12}  {target}")
     print(f"  refinement notes: {out['notes']}")
+    print("  per feature source (same candidates; rates over all candidates):")
+    print(f"    {'source':<13} {'accept':>8} {'unsafe':>8} {'path_unsafe':>12} {'off_target':>11} {'moved_off':>10}")
+    for name, m in out["per_source"].items():
+        print(f"    {name:<13} {m['accept_rate']:>8.4f} {m['unsafe_rate']:>8.4f} {m['path_unsafe_rate']:>12.4f} "
+              f"{m['off_target_rate']:>11.4f} {m['moved_off_target_rate']:>10.4f}")
     print(f"  rejections: {out['rejections']}")
 
 
