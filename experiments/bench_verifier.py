@@ -168,10 +168,42 @@ def naive_goal_cam(camera: PinholeCamera, depth: np.ndarray, uv, d_max_m: float)
 # -- the exhaustive reference --------------------------------------------------------------------
 
 
+def _rule_points(cam, depth, config: VerifierConfig, surface: np.ndarray, d_m: float) -> tuple[np.ndarray, bool]:
+    """Obstacle points of the documented rule referenced to depth ``d_m``: readings closer than
+    T(d_m), except the target's surface at or beyond d_ref - margin when the near field reaches
+    it. Returns (points (n, 3), whether anything was exempted)."""
+    d_ref = min(d_m, config.d_max_m)
+    T = config.obstacle_threshold_m(d_ref)
+    z = depth.astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        obst = np.isfinite(z) & (z > 0) & (z < T)
+        exempted = False
+        if config.obstacle_depth_m > d_ref - config.foreground_margin_m:
+            ex = surface & (z >= d_ref - config.foreground_margin_m) & obst
+            exempted = bool(ex.any())
+            obst &= ~ex
+    return cam.rays()[obst] * z[obst][:, None], exempted
+
+
+def _clear_z(P_all: np.ndarray, direction: np.ndarray, limit_z: float, r: float) -> float:
+    """Z-depth where the unit ray ``direction`` first comes within r of a point (brute force)."""
+    a = P_all @ direction
+    q2 = np.einsum("ij,ij->i", P_all, P_all) - a * a
+    hit = q2 < r * r
+    entry = float(np.min(a[hit] - np.sqrt(r * r - q2[hit]))) if hit.any() else math.inf
+    return min(limit_z, max(entry, 0.0) * direction[2])
+
+
 def reference_refine(cand: CandidateGoal, config: VerifierConfig):
     """Exact answer of step 1 by brute force: the nearest pixel of the semantic component (ROI,
-    pixel-level cosine mask, scipy 4-connected labelling) whose ray clears every obstacle point
-    of the image by r. Returns (pixel (u, v) or None, seconds). Only for d <= D_max with features."""
+    pixel-level cosine mask, scipy 4-connected labelling) whose ray clears by r every obstacle
+    point of the image under the rule referenced to the target *and* under the rule at its own
+    depth (:mod:`planning.verifier_config`), and, when the near field reaches its surface,
+    whose clear part of the ray is at least ``min_range_m``. Returns (pixel (u, v) or None,
+    seconds). Only for d <= D_max with features; the target's surface comes from
+    :func:`planning.verifier.surface_region` over the whole image."""
+    from planning.verifier import surface_region
+
     t0 = time.perf_counter()
     cam, depth = cand.camera, cand.depth_m
     u, v = cand.pixel_uv
@@ -190,33 +222,65 @@ def reference_refine(cand: CandidateGoal, config: VerifierConfig):
     comp = lab == lab[row - r0, col - c0]
     roi_depth = depth[r0:r1, c0:c1]
     comp &= np.isfinite(roi_depth) & (roi_depth > 0)
-    P = obstacle_points(cam, depth, threshold_for(config, depth, (u, v)))
+    surface = surface_region(depth, row, col, config.surface_jump_ratio, config.foreground_margin_m)
+    d = float(depth[row, col])
+    r = config.clearance_radius_m
+    P, _ = _rule_points(cam, depth, config, surface, d)
+    z_all = depth.astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        readings = np.isfinite(z_all) & (z_all > 0) & (z_all < config.d_max_m + r + 1e-6)
+    P_all = cam.rays()[readings] * z_all[readings][:, None]
+    own_cache: dict[float, tuple[np.ndarray, bool, float]] = {}
+
+    def own_ok(q_uv, direction) -> bool:
+        dq = float(depth[int(q_uv[1]), int(q_uv[0])])
+        if dq not in own_cache:
+            P_q, ex = _rule_points(cam, depth, config, surface, dq)
+            own_cache[dq] = (near_roi(P_q), ex, config.obstacle_threshold_m(min(dq, config.d_max_m)))
+        P_q, ex, T_q = own_cache[dq]
+        near_reaches = config.obstacle_depth_m > min(dq, config.d_max_m) - config.foreground_margin_m
+        is_obstacle = dq < T_q and not (near_reaches and surface[int(q_uv[1]), int(q_uv[0])])
+        if is_obstacle or not _ray_ok(P_q, direction[None, :], r)[0]:
+            return False
+        return not (ex and _clear_z(P_all, direction, min(dq, config.d_max_m), r) < config.min_range_m)
+
+    # Exact, loss-free prefilter: a point farther (in angle) from the ROI's central ray than the
+    # ROI's angular radius plus its own asin(r / |Y|) cannot come within r of any ROI ray.
+    rr_roi, cc_roi = np.mgrid[r0:r1, c0:c1]
+    roi_dirs = np.stack([(cc_roi.ravel() - cam.cx) / cam.fx, (rr_roi.ravel() - cam.cy) / cam.fy, np.ones(rr_roi.size)], axis=1)
+    roi_dirs /= np.linalg.norm(roi_dirs, axis=1, keepdims=True)
+    centre = roi_dirs.mean(axis=0)
+    centre /= np.linalg.norm(centre)
+    roi_ang = float(np.max(np.arccos(np.clip(roi_dirs @ centre, -1, 1))))
+
+    def near_roi(points: np.ndarray) -> np.ndarray:
+        if not len(points):
+            return points
+        rng_p = np.linalg.norm(points, axis=1)
+        ang = np.arccos(np.clip(points @ centre / rng_p, -1, 1))
+        return points[ang - roi_ang <= np.arcsin(np.clip(r / rng_p, 0, 1)) + 1e-9]
+
+    P, P_all = near_roi(P), near_roi(P_all)
     rr, cc = np.nonzero(comp)
     order = np.argsort((cc + c0 - u) ** 2 + (rr + r0 - v) ** 2, kind="stable")
     cand_uv = np.stack([cc[order] + c0, rr[order] + r0], axis=1).astype(float)
-    if len(P) == 0:
-        return (u, v), time.perf_counter() - t0
-    # Exact, loss-free prefilter: a point farther (in angle) from the ROI's central ray than the
-    # ROI's angular radius plus its own asin(r / |Y|) cannot come within r of any ROI ray.
-    dirs = np.stack([(cand_uv[:, 0] - cam.cx) / cam.fx, (cand_uv[:, 1] - cam.cy) / cam.fy, np.ones(len(cand_uv))], axis=1)
-    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    centre = dirs.mean(axis=0)
-    centre /= np.linalg.norm(centre)
-    roi_ang = float(np.max(np.arccos(np.clip(dirs @ centre, -1, 1))))
-    rng_P = np.linalg.norm(P, axis=1)
-    ang_P = np.arccos(np.clip(P @ centre / rng_P, -1, 1))
-    beta_P = np.arcsin(np.clip(config.clearance_radius_m / rng_P, 0, 1))
-    P = P[ang_P - roi_ang <= beta_P + 1e-9]
-    # Test the target pixel itself first (it "stays put" when feasible).
+    # Candidates must not be obstacles under the target's rule either.
+    T_p = config.obstacle_threshold_m(min(d, config.d_max_m))
+    zc = depth[cand_uv[:, 1].astype(int), cand_uv[:, 0].astype(int)]
+    exempt_c = surface[cand_uv[:, 1].astype(int), cand_uv[:, 0].astype(int)] & (zc >= min(d, config.d_max_m) - config.foreground_margin_m)
+    keep = ~((zc < T_p) & ~(exempt_c & (config.obstacle_depth_m > min(d, config.d_max_m) - config.foreground_margin_m)))
+    cand_uv = cand_uv[keep]
     d0 = cam.back_project(np.array([u, v]), 1.0)
     d0 /= np.linalg.norm(d0)
-    if _ray_ok(P, d0[None, :], config.clearance_radius_m)[0]:
+    if _ray_ok(P, d0[None, :], r)[0] and own_ok((col, row), d0):
         return (u, v), time.perf_counter() - t0
+    dirs = np.stack([(cand_uv[:, 0] - cam.cx) / cam.fx, (cand_uv[:, 1] - cam.cy) / cam.fy, np.ones(len(cand_uv))], axis=1)
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     for s in range(0, len(dirs), 64):
-        ok = _ray_ok(P, dirs[s : s + 64], config.clearance_radius_m)
-        if ok.any():
-            k = s + int(np.argmax(ok))
-            return (float(cand_uv[k, 0]), float(cand_uv[k, 1])), time.perf_counter() - t0
+        ok = _ray_ok(P, dirs[s : s + 64], r)
+        for k in np.flatnonzero(ok):
+            if own_ok(cand_uv[s + k], dirs[s + k]):
+                return (float(cand_uv[s + k, 0]), float(cand_uv[s + k, 1])), time.perf_counter() - t0
     return None, time.perf_counter() - t0
 
 

@@ -715,10 +715,11 @@ class Verifier:
         geometric_only = note is not RefinementNote.SEMANTIC
         view = _ObstacleView.at(depth, surface, d, cfg)
         clearance_p = view.gather(cam, _pixel_box(u, v), r_m).ray_clearance_m(cam, u, v)
-        if clearance_p > r_m + _CLEARANCE_EPS_M:  # already feasible: stays put
+        clear_p = self._near_target_range(candidate, view, u, v, d)
+        if clearance_p > r_m + _CLEARANCE_EPS_M and not clear_p < cfg.min_range_m:  # already feasible: stays put
             return self._accept(
                 candidate, (u, v), min(d, cfg.d_max_m), note, geometric_only, component_size, d, view.threshold_m,
-                clearance_p,
+                clearance_p, clear_range_m=clear_p,
             )
 
         r0, r1, c0, c1 = roi
@@ -727,10 +728,10 @@ class Verifier:
         for _round in range(_SEARCH_ROUNDS):
             found, stricter = self._search(candidate, roi, comp, roi_depth, surface, search)
             if found is not None:
-                (qr, qc), own, clearance_q = found
+                (qr, qc), own, clearance_q, clear_q = found
                 return self._accept(
                     candidate, (float(qc), float(qr)), min(float(depth[qr, qc]), cfg.d_max_m), note, geometric_only,
-                    component_size, d, own.threshold_m, clearance_q,
+                    component_size, d, own.threshold_m, clearance_q, clear_range_m=clear_q,
                 )
             if stricter is None or stricter.threshold_m <= search.threshold_m:
                 break
@@ -782,11 +783,23 @@ class Verifier:
                 own = _ObstacleView.at(depth, surface, float(depth[pr_, pc_]), cfg)
                 own_clear = own.gather(cam, _pixel_box(pc_, pr_), r_m).ray_clearance_m(cam, float(pc_), float(pr_))
                 if own_clear > r_m + _CLEARANCE_EPS_M and not bool(own.depth_m[pr_, pc_] < own.threshold_m):
-                    return ((pr_, pc_), own, min(own_clear, c_)), None
+                    clear = self._near_target_range(candidate, own, float(pc_), float(pr_), float(depth[pr_, pc_]))
+                    if not clear < cfg.min_range_m:
+                        return ((pr_, pc_), own, min(own_clear, c_), clear), None
+                    continue
                 if stricter is None or own.threshold_m > stricter.threshold_m:
                     stricter = own
             logger.debug("verifier: pixel (%d, %d) fails the obstacle rule at its own depth", qc, qr)
         return None, stricter
+
+    def _near_target_range(self, candidate: CandidateGoal, view: "_ObstacleView", u: float, v: float, d: float) -> float:
+        """Clear part of the ray for a goal on a target whose surface was exempted from the
+        near field (``view.exempted``): the goal stands in front of it, r clear of every reading,
+        instead of on it. NaN when nothing was exempted (the goal stays at ``d'``, paper)."""
+        if not view.exempted:
+            return _NAN
+        cfg = self.config
+        return _clear_range_z(candidate.depth_m, candidate.camera, u, v, min(d, cfg.d_max_m), cfg.clearance_radius_m, _NAN)
 
     def _skip(self, candidate: CandidateGoal, note: RefinementNote, d: float, bound_m: float) -> VerifiedGoal:
         """Refinement skipped (far or unread target): ``p' = p``, range gated to the clear ray."""
@@ -931,27 +944,35 @@ class Verifier:
 # -- the target's surface, unread holes and the clear part of a ray ------------------------------
 
 
-@dataclass(frozen=True)
 class _SurfaceRegion:
-    """The target's surface inside a window of the image (see :mod:`planning.verifier_config`).
+    """The target's surface inside a window of the image (see :mod:`planning.verifier_config`),
+    grown on first use (the common case -- features, a target beyond the near field -- never
+    needs it).
 
     ``mask`` is a boolean array over rows ``[r0, r1)`` and columns ``[c0, c1)`` of the image.
     """
 
-    mask: np.ndarray
-    window: tuple[int, int, int, int]
+    def __init__(self, depth, row, col, jump_ratio, margin_m, window) -> None:
+        self.window = window
+        self._args = (depth, row, col, jump_ratio, margin_m)
+        self._mask: np.ndarray | None = None
+
+    @property
+    def mask(self) -> np.ndarray:
+        if self._mask is None:
+            depth, row, col, jump_ratio, margin_m = self._args
+            wr0, wr1, wc0, wc1 = self.window
+            self._mask = surface_region(depth[wr0:wr1, wc0:wc1], row - wr0, col - wc0, jump_ratio, margin_m)
+        return self._mask
 
     @classmethod
     def grow(cls, depth, row, col, jump_ratio, margin_m, roi, roi_px) -> "_SurfaceRegion":
-        """Grow the surface from (row, col) inside the ROI grown by ``roi_px`` on every side
-        (the reach of any obstacle disc that can touch the ROI from a surface beyond 0.25 m
-        with a 90 deg camera is well inside it; beyond the window nothing is exempt)."""
+        """The surface of (row, col) inside the ROI grown by ``roi_px`` on every side (beyond
+        the window nothing is exempt from the near field: conservative)."""
         h, w = depth.shape
         r0, r1, c0, c1 = roi
         window = (max(0, r0 - roi_px), min(h, r1 + roi_px), max(0, c0 - roi_px), min(w, c1 + roi_px))
-        wr0, _, wc0, _ = window
-        mask = surface_region(depth[window[0] : window[1], window[2] : window[3]], row - wr0, col - wc0, jump_ratio, margin_m)
-        return cls(mask, window)
+        return cls(depth, row, col, jump_ratio, margin_m, window)
 
     def crop(self, box: tuple[int, int, int, int]) -> np.ndarray:
         """The mask over ``box`` (inside the window)."""
@@ -1005,12 +1026,14 @@ class _ObstacleView:
     depth_m: np.ndarray
     threshold_m: float
     z_min: float | None
+    exempted: bool = False  #: part of the target's surface was taken out of the near field
 
     @classmethod
     def at(cls, depth: np.ndarray, surface: _SurfaceRegion, d_m: float, cfg: VerifierConfig) -> "_ObstacleView":
         d_ref = min(d_m, cfg.d_max_m)
         threshold = cfg.obstacle_threshold_m(d_ref)
         view = depth
+        exempted = False
         if cfg.obstacle_depth_m > d_ref - cfg.foreground_margin_m:
             # The near-field part of the rule reaches the target's depth band: exempt its surface.
             wr0, wr1, wc0, wc1 = surface.window
@@ -1019,7 +1042,8 @@ class _ObstacleView:
             if exempt.any():
                 view = depth.copy()
                 view[wr0:wr1, wc0:wc1][exempt] = np.nan
-        return cls(view, threshold, _nearest_obstacle_depth(view, threshold))
+                exempted = True
+        return cls(view, threshold, _nearest_obstacle_depth(view, threshold), exempted)
 
     def gather(self, camera: PinholeCamera, box, clearance_m: float) -> "_Obstacles":
         return _gather_obstacles(self.depth_m, camera, box, self.threshold_m, self.z_min, clearance_m)

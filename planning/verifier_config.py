@@ -33,9 +33,11 @@ target's own surface (below). So two kinds of surfaces are obstacles:
 **The target's surface** is the set of pixels depth-continuous with the target pixel (4-connected
 neighbours whose depths differ by at most ``surface_jump_ratio`` of the smaller one) within the
 band ``[d - foreground_margin_m, d + foreground_margin_m]``; a depth edge (a jump larger than the
-ratio) bounds it. Its pixels are never near-field obstacles to a goal placed on it: a target on
-a pole 1.5 m away keeps its goal on the pole (the planner's ESDF keeps the standoff) instead of
-being "refined" onto the box behind it. The band keeps a contact line with the ground from
+ratio) bounds it. Its pixels are never near-field obstacles to a goal on it: a target on a pole 1.5 m
+away keeps its goal on the pole's ray instead of being "refined" onto the box behind it. Such a
+goal (on a target whose surface reaches into the near field) does not sit on the surface: like a
+far target, its range is cut to the clear part of the ray, r in front of the first reading, so a
+pixel that noise put on a nearer object still gives a goal r clear of everything the camera saw. The band keeps a contact line with the ground from
 joining objects at other depths. Depth-continuous objects within the margin of each other are
 one surface for this rule, as they already are for the foreground rule.
 

@@ -212,6 +212,9 @@ def assert_safe(result, cand: CandidateGoal, config: VerifierConfig) -> None:
         assert rec.ray_clearance_m > config.clearance_radius_m
         P = rule_obstacles(config, cand.depth_m, cand.pixel_uv, rec.refined_uv, cand.camera)
         assert rec.obstacle_threshold_m == pytest.approx(rule_threshold(config, cand.depth_m, rec.refined_uv))
+        if math.isfinite(rec.clear_range_m):  # a near target's goal clears every reading
+            assert X_cam[2] <= rec.clear_range_m + 1e-9
+            assert segment_clearance(reading_points(cand.camera, cand.depth_m), X_cam) >= config.clearance_radius_m - 1e-9
     else:
         P = reading_points(cand.camera, cand.depth_m)
         assert X_cam[2] <= rec.clear_range_m + 1e-9
@@ -371,7 +374,9 @@ def test_pole_and_box_keeps_the_goal_on_the_pole(with_features):
     assert res.accepted and rec.refined_uv == uv and rec.refined_depth_m == 1.5
     assert rec.geometric_only is (not with_features)
     assert rec.obstacle_threshold_m == 2.0
-    np.testing.assert_allclose(res.goal_world, [0.0, 0.0, 1.5], atol=1e-12)
+    # On the pole's ray, r in front of the pole (the clear part of the ray): 1.5 - 0.2 m.
+    assert rec.clear_range_m == pytest.approx(1.3, abs=1e-9)
+    np.testing.assert_allclose(res.goal_world, [0.0, 0.0, 1.3], atol=1e-9)
     assert_safe(res, cand, VerifierConfig())
 
 
