@@ -17,10 +17,12 @@ from typing import Any, Callable
 
 import numpy as np
 
+from onfly import defaults
 from onfly.bench.method import EpisodeSpec, Method, PrivilegedGoal
 from onfly.bench.metrics import EpisodeMetrics, EpisodeTrace, GoalRegion, episode_metrics
 from onfly.runtime import ClockRuntime
 from onfly.world.world import World
+from planning.volume import FlightVolume
 
 __all__ = ["EpisodeConfig", "EpisodeResult", "EpisodeStep", "run_episode", "END_REASONS"]
 
@@ -31,12 +33,14 @@ END_REASONS = ("stopped", "collision", "time_limit", "out_of_bounds", "method_er
 
 @dataclass(frozen=True)
 class EpisodeConfig:
-    """Protocol constants (paper defaults)."""
+    """Protocol constants: the paper's limit, control period and success radius; a camera
+    frame every 0.5 s as the CLI and the benchmark fly (one set of defaults:
+    :mod:`onfly.defaults`)."""
 
-    time_limit_s: float = 70.0
-    control_period_s: float = 0.1
-    frame_period_s: float = 0.2
-    success_radius_m: float = 5.0
+    time_limit_s: float = defaults.TIME_LIMIT_S
+    control_period_s: float = defaults.CONTROL_PERIOD_S
+    frame_period_s: float = defaults.FRAME_PERIOD_S
+    success_radius_m: float = defaults.SUCCESS_RADIUS_M
 
     def __post_init__(self) -> None:
         for name in ("time_limit_s", "control_period_s", "frame_period_s", "success_radius_m"):
@@ -125,6 +129,7 @@ def run_episode(
         runtime=runtime,
         error_model=error_model,
         privileged=privileged if getattr(method, "privileged", False) else None,
+        flight_volume=FlightVolume(world.scene.bounds.min_m, world.scene.bounds.max_m),
     )
     times = [t0]
     positions = [world.state.p.copy()]
