@@ -90,7 +90,8 @@ class TransformersBackendConfig:
     dtype : ``"auto"`` (float32 on CPU, bfloat16 on CUDA), ``"float32"``, ``"bfloat16"``, ``"float16"``
     max_streams : number of ``cache_key`` streams whose KV-cache is kept (LRU)
     reuse_prefix : False disables prefix reuse (every call is a full prefill)
-    image_cache_size : frames whose vision outputs are kept (LRU)
+    image_cache_size : frames whose vision outputs are kept (LRU); the prompts and ``features()``
+        share them, so 0 makes every reader run the vision tower again
     image_max_pixels, image_min_pixels : override the processor's pixel budget (resized pixels)
     num_threads : torch intra-op threads; 0 leaves torch's setting alone
     """
