@@ -87,6 +87,8 @@ _MAX_DEPTH = float(np.finfo(np.float32).max)
 _SLACK_EPS_PX = 1e-3
 #: A ray is clear when it passes farther than r + this from every obstacle point, metres.
 _CLEARANCE_EPS_M = 1e-9
+#: The clear part of a ray stops this far before it enters a point's r-ball, metres (rounding).
+_CLEAR_RANGE_MARGIN_M = 1e-6
 #: Exact re-checks of refined candidates before giving up (a failure would be a bug; logged).
 _MAX_EXACT_RECHECKS = 8
 #: Searches per candidate: the target's rule, then once more with a refined pixel's stricter one.
@@ -1089,7 +1091,8 @@ def _clear_range_z(
             entry = float(np.min(along[hit] - np.sqrt(clearance_m * clearance_m - q2[hit])))
     if math.isfinite(surface_z):
         entry = min(entry, surface_z / dvec[2] - clearance_m)
-    return float(min(limit_z, max(entry, 0.0) * dvec[2]))
+    # One micron short of the ball's surface, so the goal clears every point by r after rounding.
+    return float(min(limit_z, max(entry - _CLEAR_RANGE_MARGIN_M, 0.0) * dvec[2]))
 
 
 def _any_valid(depth: np.ndarray) -> bool:
