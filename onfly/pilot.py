@@ -525,7 +525,7 @@ class OnFlyPilot:
         if self.volume is not None:
             goal = self.volume.clamp(goal, margin_m=self._volume_margin_m)
         if cfg.use_planner:
-            plan = self.planner.step(state, goal, self.esdf, yaw_ref=yaw_ref)
+            plan = self.planner.step(state, goal, self.esdf, yaw_ref=yaw_ref, volume=self.volume)
             traj = plan.trajectory
         else:
             plan = None
