@@ -289,3 +289,15 @@ def test_every_hard_task_is_proven_by_the_checker(hard):
         np.testing.assert_allclose(ref.waypoints_m[-1], ref.goal_point_m, atol=1e-3)
         assert t.goal_region.distance(ref.goal_point_m) <= cfg.max_goal_gap_m + 1e-6, t.task_id
         assert t.goal_region.distance(t.start.position_m) >= cfg.min_goal_distance_m - 1e-6, t.task_id
+
+
+def test_cli_task_lookup_finds_the_committed_groups_beside_the_paper_set():
+    from onfly.bench.tasks import committed_task_files, load_tasks
+    from onfly.cli import task_by_id
+
+    paper = load_tasks()
+    assert len(paper) == 150  # the default set stays the paper's 150
+    every = load_tasks(committed_task_files())
+    hard = [t for t in every if t.task_id not in {p.task_id for p in paper}]
+    assert len(hard) >= 60
+    assert task_by_id(hard[0].task_id).task_id == hard[0].task_id
