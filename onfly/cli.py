@@ -41,10 +41,11 @@ class CliError(Exception):
 
 def task_by_id(task_id: str, files=None):
     """The benchmark task ``task_id`` (:class:`onfly.bench.tasks.Task`) from the committed task
-    files (or ``files``), or a CliError naming some valid ids."""
-    from onfly.bench.tasks import load_tasks
+    files, the paper's set and the groups in its subfolders (the hard set), or from ``files``;
+    a CliError naming some valid ids."""
+    from onfly.bench.tasks import committed_task_files, load_tasks
 
-    tasks = load_tasks(files)
+    tasks = load_tasks(committed_task_files() if files is None else files)
     for t in tasks:
         if t.task_id == task_id:
             return t

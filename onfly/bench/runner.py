@@ -32,6 +32,7 @@ import hashlib
 import json
 import logging
 import multiprocessing as mp
+import os
 import time
 import tomllib
 from dataclasses import asdict, dataclass, field, fields, replace
@@ -47,6 +48,7 @@ from onfly.bench.metrics import EpisodeMetrics, summarize
 from onfly.bench.motion import MOTION_KEYS, motion_metrics
 from onfly.bench.registry import get_factory, method_names
 from onfly.bench.tasks import KINDS, Task, load_tasks, select_tasks
+from onfly.world.realism import PROFILES, realism_profile
 from onfly.world.render import RenderConfig
 from onfly.world.scene import Scene, load_scene, resolve_scene
 from onfly.world.world import World
@@ -77,7 +79,7 @@ log = logging.getLogger(__name__)
 
 EPISODES_FILE = "episodes.jsonl"
 SHARED_TABLES = ("planner", "esdf", "verifier")
-_WORLD_KEYS = ("width_px", "height_px", "hfov_deg", "vfov_deg", "render_threads")
+_WORLD_KEYS = ("width_px", "height_px", "hfov_deg", "vfov_deg", "render_threads", "realism")
 
 
 class BenchConfigError(ValueError):
@@ -100,7 +102,8 @@ class BenchConfig:
     vlm : VLM spec for every method (``sim:<preset>``, see :mod:`vlm.factory`)
     workers : local worker processes
     episode : EpisodeConfig fields; world : camera and renderer (``width_px``, ``height_px``,
-        ``hfov_deg``, ``vfov_deg``, ``render_threads``)
+        ``hfov_deg``, ``vfov_deg``, ``render_threads``) and the realism profile (``realism``:
+        ``"ideal"``, the default, ``"realistic"`` or ``"realistic_calm"``; see ``docs/realism.md``)
     shared : ``planner`` / ``esdf`` / ``verifier`` override tables passed to every method
     method_options : method name -> its own option table (``[methods.<name>]``)
     source : the file it was read from
@@ -144,6 +147,9 @@ class BenchConfig:
         bad = sorted(set(self.world) - set(_WORLD_KEYS))
         if bad:
             raise BenchConfigError(f"{where}[world]: unknown field(s) {bad}; valid: {list(_WORLD_KEYS)}")
+        realism = self.world.get("realism", "ideal")
+        if not isinstance(realism, str) or realism not in PROFILES:
+            raise BenchConfigError(f"{where}[world] realism: unknown profile {realism!r}; valid: {', '.join(PROFILES)}")
         bad = sorted(set(self.shared) - set(SHARED_TABLES))
         if bad:
             raise BenchConfigError(f"{where}unknown shared table(s) {bad}; valid: {list(SHARED_TABLES)}")
@@ -219,13 +225,17 @@ class BenchConfig:
         return opts
 
     def method_hash(self, method: str) -> str:
-        """Hash of everything that can change ``method``'s results (see the module docstring)."""
+        """Hash of everything that can change ``method``'s results (see the module docstring).
+        The ideal realism profile is left out, so hashes of runs before profiles still match."""
+        world = self.world_settings()
+        if world.get("realism") == "ideal":
+            del world["realism"]
         return _digest(
             {
                 "method": method,
                 "options": self.method_options_for(method),
                 "episode": asdict(EpisodeConfig(**self.episode)),
-                "world": self.world_settings(),
+                "world": world,
                 "vlm": self.vlm,
                 "seed": self.seed,
             }
@@ -233,6 +243,7 @@ class BenchConfig:
 
     def world_settings(self) -> dict:
         w = dict(defaults.WORLD)
+        w.setdefault("realism", "ideal")
         w.update(self.world)
         return w
 
@@ -375,7 +386,9 @@ def fly_task(
     ep = EpisodeConfig(**(episode or {}))
     camera = PinholeCamera.from_fov(int(w["width_px"]), int(w["height_px"]), float(w["hfov_deg"]), float(w["vfov_deg"]))
     start = VehicleState(0.0, task.start.position_m.copy(), np.zeros(3), float(task.start.yaw_rad))
-    the_world = World(_task_scene(task), camera=camera, render_config=RenderConfig(threads=int(w["render_threads"])), initial_state=start)
+    realism = realism_profile(w.get("realism", "ideal"))
+    the_world = World(_task_scene(task), camera=camera, render_config=RenderConfig(threads=int(w["render_threads"])), initial_state=start,
+                      realism=realism, seed=seed)
     if on_world is not None:
         on_world(the_world)
     cpu0 = time.process_time()
@@ -439,6 +452,7 @@ def run_job(job: EpisodeJob) -> dict:
             "seed": job.seed,
             "vlm": job.vlm,
             "error_model": error_model_name(job.vlm),
+            "realism": realism_profile(job.world.get("realism", "ideal")).name,
             "metrics": rec.pop("metrics"),
             "end_reason": rec.pop("end_reason"),
             **extras,
@@ -656,8 +670,31 @@ class BenchResult:
     errored: tuple = ()
 
 
-def _worker_init(level: int) -> None:
+#: Compute threads per local worker process (BLAS/OpenMP, Open3D, torch), set deliberately so
+#: two workers on two cores do not spin extra pools (issue 22); ``ONFLY_WORKER_THREADS``
+#: overrides it.
+WORKER_THREADS = 1
+
+
+def worker_threads() -> int:
+    """Threads per worker: ``$ONFLY_WORKER_THREADS`` (an int >= 1) or :data:`WORKER_THREADS`."""
+    raw = os.environ.get("ONFLY_WORKER_THREADS")
+    if raw is None:
+        return WORKER_THREADS
+    try:
+        n = int(raw)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise BenchConfigError(f"ONFLY_WORKER_THREADS must be an integer >= 1, got {raw!r}")
+    return n
+
+
+def _worker_init(level: int, threads: int = WORKER_THREADS) -> None:
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    from planning.threads import limit_threads
+
+    limit_threads(threads)
 
 
 def _run_local(jobs: list[EpisodeJob], workers: int, on_record: Callable[[dict], None]) -> None:
@@ -666,7 +703,10 @@ def _run_local(jobs: list[EpisodeJob], workers: int, on_record: Callable[[dict],
             on_record(run_job(job))
         return
     ctx = mp.get_context("spawn")
-    pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init, initargs=(logging.getLogger().level,))
+    pool = cf.ProcessPoolExecutor(
+        max_workers=workers, mp_context=ctx, initializer=_worker_init,
+        initargs=(logging.getLogger().level, worker_threads()),
+    )
     try:
         futures = [pool.submit(run_job, j) for j in jobs]
         for fut in cf.as_completed(futures):

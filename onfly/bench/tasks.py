@@ -398,6 +398,14 @@ def load_task_file(path: str | Path) -> list[Task]:
     return out
 
 
+def committed_task_files(groups: bool = True) -> list[Path]:
+    """The committed task files: the paper's set (``tasks/*.toml``), and with ``groups`` the
+    groups kept beside it in subfolders (``tasks/hard/*.toml``), which the default set of the
+    benchmark configs does not read."""
+    files = sorted(tasks_dir().glob("*.toml"))
+    return files + sorted(tasks_dir().glob("*/*.toml")) if groups else files
+
+
 def load_tasks(paths: Iterable[str | Path] | None = None) -> list[Task]:
     """All tasks of the given files (default: every committed file), in file then file order.
 

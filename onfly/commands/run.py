@@ -77,10 +77,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _resolve_task(args):
-    from onfly.bench.tasks import load_tasks
+    from onfly.bench.tasks import committed_task_files, load_tasks
 
     try:
-        tasks = load_tasks(args.files)
+        tasks = load_tasks(committed_task_files() if args.files is None else args.files)
     except FileNotFoundError as exc:
         raise CliError(f"--files: {exc}") from None
     wanted = {args.task}
