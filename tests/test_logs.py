@@ -35,7 +35,7 @@ def random_observations(n: int, seed: int = 0, annotated: bool = False) -> list[
             ann = FrameAnnotation(
                 instance_ids=rng.integers(0, 4, size=cam.shape, dtype=np.int32),
                 depth_m=depth.copy(),
-                objects={3: VisibleObject(3, "red van", "van", ("truck",)), 1: VisibleObject(1, "gate", "gate")},
+                objects={3: VisibleObject(3, "red van", "van", ("truck",)), 1: VisibleObject(1, "gate", "gate", target=False)},
                 semantic_ids=rng.integers(0, 9, size=cam.shape, dtype=np.uint16),
             )
         T_world_body = body_transform(rng.normal(size=3) * 10, rng.uniform(-np.pi, np.pi), 0.1, -0.05)

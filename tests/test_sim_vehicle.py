@@ -240,7 +240,7 @@ def make_observation(i, rng):
     cam = PinholeCamera.from_fov(32, 24, 90, 60)
     ids = rng.integers(0, 3, size=(24, 32))
     depth = rng.uniform(0.5, 7.0, size=(24, 32)).astype(np.float32)
-    ann = FrameAnnotation(ids, depth, {1: VisibleObject(1, "red van", "van", ("vehicle",)), 2: VisibleObject(2, "gate", "gate")}, ids * 10)
+    ann = FrameAnnotation(ids, depth, {1: VisibleObject(1, "red van", "van", ("vehicle",)), 2: VisibleObject(2, "gate", "gate", target=False)}, ids * 10)
     T = cam_transform_from_body(body_transform([i, 2.0, 1.0], 0.3 * i))
     return Observation(float(i), rng.integers(0, 255, size=(24, 32, 3), dtype=np.uint8), depth, T, cam, f"f{i}", annotation=ann)
 

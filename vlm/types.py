@@ -98,6 +98,17 @@ class VisibleObject:
     aliases: tuple[str, ...] = ()
     target: bool = True
 
+    def to_dict(self) -> dict:
+        """JSON form (logs, the MAVLink camera channel)."""
+        return {"instance_id": int(self.instance_id), "name": self.name, "label": self.label,
+                "aliases": list(self.aliases), "target": bool(self.target)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "VisibleObject":
+        """Inverse of :meth:`to_dict`; ``aliases`` and ``target`` are optional (older logs
+        carry neither: every object then counts as a possible target)."""
+        return cls(int(d["instance_id"]), str(d["name"]), str(d["label"]), tuple(d.get("aliases", ())), bool(d.get("target", True)))
+
 
 @dataclass(frozen=True, eq=False)
 class FrameAnnotation:

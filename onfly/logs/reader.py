@@ -201,8 +201,7 @@ class LogReader:
         ann = header.get("annotation")
         if ann is not None:
             objects = {
-                int(o["instance_id"]): VisibleObject(int(o["instance_id"]), o["name"], o["label"], tuple(o.get("aliases", ())))
-                for o in ann["objects"]
+                int(o["instance_id"]): VisibleObject.from_dict(o) for o in ann["objects"]
             }
             annotation = FrameAnnotation(
                 instance_ids=arrays["annotation.instance_ids"],

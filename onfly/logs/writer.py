@@ -185,8 +185,7 @@ class LogWriter:
         if ann is not None:
             header["annotation"] = {
                 "objects": [
-                    {"instance_id": int(o.instance_id), "name": o.name, "label": o.label, "aliases": list(o.aliases)}
-                    for o in ann.objects.values()
+                    o.to_dict() for o in ann.objects.values()
                 ]
             }
             arrays["annotation.instance_ids"] = np.asarray(ann.instance_ids)

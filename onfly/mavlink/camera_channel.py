@@ -72,10 +72,7 @@ def encode_observation(obs: Observation) -> bytes:
         arrays["ann_depth_m"] = np.asarray(ann.depth_m, dtype=np.float32)
         if ann.semantic_ids is not None:
             arrays["ann_semantic_ids"] = np.asarray(ann.semantic_ids)
-        objects = [
-            {"instance_id": int(o.instance_id), "name": o.name, "label": o.label, "aliases": list(o.aliases)}
-            for o in ann.objects.values()
-        ]
+        objects = [o.to_dict() for o in ann.objects.values()]
         arrays["ann_objects"] = np.array(json.dumps(objects))
     buf = io.BytesIO()
     np.savez(buf, **arrays)
@@ -101,7 +98,7 @@ def decode_observation(payload: bytes) -> Observation:
         annotation = None
         if "ann_instance_ids" in data:
             objs = json.loads(str(data["ann_objects"]))
-            objects = {int(o["instance_id"]): VisibleObject(int(o["instance_id"]), o["name"], o["label"], tuple(o["aliases"])) for o in objs}
+            objects = {int(o["instance_id"]): VisibleObject.from_dict(o) for o in objs}
             annotation = FrameAnnotation(data["ann_instance_ids"], data["ann_depth_m"], objects, data.get("ann_semantic_ids"))
         return Observation(
             t_s=float(data["t_s"]),
