@@ -13,6 +13,8 @@ T_LOOK_X = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.
 
 
 def _grid(**kw) -> RollingOccupancy:
+    """The mechanics under the optimistic policy without a body sphere unless asked."""
+    kw = {"unknown_policy": "free", "body_clear_radius_m": 0.0, **kw}
     occ = RollingOccupancy(EsdfConfig(size_m=(4.0, 4.0, 2.0), stride_px=1, **kw))
     occ.shift_to(occ.origin_for_center([0.0, 0.0, 0.0]))
     return occ
