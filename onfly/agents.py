@@ -112,6 +112,8 @@ class DecisionOutcome:
     reason : why there is no goal ("" when there is one)
     pixel_yaw : world heading (radians) of the parsed pixel's viewing ray, or None; a
         rejected candidate still says which way the target is
+    not_visible : the model answered that the target is not visible in this frame (no goal;
+        the pilot's search counts these)
     """
 
     frame_id: str
@@ -123,6 +125,7 @@ class DecisionOutcome:
     goal_world: np.ndarray | None
     reason: str = ""
     pixel_yaw: float | None = None
+    not_visible: bool = False
 
     @property
     def latency_s(self) -> float:
@@ -192,9 +195,9 @@ class DecisionAgent:
             cache_key=DECISION_STREAM,
         )
 
-        def out(parse=None, verified=None, goal=None, reason=""):
+        def out(parse=None, verified=None, goal=None, reason="", not_visible=False):
             yaw = pixel_yaw(parse.uv, obs) if parse is not None and parse.ok else None
-            return DecisionOutcome(obs.frame_id, subtask, response, hist, parse, verified, goal, reason, yaw)
+            return DecisionOutcome(obs.frame_id, subtask, response, hist, parse, verified, goal, reason, yaw, not_visible)
 
         if response.status is not CallStatus.OK:
             log.info("decision call %s: %s", response.status.value, response.error)
@@ -202,6 +205,8 @@ class DecisionAgent:
         parse = parse_point(
             response.text, image.size, self.coord_format, model_input_size=self.model_input_size
         )
+        if getattr(parse, "not_visible", False):
+            return out(parse=parse, reason="not visible", not_visible=True)
         if not parse.ok:
             log.info("decision parse failed (%s): %r", parse.reason, response.text[:200])
             return out(parse=parse, reason=f"parse: {parse.reason}")

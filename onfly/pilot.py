@@ -37,6 +37,7 @@ from onfly.agents import DecisionAgent, DecisionOutcome, MonitoringAgent, Monito
 from onfly.memory import MemoryConfig, make_memory
 from onfly.observation import Observation
 from onfly.runtime import AgentRuntime, Landed
+from onfly.search import Search, SearchConfig, SearchPhase, SearchTrigger, explore_target
 from onfly.serialize import config_from_tables, to_jsonable
 from onfly.task_manager import Status, TaskEvent, TaskManager
 from planning.esdf import EsdfMap
@@ -47,6 +48,7 @@ from planning.planner_config import PlannerConfig
 from planning.straight_line import straight_line_plan
 from planning.trajectory import Trajectory, VehicleState
 from planning.verifier import Verifier, VerifierConfig
+from planning.volume import FlightVolume
 from vlm.decompose import decompose_detailed
 from vlm.feature_cache import FeatureCache
 from vlm.parsing import CoordFormat
@@ -97,6 +99,8 @@ class PilotConfig:
         vehicle, and unobserved space counts as free in the ESDF, so a goal lifted from a pixel
         at an object's base would otherwise pull the vehicle onto unseen ground. Default 0.7 m =
         body radius 0.25 m + the planner's 0.45 m safety distance. None disables it.
+    search : the pilot's own search when the target is not being found (``onfly.search``;
+        ours, not the paper's). ``SearchConfig(enabled=False)`` is the paper's pilot.
     """
 
     control_period_s: float = 0.1
@@ -116,6 +120,7 @@ class PilotConfig:
     verifier: VerifierConfig = field(default_factory=VerifierConfig)
     esdf: EsdfConfig = field(default_factory=EsdfConfig)
     memory: MemoryConfig = field(default_factory=MemoryConfig)
+    search: SearchConfig = field(default_factory=SearchConfig)
 
     def __post_init__(self) -> None:
         for name in ("control_period_s", "monitor_period_s", "goal_timeout_s", "recovery_timeout_s"):
@@ -139,7 +144,13 @@ class PilotConfig:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "PilotConfig":
         """Build from a plain dict (e.g. a TOML table); nested tables fill nested configs."""
-        nested = {"planner": PlannerConfig, "verifier": VerifierConfig, "esdf": EsdfConfig, "memory": MemoryConfig}
+        nested = {
+            "planner": PlannerConfig,
+            "verifier": VerifierConfig,
+            "esdf": EsdfConfig,
+            "memory": MemoryConfig,
+            "search": SearchConfig,
+        }
         return config_from_tables(cls, data, nested, PilotConfigError, "pilot")
 
     @classmethod
@@ -155,6 +166,7 @@ class PilotMode(str, Enum):
     HOLDING = "holding"  # no valid goal: hover in place
     RECOVERING = "recovering"  # LOST: stopped, turning to the last normal heading
     CONFIRMING = "confirming"  # a STOP heard, not yet stable: hover, ask again on the next frame
+    SEARCHING = "searching"  # the target is not being found: scan in place, then explore
     FINISHED = "finished"
 
 
@@ -189,10 +201,18 @@ class OnFlyPilot:
     backend : VlmBackend shared by both agents (each keeps its own ``cache_key`` stream)
     runtime : where agent calls run (``ClockRuntime`` in simulation, ``ThreadRuntime`` onboard)
     planner : optional prebuilt Planner (building one costs CasADi set-up; benchmarks reuse it)
+    volume : the operator flight volume (world ENU), or None. Every navigation goal, search
+        point and hold point is clamped into it, shrunk by the planner's safety distance
+        (``goal_clamped`` events), so no goal leads the vehicle out of it.
     """
 
     def __init__(
-        self, config: PilotConfig, backend: VlmBackend, runtime: AgentRuntime, planner: Planner | None = None
+        self,
+        config: PilotConfig,
+        backend: VlmBackend,
+        runtime: AgentRuntime,
+        planner: Planner | None = None,
+        volume: FlightVolume | None = None,
     ) -> None:
         self.config = config
         self.backend = backend
@@ -227,6 +247,13 @@ class OnFlyPilot:
         self._last_plan: PlanResult | None = None
         self.planner_fallbacks: dict[str, int] = {}
         self.events: list[PilotEvent] = []
+        self.volume = volume
+        self.search = Search(config.search)
+        self._no_goal_streak = 0  # decisions in a row without a goal (current subtask)
+        self._not_visible_streak = 0  # "target not visible" answers in a row
+        self._rejected_streak = 0  # of the decisions without a goal, those the verifier rejected
+        self._answered_s = -np.inf  # when the decision agent last gave a parseable answer
+        self._last_seen: np.ndarray | None = None  # last verified goal of the current subtask
 
     # -- lifecycle ------------------------------------------------------------------------------
     def begin(self, instruction: str, t_s: float) -> None:
@@ -308,16 +335,18 @@ class OnFlyPilot:
         if isinstance(out, _Decomposed):
             dec = out.decomposition
             self.tasks = TaskManager(list(dec.subtasks), self.config.stop_confirmations)
+            self._last_seen = None  # sightings on the whole instruction belong to no subtask
+            self._no_goal_streak = self._not_visible_streak = self._rejected_streak = 0
             self._event(
                 landed.landed_s,
                 "decomposition",
                 {"instruction": self.instruction, "subtasks": list(dec.subtasks), "source": dec.source, "reason": dec.reason},
             )
         elif isinstance(out, _SingleStream):
-            self._apply_decision(landed.landed_s, out.decision)
+            self._apply_decision(landed.landed_s, out.decision, state)
             self._apply_monitor(landed.landed_s, out.monitor, state)
         elif isinstance(out, DecisionOutcome):
-            self._apply_decision(landed.landed_s, out)
+            self._apply_decision(landed.landed_s, out, state)
         elif isinstance(out, MonitorOutcome):
             self._apply_monitor(landed.landed_s, out, state)
         elif isinstance(out, BaseException):
@@ -325,7 +354,7 @@ class OnFlyPilot:
             self._event(landed.landed_s, "agent_error", {"kind": landed.kind, "error": repr(out)})
             log.error("%s call raised: %r", landed.kind, out)
 
-    def _apply_decision(self, t_s: float, out: DecisionOutcome) -> None:
+    def _apply_decision(self, t_s: float, out: DecisionOutcome, state: VehicleState) -> None:
         rec = out.verified.record if out.verified is not None else None
         self._event(
             t_s,
@@ -339,6 +368,7 @@ class OnFlyPilot:
                 "pixel": out.parse.uv if out.parse is not None else None,
                 "goal_world": out.goal_world,
                 "reason": out.reason,
+                "not_visible": out.not_visible,
                 "verifier": rec,
                 "latency_s": out.latency_s,
             },
@@ -355,6 +385,9 @@ class OnFlyPilot:
             raised[2] = self.config.goal_min_z_m
             self._event(t_s, "goal_raised", {"from_z_m": float(out.goal_world[2]), "to_z_m": float(raised[2])})
             out = replace(out, goal_world=raised)
+        if out.goal_world is not None:
+            out = replace(out, goal_world=self._clamp_to_volume(t_s, out.goal_world, "decision"))
+        self._count_decision(t_s, out, state)
         if self.mode is PilotMode.CONFIRMING:
             if out.goal_world is not None:  # kept for when the STOP is withdrawn
                 self.goal_world = np.asarray(out.goal_world, float)
@@ -363,8 +396,12 @@ class OnFlyPilot:
         if out.goal_world is None:
             # hold the last goal (it times out by itself); with no goal, at least face the
             # target the VLM pointed at, so a rejected edge-of-image target comes into view
-            self._face_yaw = out.pixel_yaw
+            if self.mode is not PilotMode.SEARCHING:
+                self._face_yaw = out.pixel_yaw
             return
+        if self.search.active:
+            self._event(t_s, "search_end", {"reason": "target_pointed", "duration_s": t_s - self.search.started_s})
+            self.search.stop()
         self._face_yaw = None
         self._speculative = speculative
         self.goal_world = np.asarray(out.goal_world, float)
@@ -395,6 +432,9 @@ class OnFlyPilot:
         event = self.tasks.on_status(status, t_s, state.p, state.yaw)
         if event is TaskEvent.NONE and status is Status.STOP:
             if self.mode is not PilotMode.CONFIRMING:
+                if self.search.active:
+                    self._event(t_s, "search_end", {"reason": "stop_heard", "duration_s": t_s - self.search.started_s})
+                    self.search.stop()
                 self.mode = PilotMode.CONFIRMING
                 self._hold_p = state.p.copy()
                 self._face_yaw = None
@@ -407,6 +447,9 @@ class OnFlyPilot:
                 # freshest goal
                 self.mode = PilotMode.NAVIGATING if self.goal_world is not None else PilotMode.HOLDING
                 self._event(t_s, "stop_withdrawn", {"position": state.p})
+        if event is not TaskEvent.NONE and self.search.active:
+            self._event(t_s, "search_end", {"reason": event.value, "duration_s": t_s - self.search.started_s})
+            self.search.stop()
         if event is TaskEvent.FINISHED:
             self.mode = PilotMode.FINISHED
             self._hold_p = state.p.copy()
@@ -414,20 +457,48 @@ class OnFlyPilot:
         elif event is TaskEvent.ADVANCED:
             self.goal_world = None
             self._face_yaw = None
+            self._last_seen = None
+            self._no_goal_streak = self._not_visible_streak = self._rejected_streak = 0
             self.mode = PilotMode.HOLDING
             self._event(t_s, "advanced", {"subtask": self.tasks.current, "index": self.tasks.index})
         elif event is TaskEvent.LOST:
             self.goal_world = None
             self._face_yaw = None
-            self.mode = PilotMode.RECOVERING
-            self._recovery_yaw = self.tasks.recovery_yaw(state.yaw)
-            self._recovery_start_s = t_s
             self._hold_p = state.p.copy()
-            self._event(t_s, "lost", {"recovery_yaw": self._recovery_yaw, "position": state.p})
+            seen = self._last_seen
+            if self.config.search.enabled and seen is not None and np.linalg.norm(seen[:2] - state.p[:2]) > 0.5:
+                # turn toward where the target was last seen (ours; the paper turns to the
+                # last normal point's heading, which after a detour can face away from it)
+                self._recovery_yaw = float(np.arctan2(seen[1] - state.p[1], seen[0] - state.p[0]))
+                source = "last_seen"
+            elif self.tasks.last_normal is not None or not self.config.search.enabled:
+                self._recovery_yaw = self.tasks.recovery_yaw(state.yaw)
+                source = "normal_point"
+            else:
+                self._event(t_s, "lost", {"recovery": "search", "position": state.p})
+                self._start_search(t_s, state, SearchTrigger.LOST)
+                return
+            self.mode = PilotMode.RECOVERING
+            self._recovery_start_s = t_s
+            self._event(t_s, "lost", {"recovery_yaw": self._recovery_yaw, "recovery": source, "position": state.p})
 
     def _control(self, t_s: float, state: VehicleState) -> PilotTick:
         cfg = self.config
         yaw_ref = None
+        search_goal = None
+        if cfg.search.enabled and self.mode is not PilotMode.FINISHED:
+            self.search.remember(t_s, state.p)
+            stall_watch = self.mode in (PilotMode.NAVIGATING, PilotMode.HOLDING) or (
+                self.mode is PilotMode.SEARCHING and self.search.phase is SearchPhase.EXPLORE
+            )
+            # a stall counts only while the model answers: with a dead model the vehicle holds
+            model_alive = t_s - self._answered_s <= cfg.search.stall_window_s
+            if stall_watch and model_alive and self.search.stalled(t_s):
+                # a dead end: no progress while the task is not done; back out and search
+                self._event(t_s, "stalled", {"position": state.p, "window_s": cfg.search.stall_window_s})
+                self._start_search(t_s, state, SearchTrigger.STALL, explore_first=True)
+            if self.mode is PilotMode.SEARCHING:
+                search_goal, yaw_ref = self._search_control(t_s, state)
         if self.mode is PilotMode.RECOVERING:
             err = abs(wrap_angle(state.yaw - (self._recovery_yaw or state.yaw)))
             if err <= cfg.recovery_yaw_tolerance_rad or t_s - self._recovery_start_s > cfg.recovery_timeout_s:
@@ -439,7 +510,10 @@ class OnFlyPilot:
             self.goal_world = None
             self.mode = PilotMode.HOLDING
             self._event(t_s, "goal_timeout", {"age_s": t_s - self.goal_t_s})
-        if self.mode is PilotMode.NAVIGATING and self.goal_world is not None:
+        if self.mode is PilotMode.SEARCHING and search_goal is not None:
+            goal = search_goal
+            self._hold_p = None
+        elif self.mode is PilotMode.NAVIGATING and self.goal_world is not None:
             goal = self.goal_world
             self._hold_p = None
         else:
@@ -448,6 +522,8 @@ class OnFlyPilot:
             goal = self._hold_p
             if yaw_ref is None and self.mode is not PilotMode.FINISHED:
                 yaw_ref = self._face_yaw
+        if self.volume is not None:
+            goal = self.volume.clamp(goal, margin_m=self._volume_margin_m)
         if cfg.use_planner:
             plan = self.planner.step(state, goal, self.esdf, yaw_ref=yaw_ref)
             traj = plan.trajectory
@@ -468,6 +544,94 @@ class OnFlyPilot:
             key = plan.fallback.value
             self.planner_fallbacks[key] = self.planner_fallbacks.get(key, 0) + 1
         return PilotTick(traj, self.finished, self.mode, None if self.goal_world is None else self.goal_world.copy(), plan)
+
+
+    # -- search and the flight volume -----------------------------------------------------------
+    @property
+    def _volume_margin_m(self) -> float:
+        """Goals keep the planner's safety distance from the volume's faces."""
+        return float(self.config.planner.d_safe_m)
+
+    def _clamp_to_volume(self, t_s: float, goal, source: str) -> np.ndarray:
+        g = np.asarray(goal, dtype=float)
+        if self.volume is None or bool(self.volume.contains(g, margin_m=self._volume_margin_m)[0]):
+            return g
+        clamped = self.volume.clamp(g, margin_m=self._volume_margin_m)
+        self._event(t_s, "goal_clamped", {"source": source, "from": g, "to": clamped})
+        return clamped
+
+    def _count_decision(self, t_s: float, out: DecisionOutcome, state: VehicleState) -> None:
+        """Streaks of decisions without a goal; start a search when one is long enough."""
+        if out.goal_world is not None:
+            self._no_goal_streak = self._not_visible_streak = self._rejected_streak = 0
+            self._last_seen = np.asarray(out.goal_world, float).copy()
+            return
+        if out.parse is None:
+            return  # the call itself failed: a search cannot hand back without a working model
+        self._answered_s = t_s
+        self._no_goal_streak += 1
+        if out.verified is not None and not out.verified.accepted:
+            self._rejected_streak += 1
+        self._not_visible_streak = self._not_visible_streak + 1 if out.not_visible else 0
+        scfg = self.config.search
+        if not scfg.enabled or self.search.active or self.mode in (PilotMode.CONFIRMING, PilotMode.FINISHED):
+            return
+        if self._not_visible_streak >= scfg.not_visible_streak:
+            self._start_search(t_s, state, SearchTrigger.NOT_VISIBLE)
+        elif self._no_goal_streak - self._rejected_streak >= scfg.fail_streak or self._no_goal_streak >= scfg.reject_streak:
+            # a target the verifier keeps rejecting is usually in view and near (no feasible
+            # goal in front of it): the monitor's STOP gets longer to arrive before we turn away
+            self._start_search(t_s, state, SearchTrigger.NO_GOAL)
+
+    def _last_seen_yaw(self, state: VehicleState) -> float | None:
+        seen = self._last_seen
+        if seen is None or np.linalg.norm(seen[:2] - state.p[:2]) <= 0.5:
+            return None
+        return float(np.arctan2(seen[1] - state.p[1], seen[0] - state.p[0]))
+
+    def _start_search(self, t_s: float, state: VehicleState, trigger: SearchTrigger, explore_first: bool = False) -> None:
+        toward = self._last_seen_yaw(state)
+        self.search.start(t_s, state.p, state.yaw, trigger, toward_yaw=toward)
+        self.search.reset_stall()
+        self._no_goal_streak = self._not_visible_streak = self._rejected_streak = 0
+        self.goal_world = None
+        self._face_yaw = None
+        self._hold_p = state.p.copy()
+        self.mode = PilotMode.SEARCHING
+        self._event(t_s, "search_start", {"trigger": trigger.value, "position": state.p, "toward_yaw": toward})
+        if explore_first:
+            self._explore(t_s, state)
+
+    def _explore(self, t_s: float, state: VehicleState) -> None:
+        """Pick the next exploration point and fly toward it (or scan again if none)."""
+        z = float(state.p[2])
+        if self.config.goal_min_z_m is not None:
+            z = max(z, self.config.goal_min_z_m)
+        target = explore_target(
+            state.p,
+            self.search.heading0,
+            self.esdf,
+            config=self.config.search,
+            volume=self.volume,
+            volume_margin_m=self._volume_margin_m,
+            visited=self.search.visited,
+            z_m=z,
+            prefer_yaw=self._last_seen_yaw(state),
+        )
+        self.search.explore_from(t_s, target, state.p, state.yaw)
+        self._event(t_s, "search_explore", {"target": target, "position": state.p})
+
+    def _search_control(self, t_s: float, state: VehicleState) -> tuple[np.ndarray, float | None]:
+        point, yaw_ref, ev = self.search.control(t_s, state.p, state.yaw)
+        if ev == "scan_done":
+            self._explore(t_s, state)
+            point, yaw_ref, _ = self.search.control(t_s, state.p, state.yaw)
+        elif ev == "explore_done":
+            # chain the next leg at once: the camera faces each leg's direction, so the turn
+            # between legs sweeps new sectors; a scan in place only when nothing is reachable
+            self._explore(t_s, state)
+            point, yaw_ref, _ = self.search.control(t_s, state.p, state.yaw)
+        return point, yaw_ref
 
 
 @dataclass(frozen=True, eq=False)

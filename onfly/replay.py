@@ -77,6 +77,7 @@ from planning.planner import Planner, PlanResult
 from planning.planner_config import PlannerConfig
 from planning.trajectory import VehicleState
 from planning.verifier import CandidateGoal, VerifiedGoal, Verifier, VerifierConfig
+from planning.volume import FlightVolume
 from vlm.decompose import decompose_detailed
 from vlm.feature_cache import FeatureCache
 from vlm.parsing import CoordFormat
@@ -140,6 +141,9 @@ class ReplayConfig:
         VLM's, pixels
     range_gated_below : a verified goal was "range-gated" when its gating factor is below this
         (default 0.95: range cut by more than 5 %)
+    volume : the operator flight volume ``(xmin, ymin, zmin, xmax, ymax, zmax)``, metres in the
+        log's world frame, or None; goals are clamped into it (shrunk by the planner's safety
+        distance) before the planner sees them, as in flight
     planner, esdf, verifier, memory : the nested configs
     """
 
@@ -158,10 +162,16 @@ class ReplayConfig:
     slack_tolerance_m: float = 1e-3
     moved_min_px: float = 0.5
     range_gated_below: float = 0.95
+    volume: tuple[float, float, float, float, float, float] | None = None
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     esdf: EsdfConfig = field(default_factory=EsdfConfig)
     verifier: VerifierConfig = field(default_factory=VerifierConfig)
     memory: MemoryConfig = field(default_factory=MemoryConfig)
+
+    @property
+    def flight_volume(self) -> FlightVolume | None:
+        """:attr:`volume` as a :class:`planning.volume.FlightVolume` (None when not set)."""
+        return None if self.volume is None else FlightVolume(np.array(self.volume[:3]), np.array(self.volume[3:]))
 
     def __post_init__(self) -> None:
         if self.goal_mode not in GOAL_MODES:
@@ -183,6 +193,12 @@ class ReplayConfig:
             if len(g) != 3 or not all(math.isfinite(x) for x in g):
                 raise ReplayConfigError(f"ReplayConfig.goal_world must be three finite numbers (x, y, z), got {self.goal_world!r}")
             object.__setattr__(self, "goal_world", g)
+        if self.volume is not None:
+            try:
+                box = FlightVolume.parse(",".join(str(float(x)) for x in self.volume))
+            except (TypeError, ValueError) as exc:
+                raise ReplayConfigError(f"ReplayConfig.volume: {exc}") from None
+            object.__setattr__(self, "volume", tuple(box.to_list()))
         if self.goal_mode == "fixed" and self.goal_world is None:
             raise ReplayConfigError("ReplayConfig.goal_world is required when goal_mode is 'fixed'")
         if self.goal_mode != "fixed" and self.goal_world is not None:
@@ -743,6 +759,8 @@ def _process(
         goal = np.asarray(config.goal_world, float)
     else:
         goal = agents.goal_world if agents is not None and agents.goal_world is not None else state.p
+    if config.volume is not None:
+        goal = config.flight_volume.clamp(goal, margin_m=config.planner.d_safe_m)
     plan = planner.step(state, goal, esdf)
     samples["planner"].append(plan.solve_time_ms)
     if recorder is not None:

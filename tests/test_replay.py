@@ -340,3 +340,17 @@ def test_config_from_dict_fills_nested_configs_and_rejects_unknown_keys():
 def test_empty_source_is_an_error():
     with pytest.raises(ReplayError, match="empty: no frames to replay"):
         replay(ListSource([], path="empty"), ReplayConfig(), progress=False)
+
+
+def test_replay_volume_is_validated_and_clamps_the_goal_the_planner_sees():
+    cfg = ReplayConfig(goal_mode="fixed", goal_world=(30.0, 0.0, 9.0), volume=(-5, -5, 0, 5, 5, 3))
+    assert cfg.flight_volume.to_list() == [-5.0, -5.0, 0.0, 5.0, 5.0, 3.0]
+    report = replay(_track(), cfg, progress=False)
+    m = cfg.planner.d_safe_m
+    assert len(report.per_frame) == 5
+    for f in report.per_frame:
+        np.testing.assert_allclose(f.goal_m, [5 - m, 0.0, 3 - m])
+    with pytest.raises(ReplayConfigError, match="volume"):
+        ReplayConfig(volume=(0, 0, 0, 1, 1))
+    with pytest.raises(ReplayConfigError, match="volume"):
+        ReplayConfig(volume=(0, 0, 0, 1, 1, 0))

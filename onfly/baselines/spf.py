@@ -154,6 +154,11 @@ class SpfMethod:
             self._ask(self.latest)
         goal = self.goal if self.goal is not None else self.hold_p
         if self.planner is not None:
+            volume = self.spec.flight_volume
+            if volume is not None and not bool(volume.contains(goal, margin_m=self.planner.config.d_safe_m)[0]):
+                # the operator's flight volume: every method that flies our planner honours it
+                goal = volume.clamp(goal, margin_m=self.planner.config.d_safe_m)
+                self.stats["goals_clamped"] += 1
             plan = self.planner.step(state, goal, self.esdf)
             if not plan.ok:
                 self.fallbacks[plan.fallback.value] += 1

@@ -21,6 +21,7 @@ from onfly.bench.method import EpisodeSpec, Method, PrivilegedGoal
 from onfly.bench.metrics import EpisodeMetrics, EpisodeTrace, GoalRegion, episode_metrics
 from onfly.runtime import ClockRuntime
 from onfly.world.world import World
+from planning.volume import FlightVolume
 
 __all__ = ["EpisodeConfig", "EpisodeResult", "EpisodeStep", "run_episode", "END_REASONS"]
 
@@ -125,6 +126,7 @@ def run_episode(
         runtime=runtime,
         error_model=error_model,
         privileged=privileged if getattr(method, "privileged", False) else None,
+        flight_volume=FlightVolume(world.scene.bounds.min_m, world.scene.bounds.max_m),
     )
     times = [t0]
     positions = [world.state.p.copy()]

@@ -6,7 +6,9 @@ error model. Per control period the loop calls :meth:`Method.step` with the vehi
 when a camera frame is due, the new observation; the method returns the plan to fly and
 whether it declares the task done (its own stop).
 
-A method sees the instruction, the camera, its seed and the agent runtime. Only a method that
+A method sees the instruction, the camera, its seed, the agent runtime and the operator's
+flight volume (the scene's bounds: an operator feature every method that flies our planner
+honours, like a geofence on a real vehicle). Only a method that
 sets ``privileged = True`` (the oracle, a check of the world and planner, never a method in the
 tables) also receives the task's goal.
 """
@@ -22,6 +24,7 @@ from onfly.observation import Observation
 from onfly.runtime import ClockRuntime
 from planning.camera import PinholeCamera
 from planning.trajectory import Trajectory, VehicleState
+from planning.volume import FlightVolume
 
 __all__ = ["EpisodeSpec", "MethodStep", "Method", "MethodFactory", "PrivilegedGoal"]
 
@@ -41,7 +44,10 @@ class PrivilegedGoal:
 
 @dataclass(frozen=True, eq=False)
 class EpisodeSpec:
-    """What a method is told when an episode starts."""
+    """What a method is told when an episode starts.
+
+    flight_volume : the operator's flight volume (world ENU, metres), or None
+    """
 
     instruction: str
     camera: PinholeCamera
@@ -50,6 +56,7 @@ class EpisodeSpec:
     runtime: ClockRuntime
     error_model: str
     privileged: PrivilegedGoal | None = None
+    flight_volume: FlightVolume | None = None
 
 
 @dataclass(frozen=True, eq=False)

@@ -23,6 +23,8 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "onfly_no_planner": {"use_planner": False},
     "onfly_time_sampling": {"memory": "time"},
     "onfly_sliding_window": {"memory": "sliding"},
+    # ours: the paper's pilot without the search (onfly.search) and last-sighting recovery
+    "onfly_no_search": {"search": False},
 }
 
 
@@ -34,6 +36,8 @@ def ablation_config(name: str, base: PilotConfig | None = None) -> PilotConfig:
     changes = dict(ABLATIONS[name])
     if "memory" in changes:
         changes["memory"] = replace(cfg.memory, strategy=changes["memory"])
+    if "search" in changes:
+        changes["search"] = replace(cfg.search, enabled=changes["search"])
     return replace(cfg, **changes)
 
 
@@ -61,7 +65,7 @@ class OnFlyMethod:
         backend = make_backend(self.vlm_spec, seed=spec.seed)
         if self._planner is None and self.config.use_planner:
             self._planner = Planner(self.config.planner)
-        self.pilot = OnFlyPilot(self.config, backend, spec.runtime, planner=self._planner)
+        self.pilot = OnFlyPilot(self.config, backend, spec.runtime, planner=self._planner, volume=spec.flight_volume)
         self.pilot.begin(spec.instruction, spec.start_state.t_s)
 
     def step(self, t_s: float, state: VehicleState, obs: Observation | None) -> MethodStep:
@@ -90,6 +94,8 @@ class OnFlyMethod:
             "verifier_moved": len(moved),
             "monitor_statuses": dict(statuses),
             "planner_fallbacks": p.planner_fallbacks,
+            "search_triggers": dict(Counter(e.data.get("trigger") for e in p.events if e.kind == "search_start")),
+            "goals_clamped": kinds.get("goal_clamped", 0),
         }
 
 

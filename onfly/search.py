@@ -1,0 +1,362 @@
+"""Search: what the pilot does while the current subtask's target is not being found.
+
+Ours, not the paper's: the paper's pilot only flies toward points the decision agent gives and,
+on LOST, turns back to the last normal heading. With the target out of view at the start, in a
+dead-end corner, or after a LOST with nothing to turn back to, that pilot hovers or wanders
+toward whatever the model points at. The search is the pilot's own behaviour and reads only
+what the pilot has (the map's known and unknown space, poses, the agents' answers), so it flies
+the same with a real VLM as with the simulated one.
+
+Policy (parameters in :class:`SearchConfig`):
+
+1. **Triggers** (the pilot decides, :class:`SearchTrigger`): ``not_visible_streak`` decision
+   answers in a row that say the target is not visible; ``fail_streak`` decisions in a row that
+   gave no goal for another reason than a verifier rejection (unparseable answers), or
+   ``reject_streak`` without a goal, rejections included (a call that failed outright counts
+   for nothing: with a dead model the pilot holds, the companion failsafes act); a LOST with nothing to turn back to; no progress (less than ``stall_distance_m`` of
+   travel in ``stall_window_s``) while the task is not finished (a dead end).
+2. **Scan**: turn in place through the field of regard, ``scan_step_rad`` at a time, so each new
+   frame shows the decision agent a new sector; first toward where the target was last seen
+   when that is known. Three quarter turns cover the rest of the horizon with a 90 deg camera.
+3. **Explore**: fly toward the reachable point whose view holds the most unknown space (a
+   frontier of the map's known space), inside the flight volume, away from places already
+   visited; the camera faces the direction of travel, so the flight itself looks for the
+   target. On arrival (or after ``explore_timeout_s``) the next leg starts at once (the turn
+   onto it sweeps new sectors past the camera); a scan in place only when nothing is reachable.
+4. **Hand back**: any decision that yields a verified goal for the current subtask ends the
+   search (the pilot flies that goal). A STOP from the monitor is handled as always.
+
+Candidate exploration points are sampled on a ring of headings at a few ranges around the
+vehicle at its altitude; a candidate is *reachable* when the straight segment to it keeps the
+planner's clearance in the distance field (the planner's guide search handles the rest), and
+its *gain* is the unknown fraction of a fan of sample points beyond it in its direction.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Callable
+
+import numpy as np
+
+from planning.frames import wrap_angle
+from planning.volume import FlightVolume
+
+__all__ = ["SearchConfig", "SearchConfigError", "SearchPhase", "SearchTrigger", "Search", "explore_target", "known_mask"]
+
+
+class SearchConfigError(ValueError):
+    """Invalid search configuration (names the field)."""
+
+
+@dataclass(frozen=True)
+class SearchConfig:
+    """Parameters of the pilot's search (module docstring).
+
+    Attributes
+    ----------
+    enabled : False = the paper's pilot (ablation ``onfly_no_search``)
+    not_visible_streak : "target not visible" answers in a row that start a search
+    fail_streak : decisions in a row without a goal that start a search, not counting those
+        the verifier rejected (not visible, unparseable; failed calls do not count)
+    reject_streak : decisions in a row without a goal, rejections included, that start a
+        search (a target the verifier keeps rejecting is usually in view and close, where the
+        monitor's STOP should come first)
+    scan_step_rad : yaw increment of the scan, radians (a quarter turn: one camera width)
+    scan_total_rad : how far one scan turns before exploring, radians. Three quarter turns:
+        the view at the start of the scan is the one that just failed to show the target, and
+        a 90 deg camera turning at the paper's 0.4 rad/s sees the rest in about 12 s
+    scan_yaw_tolerance_rad : a scan heading counts as reached within this
+    scan_dwell_s : time held at each scan heading, seconds (decisions also run on the frames
+        taken while turning: at 0.4 rad/s and 2 Hz frames the view moves 11.5 deg a frame)
+    explore_ranges_m : distances of the candidate exploration points, metres
+    explore_headings : number of candidate headings on the ring
+    explore_clearance_m : clearance the segment to a candidate must keep, metres (the planner's
+        safety distance by default)
+    explore_arrive_m : an exploration point is reached within this, metres
+    explore_timeout_s : give up on one exploration point after this long, seconds
+    visit_radius_m : a candidate this close to a visited place is penalized, metres
+    visit_spacing_m : the vehicle's track is remembered every this many metres
+    stall_window_s, stall_distance_m : less travel than this in that window is a dead end
+    gain_lookahead_m : how far beyond a candidate the gain fan reaches, metres
+    forward_weight : score cost of a leg pointing opposite to the heading the search began
+        with (0 = no preference; the gain is a fraction in [0, 1])
+    """
+
+    enabled: bool = True
+    not_visible_streak: int = 2
+    fail_streak: int = 4
+    reject_streak: int = 10
+    scan_step_rad: float = math.pi / 2
+    scan_total_rad: float = 1.5 * math.pi
+    scan_yaw_tolerance_rad: float = 0.15
+    scan_dwell_s: float = 0.5
+    explore_ranges_m: tuple[float, ...] = (2.0, 3.5, 5.0)
+    explore_headings: int = 16
+    explore_clearance_m: float = 0.45
+    explore_arrive_m: float = 0.8
+    explore_timeout_s: float = 15.0
+    visit_radius_m: float = 1.5
+    visit_spacing_m: float = 1.0
+    stall_window_s: float = 12.0
+    stall_distance_m: float = 0.6
+    gain_lookahead_m: float = 4.0
+    forward_weight: float = 0.3
+
+    def __post_init__(self) -> None:
+        for name in ("not_visible_streak", "fail_streak", "reject_streak", "explore_headings"):
+            if int(getattr(self, name)) < 1:
+                raise SearchConfigError(f"SearchConfig.{name} must be >= 1, got {getattr(self, name)}")
+        for name in (
+            "scan_step_rad",
+            "scan_total_rad",
+            "scan_yaw_tolerance_rad",
+            "explore_arrive_m",
+            "explore_timeout_s",
+            "visit_radius_m",
+            "visit_spacing_m",
+            "stall_window_s",
+            "stall_distance_m",
+            "gain_lookahead_m",
+        ):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise SearchConfigError(f"SearchConfig.{name} must be positive, got {v}")
+        if not (np.isfinite(self.scan_dwell_s) and self.scan_dwell_s >= 0):
+            raise SearchConfigError(f"SearchConfig.scan_dwell_s must be >= 0, got {self.scan_dwell_s}")
+        if not (np.isfinite(self.forward_weight) and self.forward_weight >= 0):
+            raise SearchConfigError(f"SearchConfig.forward_weight must be >= 0, got {self.forward_weight}")
+        if not (np.isfinite(self.explore_clearance_m) and self.explore_clearance_m >= 0):
+            raise SearchConfigError(f"SearchConfig.explore_clearance_m must be >= 0, got {self.explore_clearance_m}")
+        ranges = tuple(float(r) for r in self.explore_ranges_m)
+        if not ranges or any(not (np.isfinite(r) and r > 0) for r in ranges):
+            raise SearchConfigError(f"SearchConfig.explore_ranges_m must be positive numbers, got {self.explore_ranges_m!r}")
+        object.__setattr__(self, "explore_ranges_m", ranges)
+
+
+class SearchPhase(str, Enum):
+    SCAN = "scan"
+    EXPLORE = "explore"
+
+
+class SearchTrigger(str, Enum):
+    """Why a search started (logged with the ``search_start`` event)."""
+
+    NOT_VISIBLE = "not_visible"
+    NO_GOAL = "no_goal"
+    LOST = "lost"
+    STALL = "stall"
+
+
+def known_mask(field_map, points: np.ndarray) -> np.ndarray:
+    """True where the map has observed ``points`` (n, 3), metres, world ENU.
+
+    Uses the map's public ``known(points)`` query when it has one; a distance field without
+    knownness (an analytic field in tests) knows everything.
+    """
+    known = getattr(field_map, "known", None)
+    if callable(known):
+        return np.asarray(known(points), dtype=bool)
+    return np.ones(len(points), dtype=bool)
+
+
+def explore_target(
+    position: np.ndarray,
+    yaw: float,
+    field_map,
+    *,
+    config: SearchConfig,
+    volume: FlightVolume | None,
+    volume_margin_m: float,
+    visited: np.ndarray,
+    z_m: float,
+    prefer_yaw: float | None = None,
+) -> np.ndarray | None:
+    """The next exploration point, or None when no candidate is reachable.
+
+    Parameters
+    ----------
+    position : (3,) metres, world ENU, the vehicle now
+    yaw : radians, the heading to keep going in (the direction of travel when the search
+        began): a route usually goes on the way it was going, and a search that doubles back
+        re-explores where the vehicle came from
+    field_map : the distance field (``query(points) -> (d, grad)``; ``known(points)`` if it has
+        knownness, see :func:`known_mask`)
+    volume : the operator flight volume or None; candidates and gain samples outside it are
+        worthless
+    visited : (k, 3) metres, places already visited (penalized within ``visit_radius_m``)
+    z_m : altitude of the candidates, metres
+    prefer_yaw : heading where the target was last seen, radians, or None (a bonus toward it)
+
+    Returns
+    -------
+    (3,) metres, world ENU, or None.
+    """
+    cfg = config
+    p0 = np.array([position[0], position[1], z_m], dtype=float)
+    headings = yaw + np.linspace(0.0, 2 * np.pi, cfg.explore_headings, endpoint=False)
+    best, best_score = None, -np.inf
+    fan = np.deg2rad([-30.0, 0.0, 30.0])
+    steps = np.linspace(1.0, cfg.gain_lookahead_m, 4)
+    for th in headings:
+        d = np.array([np.cos(th), np.sin(th), 0.0])
+        for r in cfg.explore_ranges_m:
+            cand = p0 + r * d
+            if volume is not None and not bool(volume.contains(cand, margin_m=volume_margin_m)[0]):
+                continue
+            seg = p0 + np.outer(np.arange(0.25, r + 1e-9, 0.25), d)
+            dist, _ = field_map.query(seg)
+            if np.min(dist) < cfg.explore_clearance_m or not bool(np.all(known_mask(field_map, seg[-1:]))):
+                continue
+            dirs = np.stack([np.cos(th + fan), np.sin(th + fan), np.zeros(3)], axis=-1)
+            samples = (cand[None, None, :] + steps[None, :, None] * dirs[:, None, :]).reshape(-1, 3)
+            useful = np.ones(len(samples), dtype=bool)
+            if volume is not None:
+                useful = volume.contains(samples)
+            gain = float(np.mean(~known_mask(field_map, samples) & useful))
+            score = gain + 0.05 * r / max(cfg.explore_ranges_m)
+            if len(visited):
+                near = np.linalg.norm(np.asarray(visited)[:, :2] - cand[None, :2], axis=1)
+                score -= 0.5 * float(np.sum(np.clip(1.0 - near / cfg.visit_radius_m, 0.0, 1.0)))
+            score -= cfg.forward_weight * abs(wrap_angle(th - yaw)) / np.pi
+            if prefer_yaw is not None:
+                score -= 0.3 * abs(wrap_angle(th - prefer_yaw)) / np.pi
+            if score > best_score:
+                best, best_score = cand, score
+    return best
+
+
+@dataclass
+class Search:
+    """The search's state between ticks (owned by the pilot; one per episode).
+
+    ``start`` begins a scan; :meth:`control` gives the pilot, each tick, the point to hold or
+    fly to and the yaw reference; ``stop`` ends it. Pure bookkeeping: the pilot owns the map,
+    the planner and the mode.
+    """
+
+    config: SearchConfig
+    phase: SearchPhase | None = None
+    trigger: SearchTrigger | None = None
+    started_s: float = 0.0
+    searches: int = 0
+    heading0: float = 0.0
+    _scan_yaws: list[float] = field(default_factory=list)
+    _scan_reached_s: float | None = None
+    _hold_p: np.ndarray | None = None
+    _explore_p: np.ndarray | None = None
+    _explore_start_s: float = 0.0
+    _visited: list[np.ndarray] = field(default_factory=list)
+    _track: list[tuple[float, np.ndarray]] = field(default_factory=list)
+
+    @property
+    def active(self) -> bool:
+        return self.phase is not None
+
+    @property
+    def visited(self) -> np.ndarray:
+        return np.asarray(self._visited, dtype=float).reshape(-1, 3)
+
+    def remember(self, t_s: float, position: np.ndarray) -> None:
+        """Record the vehicle's track (visited places and the stall window)."""
+        p = np.asarray(position, dtype=float).copy()
+        if not self._visited or np.linalg.norm(self._visited[-1][:2] - p[:2]) >= self.config.visit_spacing_m:
+            self._visited.append(p)
+        self._track.append((float(t_s), p))
+        horizon = float(t_s) - self.config.stall_window_s - 1.0
+        while len(self._track) > 2 and self._track[1][0] < horizon:
+            self._track.pop(0)
+
+    def stalled(self, t_s: float) -> bool:
+        """True when the vehicle moved less than ``stall_distance_m`` over the last
+        ``stall_window_s`` (the track must span the whole window)."""
+        if not self._track or t_s - self._track[0][0] < self.config.stall_window_s:
+            return False
+        recent = np.array([p for (ts, p) in self._track if ts >= t_s - self.config.stall_window_s])
+        if len(recent) < 2:
+            return False
+        return float(np.max(np.linalg.norm(recent - recent[-1], axis=1))) < self.config.stall_distance_m
+
+    def reset_stall(self) -> None:
+        """Forget the stall window (after a state change that legitimately holds position)."""
+        self._track = self._track[-1:]
+
+    def start(
+        self,
+        t_s: float,
+        position: np.ndarray,
+        yaw: float,
+        trigger: SearchTrigger,
+        toward_yaw: float | None = None,
+        total_rad: float | None = None,
+    ) -> None:
+        """Begin with a scan: first toward ``toward_yaw`` when given, then on through
+        ``total_rad`` (default ``scan_total_rad``) in steps of ``scan_step_rad``. Without a
+        preferred heading, successive scans alternate their direction."""
+        if self.phase is None:
+            self.heading0 = float(yaw)  # the direction of travel when this search began
+        self.phase = SearchPhase.SCAN
+        self.trigger = trigger
+        self.started_s = float(t_s)
+        self.searches += 1
+        self._hold_p = np.asarray(position, dtype=float).copy()
+        self._scan_reached_s = None
+        step = self.config.scan_step_rad
+        total = self.config.scan_total_rad if total_rad is None else float(total_rad)
+        n = max(1, int(np.ceil(total / step - 1e-9)))
+        if toward_yaw is not None:
+            sign = 1.0 if wrap_angle(toward_yaw - yaw) >= 0 else -1.0
+            base = float(toward_yaw)
+            yaws = [base] + [float(wrap_angle(base + sign * step * (k + 1))) for k in range(n - 1)]
+        else:
+            sign = 1.0 if self.searches % 2 == 1 else -1.0
+            yaws = [float(wrap_angle(yaw + sign * step * (k + 1))) for k in range(n)]
+        self._scan_yaws = yaws
+
+    def stop(self) -> None:
+        self.phase = None
+        self.trigger = None
+        self._scan_yaws = []
+        self._explore_p = None
+        self.reset_stall()
+
+    def explore_from(self, t_s: float, target: np.ndarray | None, position: np.ndarray, yaw: float) -> None:
+        """Switch to exploring toward ``target`` (None: nothing reachable, scan again)."""
+        if target is None:
+            self.start(t_s, position, float(yaw), self.trigger or SearchTrigger.NO_GOAL)
+            return
+        self.phase = SearchPhase.EXPLORE
+        self._explore_p = np.asarray(target, dtype=float).copy()
+        self._explore_start_s = float(t_s)
+        self.reset_stall()  # the scan held position on purpose
+
+    def control(self, t_s: float, position: np.ndarray, yaw: float) -> tuple[np.ndarray, float | None, str | None]:
+        """Where to be and where to look this tick.
+
+        Returns ``(point (3,), yaw_ref or None, event)``: the point to hold (scan) or fly to
+        (explore); the yaw reference (None: face the direction of travel); ``event`` is
+        ``"scan_done"`` when the scan finished (the pilot picks an exploration point),
+        ``"explore_done"`` when the exploration point was reached or timed out, else None.
+        """
+        cfg = self.config
+        if self.phase is SearchPhase.SCAN:
+            while self._scan_yaws:
+                target = self._scan_yaws[0]
+                if abs(wrap_angle(yaw - target)) > cfg.scan_yaw_tolerance_rad:
+                    self._scan_reached_s = None
+                    return self._hold_p, target, None
+                if self._scan_reached_s is None:
+                    self._scan_reached_s = float(t_s)
+                if t_s - self._scan_reached_s < cfg.scan_dwell_s:
+                    return self._hold_p, target, None
+                self._scan_yaws.pop(0)
+                self._scan_reached_s = None
+            return self._hold_p, None, "scan_done"
+        if self.phase is SearchPhase.EXPLORE and self._explore_p is not None:
+            near = np.linalg.norm(np.asarray(position)[:2] - self._explore_p[:2]) <= cfg.explore_arrive_m
+            if near or t_s - self._explore_start_s > cfg.explore_timeout_s:
+                return np.asarray(position, float).copy(), None, "explore_done"
+            return self._explore_p, None, None
+        return np.asarray(position, float).copy(), None, None

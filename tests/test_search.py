@@ -1,0 +1,292 @@
+"""The pilot's search (onfly.search): scan, exploration choice, dead ends, hand-back, volume.
+
+Unit tests pin the bookkeeping and the exploration choice on exact geometry; closed-loop tests
+fly the pilot in the embedded world with a scripted model that answers only when the target is
+in the frame, as a real model that can say "not visible" would.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+from onfly.bench.episode import EpisodeConfig, run_episode
+from onfly.bench.metrics import GoalRegion
+from onfly.bench.onfly_method import OnFlyMethod, ablation_config
+from onfly.pilot import OnFlyPilot, PilotConfig, PilotMode
+from onfly.search import Search, SearchConfig, SearchConfigError, SearchPhase, SearchTrigger, explore_target
+from onfly.world.scene import parse_scene
+from onfly.world.world import World
+from planning.analytic_field import AnalyticField, Box, HalfSpace
+from planning.camera import PinholeCamera
+from planning.frames import wrap_angle
+from planning.planner import Planner
+from planning.trajectory import VehicleState
+from planning.volume import FlightVolume
+from vlm.prompts import DecisionPrompt, parse_prompt
+from vlm_fakes import ScriptedVlm, text
+
+CAM = PinholeCamera.from_fov(160, 107, 90.0, 60.0)
+NOT_VISIBLE = "I cannot see it in this image."  # unparseable today; "not visible" once parsed
+
+
+# -- bookkeeping ------------------------------------------------------------------------------
+def test_config_rejects_bad_values():
+    with pytest.raises(SearchConfigError, match="fail_streak"):
+        SearchConfig(fail_streak=0)
+    with pytest.raises(SearchConfigError, match="explore_ranges_m"):
+        SearchConfig(explore_ranges_m=(2.0, -1.0))
+    with pytest.raises(SearchConfigError, match="scan_step_rad"):
+        SearchConfig(scan_step_rad=float("nan"))
+
+
+def test_scan_turns_the_rest_of_the_circle_in_steps_with_a_dwell_then_reports_done():
+    cfg = SearchConfig(scan_dwell_s=1.0)
+    s = Search(cfg)
+    p = np.array([1.0, 2.0, 1.5])
+    s.start(0.0, p, 0.3, SearchTrigger.NOT_VISIBLE)
+    assert s.phase is SearchPhase.SCAN
+    yaw, t, seen = 0.3, 0.0, []
+    for _ in range(400):
+        point, yaw_ref, ev = s.control(t, p, yaw)
+        np.testing.assert_allclose(point, p)  # turning in place
+        if ev == "scan_done":
+            break
+        seen.append(yaw_ref)
+        yaw = yaw_ref  # an ideal turn: the heading is reached at once
+        t += 0.1
+    else:
+        pytest.fail("scan never finished")
+    headings = sorted({round(float(wrap_angle(y - 0.3)), 6) for y in seen})
+    # three quarter turns: the start heading was the view that failed
+    np.testing.assert_allclose(sorted(abs(h) for h in headings), [math.pi / 2, math.pi / 2, math.pi], atol=1e-6)
+    # each heading held for the dwell before moving on
+    assert t >= 3 * cfg.scan_dwell_s
+
+
+def test_scan_goes_first_toward_the_last_sighting_and_alternates_without_one():
+    s = Search(SearchConfig())
+    s.start(0.0, np.zeros(3), 0.0, SearchTrigger.LOST, toward_yaw=-2.0)
+    _, first, _ = s.control(0.0, np.zeros(3), 0.0)
+    assert first == pytest.approx(-2.0)
+    s.start(0.0, np.zeros(3), 0.0, SearchTrigger.NO_GOAL)
+    _, a, _ = s.control(0.0, np.zeros(3), 0.0)
+    s.start(0.0, np.zeros(3), 0.0, SearchTrigger.NO_GOAL)
+    _, b, _ = s.control(0.0, np.zeros(3), 0.0)
+    assert np.sign(a) == -np.sign(b)
+
+
+def test_stall_needs_the_whole_window_and_little_travel():
+    s = Search(SearchConfig(stall_window_s=5.0, stall_distance_m=0.5))
+    for k in range(40):  # 4 s hovering
+        s.remember(k * 0.1, np.array([0.0, 0.01 * (k % 2), 1.0]))
+    assert not s.stalled(3.9)  # the window is not covered yet
+    for k in range(40, 80):
+        s.remember(k * 0.1, np.array([0.0, 0.0, 1.0]))
+    assert s.stalled(7.9)
+    s.reset_stall()
+    assert not s.stalled(7.9)
+    moving = Search(SearchConfig(stall_window_s=5.0, stall_distance_m=0.5))
+    for k in range(80):
+        moving.remember(k * 0.1, np.array([0.1 * k, 0.0, 1.0]))
+    assert not moving.stalled(7.9)
+
+
+def test_exploration_arrival_and_timeout_end_the_leg():
+    s = Search(SearchConfig(explore_arrive_m=0.5, explore_timeout_s=3.0))
+    s.start(0.0, np.zeros(3), 0.0, SearchTrigger.STALL)
+    s.explore_from(0.0, np.array([4.0, 0.0, 1.0]), np.zeros(3), 0.0)
+    point, yaw_ref, ev = s.control(1.0, np.array([1.0, 0.0, 1.0]), 0.0)
+    assert ev is None and yaw_ref is None and point.tolist() == [4.0, 0.0, 1.0]
+    assert s.control(1.5, np.array([3.7, 0.1, 1.0]), 0.0)[2] == "explore_done"
+    assert s.control(3.5, np.array([1.0, 0.0, 1.0]), 0.0)[2] == "explore_done"
+
+
+# -- the exploration choice on exact geometry -------------------------------------------------
+class KnownField:
+    """An analytic field that knows only a box of space (what a camera has seen)."""
+
+    def __init__(self, field, lo, hi):
+        self.field, self.lo, self.hi = field, np.asarray(lo, float), np.asarray(hi, float)
+
+    def query(self, points):
+        return self.field.query(points)
+
+    def known(self, points):
+        P = np.atleast_2d(points)
+        return np.all((P >= self.lo) & (P <= self.hi), axis=1)
+
+
+def pocket_field():
+    """A dead-end pocket open toward -x: walls at y = +-1.2 (x in [0, 4]) and x = 4."""
+    boxes = [
+        Box(center=[2.0, 1.3, 1.5], half_extents=[2.0, 0.1, 1.5]),
+        Box(center=[2.0, -1.3, 1.5], half_extents=[2.0, 0.1, 1.5]),
+        Box(center=[4.1, 0.0, 1.5], half_extents=[0.1, 1.4, 1.5]),
+    ]
+    return AnalyticField(boxes=boxes, half_spaces=[HalfSpace(point=[0, 0, 0], normal=[0, 0, 1])])
+
+
+def test_from_a_dead_end_the_only_reachable_way_out_is_chosen():
+    f = KnownField(pocket_field(), [-1.0, -1.2, 0.0], [4.0, 1.2, 3.0])  # seen: the pocket
+    target = explore_target(
+        np.array([3.0, 0.0, 1.5]), 0.0, f, config=SearchConfig(), volume=None, volume_margin_m=0.45,
+        visited=np.zeros((0, 3)), z_m=1.5,
+    )
+    assert target is not None
+    assert target[0] < 2.0  # back out through the open side
+    # the straight segment to it keeps the clearance
+    seg = np.linspace([3.0, 0.0, 1.5], target, 50)
+    assert f.field.distance(seg).min() >= SearchConfig().explore_clearance_m
+
+
+def test_exploration_prefers_unknown_space_and_never_leaves_the_volume():
+    free = AnalyticField(half_spaces=[HalfSpace(point=[0, 0, 0], normal=[0, 0, 1])])
+    # everything around is known except the +y side; the volume ends at x = 1
+    f = KnownField(free, [-50, -50, -1], [50, 1.0, 10])
+    vol = FlightVolume(np.array([-20.0, -20.0, 0.0]), np.array([1.0, 20.0, 5.0]))
+    target = explore_target(
+        np.zeros(3) + [0, 0, 1.5], 0.0, f, config=SearchConfig(), volume=vol, volume_margin_m=0.45,
+        visited=np.zeros((0, 3)), z_m=1.5,
+    )
+    assert target is not None and bool(vol.contains(target, margin_m=0.45)[0])
+    assert target[1] > 0.5  # toward the unknown side (the last known cells before it)
+
+
+def test_visited_places_are_avoided():
+    free = AnalyticField(half_spaces=[HalfSpace(point=[0, 0, 0], normal=[0, 0, 1])])
+    f = KnownField(free, [-50, -50, -1], [50, 50, 10])  # nothing unknown: only memory decides
+    p = np.array([0.0, 0.0, 1.5])
+    visited = np.array(
+        [[r * np.cos(a), r * np.sin(a), 1.5] for a in np.linspace(-2.5, 2.5, 40) for r in np.arange(1.0, 6.5, 0.5)]
+    )
+    target = explore_target(p, 0.0, f, config=SearchConfig(), volume=None, volume_margin_m=0.45, visited=visited, z_m=1.5)
+    assert target is not None
+    assert abs(wrap_angle(np.arctan2(target[1], target[0]))) > 2.5  # the unvisited sector behind
+
+
+# -- closed loop ------------------------------------------------------------------------------
+class SeeingVlm(ScriptedVlm):
+    """The simulated model's answers, except that a decision with the target out of the frame
+    says it cannot see it (a model that never invents a point)."""
+
+    def __init__(self, target_id: int, min_px: int = 30, **kw):
+        super().__init__("perfect", **kw)
+        self.target_id, self.min_px = target_id, min_px
+        self.hidden = 0
+
+    def complete(self, messages, images=(), **kw):
+        prompt = parse_prompt(messages)
+        if isinstance(prompt, DecisionPrompt) and images:
+            ann = images[-1].annotation
+            if int(np.count_nonzero(ann.instance_ids == self.target_id)) < self.min_px:
+                self.hidden += 1
+                self.counts["decision"] += 1
+                return text(NOT_VISIBLE, 0.81)
+        return super().complete(messages, images, **kw)
+
+
+class PilotMethod(OnFlyMethod):
+    def __init__(self, backend, config=None, planner=None):
+        super().__init__("sim:perfect", config, planner=planner)
+        self._backend = backend
+
+    def reset(self, spec):
+        self.pilot = OnFlyPilot(self.config, self._backend, spec.runtime, planner=self._planner, volume=spec.flight_volume)
+        self.pilot.begin(spec.instruction, spec.start_state.t_s)
+
+
+@pytest.fixture(scope="module")
+def planner():
+    return Planner(PilotConfig().planner)
+
+
+def fly(world, method, instruction, goal, limit_s=70.0):
+    plans = []
+
+    def observer(step):
+        if step.output.trajectory is not None:
+            plans.append(np.asarray(step.output.trajectory.p))
+
+    r = run_episode(
+        world, method, instruction=instruction, goal=goal, reference_path_m=10.0, seed=0, error_model="test",
+        config=EpisodeConfig(time_limit_s=limit_s, frame_period_s=0.5), observer=observer,
+    )
+    return r, plans
+
+
+def assert_plans_inside(world, plans):
+    vol = FlightVolume(world.scene.bounds.min_m, world.scene.bounds.max_m)
+    for pts in plans:
+        assert bool(np.all(vol.contains(pts))), "a plan point left the flight volume"
+
+
+def test_target_behind_at_the_start_is_found_by_the_scan_and_the_task_succeeds(planner):
+    world0 = World.from_scene("urban_block", camera=CAM)
+    van = next(o for o in world0.scene.objects if o.name == "red van")
+    s = world0.scene.start
+    start = VehicleState(0.0, s.position_m, np.zeros(3), float(wrap_angle(s.yaw_rad + math.pi)))
+    world = World(world0.scene, camera=CAM, initial_state=start)
+    backend = SeeingVlm(van.instance_id)
+    m = PilotMethod(backend, planner=planner)
+    region = GoalRegion([4.3, -15.0, 1.3], [1.0, 2.3, 0.95])
+    r, plans = fly(world, m, "Fly over to the red van and stop right next to it.", region)
+    kinds = [e.kind for e in m.pilot.events]
+    assert "search_start" in kinds and "search_end" in kinds
+    end = next(e for e in m.pilot.events if e.kind == "search_end")
+    assert end.data["reason"] == "target_pointed"
+    assert r.end_reason == "stopped" and r.metrics.success and not r.metrics.collided
+    assert_plans_inside(world, plans)
+
+
+def test_the_paper_pilot_without_search_hovers_with_the_target_behind(planner):
+    world0 = World.from_scene("urban_block", camera=CAM)
+    van = next(o for o in world0.scene.objects if o.name == "red van")
+    s = world0.scene.start
+    start = VehicleState(0.0, s.position_m, np.zeros(3), float(wrap_angle(s.yaw_rad + math.pi)))
+    world = World(world0.scene, camera=CAM, initial_state=start)
+    m = PilotMethod(SeeingVlm(van.instance_id), config=ablation_config("onfly_no_search"), planner=planner)
+    region = GoalRegion([4.3, -15.0, 1.3], [1.0, 2.3, 0.95])
+    r, _ = fly(world, m, "Fly over to the red van and stop right next to it.", region, limit_s=30.0)
+    assert r.end_reason == "time_limit" and not r.metrics.success
+    assert "search_start" not in [e.kind for e in m.pilot.events]
+
+
+def _box(c, size):
+    return {"type": "box", "center_m": list(c), "size_m": list(size)}
+
+
+def pocket_scene():
+    """A 2.4 m wide dead-end pocket open toward -x; a red crate around the corner outside it,
+    hidden from anywhere inside the pocket by its left wall."""
+    objects = [
+        {"name": "ground", "label": "ground", "instance_id": 1, "color": "#777777", "target": False,
+         "parts": [{"type": "plane", "center_m": [0, 0, 0], "size_m": [40, 40]}]},
+        {"name": "pocket walls", "label": "wall", "instance_id": 2, "color": "#bbbbaa", "target": False,
+         "parts": [_box([2.0, 1.3, 1.5], [4.0, 0.2, 3.0]), _box([2.0, -1.3, 1.5], [4.0, 0.2, 3.0]),
+                   _box([4.1, 0.0, 1.5], [0.2, 2.8, 3.0])]},
+        {"name": "red crate", "label": "crate", "instance_id": 3, "color": "#cc2222",
+         "parts": [_box([-2.0, 5.0, 0.6], [1.2, 1.2, 1.2])]},
+    ]
+    data = {
+        "format": "onfly-scene/1", "name": "pocket",
+        "bounds": {"min_m": [-8, -8, 0], "max_m": [6, 10, 5]},
+        "start": {"position_m": [3.0, 0.0, 1.5], "yaw_deg": 0},
+        "objects": objects,
+    }
+    return parse_scene(data, "<pocket>")
+
+
+def test_a_vehicle_in_a_dead_end_corner_gets_out_and_finds_the_target(planner):
+    scene = pocket_scene()
+    world = World(scene, camera=CAM)
+    m = PilotMethod(SeeingVlm(3), planner=planner)
+    region = GoalRegion([-2.0, 5.0, 0.6], [0.6, 0.6, 0.6])
+    r, plans = fly(world, m, "Find the red crate and stop next to it.", region)
+    events = m.pilot.events
+    kinds = [e.kind for e in events]
+    assert "search_start" in kinds and "search_explore" in kinds
+    assert not r.metrics.collided
+    # out of the pocket (x < 0) and at the crate
+    assert r.end_reason == "stopped" and r.metrics.success, (r.end_reason, kinds[-12:])
+    assert_plans_inside(world, plans)
