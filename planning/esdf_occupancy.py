@@ -393,26 +393,21 @@ class RollingOccupancy:
         if box is None:
             return np.zeros(0, dtype=np.int64)
         (x0, y0, z0), (x1, y1, z1) = box
-        sub = self.solid[x0:x1, y0:y1, z0:z1]
-        loc = np.flatnonzero(sub)
-        if loc.size == 0:
-            return loc.astype(np.int64)
-        sx, sy, sz = sub.shape
-        ix = loc // (sy * sz) + x0
-        rem = loc % (sy * sz)
-        iy = rem // sz + y0
-        iz = rem % sz + z0
-        flat = (ix * self.shape[1] + iy) * self.shape[2] + iz
-        keep = ~flags[flat]
-        flat, ix, iy, iz = flat[keep], ix[keep], iy[keep], iz[keep]
-        # Voxel centres in the camera frame: R^T (c - t), c = (i + origin + 0.5) * voxel.
+        window = (slice(x0, x1), slice(y0, y1), slice(z0, z1))
+        cand = self.solid[window] & ~flags.reshape(self.shape)[window]
+        ix, iy, iz = np.nonzero(cand)  # C-level unravel: no integer division in numpy
+        if ix.size == 0:
+            return np.zeros(0, dtype=np.int64)
+        # Voxel centres in the camera frame: R^T (c - t), c = (i + origin + 0.5) * voxel, from
+        # per-axis tables (the same float32 arithmetic as per voxel).
         R = T_world_cam[:3, :3]
         t = T_world_cam[:3, 3]
         v = cfg.voxel_m
         a = (self.origin_index + 0.5) * v - t  # (3,)
-        cx_w = (ix * v + a[0]).astype(np.float32)
-        cy_w = (iy * v + a[1]).astype(np.float32)
-        cz_w = (iz * v + a[2]).astype(np.float32)
+        cx_w = (np.arange(x0, x1) * v + a[0]).astype(np.float32)[ix]
+        cy_w = (np.arange(y0, y1) * v + a[1]).astype(np.float32)[iy]
+        cz_w = (np.arange(z0, z1) * v + a[2]).astype(np.float32)[iz]
+        flat = ((ix + x0) * self.shape[1] + (iy + y0)) * self.shape[2] + (iz + z0)
         Rt = R.T.astype(np.float32)
         xc = Rt[0, 0] * cx_w + Rt[0, 1] * cy_w + Rt[0, 2] * cz_w
         yc = Rt[1, 0] * cx_w + Rt[1, 1] * cy_w + Rt[1, 2] * cz_w
