@@ -44,6 +44,9 @@ __all__ = ["RollingOccupancy", "OccupancyDelta", "IndexBox", "free_reach"]
 
 log = logging.getLogger(__name__)
 
+#: Edge, in voxels, of the blocks culled against the view frustum before clearing.
+_BLOCK = 8
+
 #: Half-open box of local voxel indices: ``(lo (3,), hi (3,))`` with ``lo <= i < hi``.
 IndexBox = tuple[tuple[int, int, int], tuple[int, int, int]]
 
@@ -378,6 +381,34 @@ class RollingOccupancy:
             return None
         return tuple(int(v) for v in lo), tuple(int(v) for v in hi)
 
+    def _frustum_blocks(self, camera: PinholeCamera, T_world_cam: np.ndarray, box: IndexBox) -> np.ndarray:
+        """Bool mask over ``box``: False on blocks of ``_BLOCK``^3 voxels lying wholly outside the
+        view frustum (beyond one of its four side planes, nearer than ``min_range_m`` or beyond
+        ``max_range_m``, each by more than the block's half-diagonal). A cull only: every voxel
+        it drops projects outside the image or out of range."""
+        cfg = self.config
+        lo, hi = np.asarray(box[0]), np.asarray(box[1])
+        nb = (hi - lo + _BLOCK - 1) // _BLOCK
+        v = cfg.voxel_m
+        # block centres, world -> camera frame
+        axes = [(lo[k] + self.origin_index[k] + (np.arange(nb[k]) + 0.5) * _BLOCK) * v for k in range(3)]
+        C = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+        P = (C - T_world_cam[:3, 3]) @ T_world_cam[:3, :3]
+        x, y, z = P[:, 0], P[:, 1], P[:, 2]
+        r = 0.5 * np.sqrt(3.0) * _BLOCK * v + 1e-6
+        keep = (z > cfg.min_range_m - r) & (z < cfg.max_range_m + r)
+        # side planes through the optical centre at the image's outer pixel edges
+        xl, xr = (-0.5 - camera.cx) / camera.fx, (camera.width - 0.5 - camera.cx) / camera.fx
+        yt, yb = (-0.5 - camera.cy) / camera.fy, (camera.height - 0.5 - camera.cy) / camera.fy
+        keep &= (x - xr * z) / np.hypot(1.0, xr) < r
+        keep &= (xl * z - x) / np.hypot(1.0, xl) < r
+        keep &= (y - yb * z) / np.hypot(1.0, yb) < r
+        keep &= (yt * z - y) / np.hypot(1.0, yt) < r
+        mask = keep.reshape(tuple(nb))
+        for axis in range(3):
+            mask = np.repeat(mask, _BLOCK, axis=axis)
+        return mask[: hi[0] - lo[0], : hi[1] - lo[1], : hi[2] - lo[2]]
+
     def _miss_voxels(
         self, depth_m: np.ndarray, camera: PinholeCamera, T_world_cam: np.ndarray, flags: np.ndarray
     ) -> np.ndarray:
@@ -395,6 +426,8 @@ class RollingOccupancy:
         (x0, y0, z0), (x1, y1, z1) = box
         window = (slice(x0, x1), slice(y0, y1), slice(z0, z1))
         cand = self.solid[window] & ~flags.reshape(self.shape)[window]
+        if cand.size >= 8 * _BLOCK**3:
+            cand &= self._frustum_blocks(camera, T_world_cam, box)
         ix, iy, iz = np.nonzero(cand)  # C-level unravel: no integer division in numpy
         if ix.size == 0:
             return np.zeros(0, dtype=np.int64)
