@@ -51,6 +51,10 @@ Knownness queries (for guide searches, frontier exploration and the verifier), w
 - :meth:`EsdfMap.frontier_points` ``-> (m, 3)``: observed-free voxels next to unknown ones.
 - :meth:`EsdfMap.mark_free_sphere`: mark unknown voxels in a sphere free (the vehicle's body).
 
+Knownness is complete under the default policy only: with ``unknown_policy="free"`` clearing
+projects only obstacle voxels (the optimistic map's shortcut), so free space that rays pass
+through is never marked observed and :meth:`EsdfMap.known` is true mostly on obstacles.
+
 The map assumes nothing about which world axis is up.
 """
 
