@@ -11,8 +11,15 @@ Measured in the same run, per committed scene (or ``--scenes``), at the benchmar
 - ``cast_ms_median``: Open3D ``cast_rays`` alone on the same rays, the floor our shading adds to;
 - ``half_res_ms_median``: the same frames at half resolution (320 x 214, ``camera.scaled(0.5)``),
   the cheaper option for frames that only feed the ESDF;
+- ``realistic_ms_median`` / ``realistic_cpu_ms_median``: the same frames under the ``realistic``
+  realism profile (the D435 depth model: material holes, flying pixels, quadratic noise,
+  range gate; ``docs/realism.md``), against the ideal ``render_ms_median`` of the same run;
 - ``naive_ms_median`` (reference): the same frame when nothing is kept between frames (meshes,
   ``RaycastingScene`` and camera rays rebuilt each frame), measured on ``--naive-frames`` frames.
+
+Tracking (``tracking``): how far the executed (true) path lies from a straight 0.6 m/s plan
+over 25 s, and how far the pilot's estimate lies from the truth, under each profile, five seeds,
+in an outdoor scene (``park``, gusts) and an indoor one (``corridor``, lag and drift only).
 
 Closed loop (``step_ms_median``: one 0.1 s control step of the oracle pilot: render when due,
 ESDF update, MPC, vehicle; ``realtime_factor``: simulated seconds per wall second over whole
@@ -75,6 +82,14 @@ def bench_scene(name: str, frames: int, naive_frames: int, threads: int, seed: i
         t0 = time.perf_counter()
         world.geometry.cast(r.world_rays(T), threads=threads)
         cast.append(time.perf_counter() - t0)
+    real_r = World.from_scene(name, render_config=cfg, realism="realistic", seed=seed).renderer
+    real_r.render(poses[0])
+    real, real_cpu = [], []
+    for k, T in enumerate(poses):
+        t0, c0 = time.perf_counter(), time.process_time()
+        real_r.annotate(real_r.render(T, noise_key=k))
+        real.append(time.perf_counter() - t0)
+        real_cpu.append(time.process_time() - c0)
     half_r = world.renderer_for(world.camera.scaled(0.5))
     half_r.render(poses[0])
     half = []
@@ -98,8 +113,44 @@ def bench_scene(name: str, frames: int, naive_frames: int, threads: int, seed: i
         "render_cpu_ms_median": 1e3 * float(np.median(fast_cpu)),
         "cast_ms_median": 1e3 * float(np.median(cast)),
         "half_res_ms_median": 1e3 * float(np.median(half)),
+        "realistic_ms_median": 1e3 * float(np.median(real)),
+        "realistic_cpu_ms_median": 1e3 * float(np.median(real_cpu)),
         "naive_ms_median": 1e3 * float(np.median(naive)),
     }
+
+
+def _line_plan(p0: np.ndarray, seconds: float = 30.0, speed_mps: float = 0.6, dt_s: float = 0.1):
+    """A straight plan along +x from rest: 0.6 m/s^2 up to ``speed_mps``, then cruise."""
+    from planning.trajectory import Trajectory
+
+    n = int(seconds / dt_s)
+    p, v, a = np.zeros((n + 1, 3)), np.zeros((n + 1, 3)), np.zeros((n, 3))
+    s = sp = 0.0
+    for k in range(n):
+        acc = min(0.6, (speed_mps - sp) / dt_s)
+        s, sp = s + sp * dt_s + 0.5 * acc * dt_s**2, sp + acc * dt_s
+        a[k, 0], p[k + 1, 0], v[k + 1, 0] = acc, s, sp
+    return Trajectory(0.0, dt_s, p + p0, v, np.zeros(n + 1), a, np.zeros(n))
+
+
+def tracking(seeds: int = 5, seconds: float = 25.0) -> list[dict]:
+    """Truth - plan and estimate - truth distances (m) per profile and scene (no rendering)."""
+    rows = []
+    for scene in ("park", "corridor"):
+        for profile in ("ideal", "realistic"):
+            err, est = [], []
+            for seed in range(seeds):
+                w = World.from_scene(scene, realism=profile, seed=seed)
+                plan = _line_plan(w.state.p.copy())
+                w.set_trajectory(plan)
+                for _ in range(int(seconds / 0.1)):
+                    ws = w.step(0.1)
+                    err.append(float(np.linalg.norm(ws.state.p - plan.sample(ws.state.t_s)[0])))
+                    est.append(float(np.linalg.norm(w.estimate.p - ws.state.p)))
+            rows.append({"scene": scene, "realism": profile, "track_err_m_mean": float(np.mean(err)),
+                         "track_err_m_p95": float(np.percentile(err, 95)), "track_err_m_max": float(np.max(err)),
+                         "estimate_err_m_mean": float(np.mean(est)), "estimate_err_m_final": est[-1]})
+    return rows
 
 
 def closed_loop(scenes: list[str], episodes: int) -> tuple[dict | None, str]:
@@ -166,10 +217,12 @@ def main(argv=None) -> int:
     cam = default_camera()
     rows = [bench_scene(s, args.frames, args.naive_frames, args.threads, args.seed) for s in scenes]
     print(f"camera {cam.width} x {cam.height}, threads {args.threads}, {args.frames} frames per scene")
-    print(f"{'scene':<14} {'tris':>5} {'render ms':>10} {'p90 ms':>8} {'cpu ms':>7} {'cast ms':>8} {'half ms':>8} {'naive ms':>9} {'naive/fast':>10}")
+    print(f"{'scene':<14} {'tris':>5} {'render ms':>10} {'p90 ms':>8} {'cpu ms':>7} {'cast ms':>8} {'half ms':>8} {'real ms':>8} {'real cpu':>8} "
+          f"{'naive ms':>9} {'naive/fast':>10}")
     for r in rows:
         print(f"{r['scene']:<14} {r['triangles']:>5} {r['render_ms_median']:>10.1f} {r['render_ms_p90']:>8.1f} {r['render_cpu_ms_median']:>7.1f} "
-              f"{r['cast_ms_median']:>8.1f} {r['half_res_ms_median']:>8.1f} {r['naive_ms_median']:>9.1f} {r['naive_ms_median'] / r['render_ms_median']:>10.2f}")
+              f"{r['cast_ms_median']:>8.1f} {r['half_res_ms_median']:>8.1f} {r['realistic_ms_median']:>8.1f} {r['realistic_cpu_ms_median']:>8.1f} "
+              f"{r['naive_ms_median']:>9.1f} {r['naive_ms_median'] / r['render_ms_median']:>10.2f}")
     result = {
         "camera": [cam.width, cam.height],
         "threads": args.threads,
@@ -177,12 +230,21 @@ def main(argv=None) -> int:
         "render_cpu_ms_median": float(np.median([r["render_cpu_ms_median"] for r in rows])),
         "cast_ms_median": float(np.median([r["cast_ms_median"] for r in rows])),
         "half_res_ms_median": float(np.median([r["half_res_ms_median"] for r in rows])),
+        "realistic_ms_median": float(np.median([r["realistic_ms_median"] for r in rows])),
+        "realistic_cpu_ms_median": float(np.median([r["realistic_cpu_ms_median"] for r in rows])),
         "naive_ms_median": float(np.median([r["naive_ms_median"] for r in rows])),
         "per_scene": rows,
         "machine": platform.processor() or platform.machine(),
     }
     print(f"all scenes: render_ms_median {result['render_ms_median']:.1f} (cpu {result['render_cpu_ms_median']:.1f}, cast alone {result['cast_ms_median']:.1f}, "
           f"naive reference {result['naive_ms_median']:.1f})")
+    print(f"realistic profile: render_ms_median {result['realistic_ms_median']:.1f} (cpu {result['realistic_cpu_ms_median']:.1f}), "
+          f"{result['realistic_cpu_ms_median'] / result['render_cpu_ms_median']:.2f}x the ideal cpu time")
+    result["tracking"] = tracking()
+    print(f"{'scene':<10} {'realism':<10} {'truth-plan mean m':>18} {'p95 m':>7} {'max m':>7} {'estimate-truth mean m':>22}")
+    for r in result["tracking"]:
+        print(f"{r['scene']:<10} {r['realism']:<10} {r['track_err_m_mean']:>18.3f} {r['track_err_m_p95']:>7.3f} {r['track_err_m_max']:>7.3f} "
+              f"{r['estimate_err_m_mean']:>22.3f}")
     loop, why = closed_loop(scenes, args.episodes)
     if loop is None:
         result["closed_loop_not_measured"] = why

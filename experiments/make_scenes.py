@@ -109,8 +109,10 @@ def _local(x, y, yaw_deg, dx, dy):
 
 
 class SceneBuilder:
-    def __init__(self, name, description, bounds_min, bounds_max, start, yaw_deg, sky="#B4CDE6", light=(0.35, 0.25, 0.9), ambient=0.4):
+    def __init__(self, name, description, bounds_min, bounds_max, start, yaw_deg, sky="#B4CDE6", light=(0.35, 0.25, 0.9), ambient=0.4,
+                 indoor=False):
         self.name = name
+        self.indoor = indoor
         self.description = description
         self.bounds = (list(bounds_min), list(bounds_max))
         self.start = list(start)
@@ -120,11 +122,17 @@ class SceneBuilder:
         self.ambient = ambient
         self.objects: list[dict] = []
 
-    def add(self, name, label, color, parts, aliases=(), target=True, texture=None) -> int:
+    def add(self, name, label, color, parts, aliases=(), target=True, texture=None, material=None) -> int:
         iid = len(self.objects) + 1
         o = {"name": name, "label": label, "instance_id": iid, "color": color, "aliases": list(aliases), "target": target}
         if texture is not None:
             o["texture"] = texture
+        if material is not None:
+            o["material"] = material
+        # glass panes and dark rubber / steel parts carry their material (depth sensors see
+        # neither: docs/realism.md)
+        parts = [dict(p, material=_PART_MATERIALS[p["color"]]) if p.get("color") in _PART_MATERIALS and "material" not in p else p
+                 for p in parts]
         o["parts"] = parts
         self.objects.append(o)
         return iid
@@ -136,6 +144,7 @@ class SceneBuilder:
             f"name = {_val(self.name)}",
             f"description = {_val(self.description)}",
             f"sky_color = {_val(self.sky)}",
+            *(["indoor = true"] if self.indoor else []),
             "",
             "[bounds]",
             f"min_m = {_val(self.bounds[0])}",
@@ -151,7 +160,7 @@ class SceneBuilder:
         ]
         for o in self.objects:
             out += ["", "[[objects]]"]
-            for k in ("name", "label", "instance_id", "color", "aliases", "target", "texture"):
+            for k in ("name", "label", "instance_id", "color", "aliases", "target", "texture", "material"):
                 if k in o:
                     out.append(f"{k} = {_val(o[k])}")
             out.append("parts = [")
@@ -166,6 +175,7 @@ class SceneBuilder:
 DARK = "#2A2A2E"
 GLASS = "#6E8CA8"
 SKIN = "#D8A47F"
+_PART_MATERIALS = {GLASS: "glass", DARK: "dark"}
 
 
 def van(b, name, color, x, y, yaw, aliases=()):
@@ -222,10 +232,10 @@ def lamp_post(b, name, x, y, h=4.5, target=False, aliases=()):
     return b.add(name, "lamp post", "#3A3D42", parts, aliases, target)
 
 
-def door(b, name, color, x, y, wall_axis, width=1.0, height=2.1, z0=0.0, aliases=(), target=True):
+def door(b, name, color, x, y, wall_axis, width=1.0, height=2.1, z0=0.0, aliases=(), target=True, material=None):
     """A door slab 0.12 m thick on a wall; ``wall_axis`` 'x' = wall runs along x."""
     size = (width, 0.12, height) if wall_axis == "x" else (0.12, width, height)
-    return b.add(name, "door", color, [box((x, y, z0 + height / 2), size)], aliases, target)
+    return b.add(name, "door", color, [box((x, y, z0 + height / 2), size)], aliases, target, material=material)
 
 
 def walls(b, name, x0, x1, y0, y1, h, color="#B9BCC2", t=0.3, ceiling=True, floor_color="#8C8C8C", floor_label="floor"):
@@ -257,14 +267,14 @@ def urban_block(rng) -> SceneBuilder:
     b.add("brick building", "building", "#9C4A36", [box((18, -23, 7), (20, 30, 14))], ["red brick building", "brick block"],
           texture={"pattern": "stripes", "period_m": 0.35, "contrast": 0.2, "axis": "z"})
     b.add("glass office tower", "building", "#7C98B4", [box((-18, -23, 12), (20, 30, 24))], ["office tower", "glass building"],
-          texture={"pattern": "checker", "period_m": 1.5, "contrast": 0.3})
+          texture={"pattern": "checker", "period_m": 1.5, "contrast": 0.3}, material="mirror")
     b.add("white apartment building", "building", "#E4E0D6", [box((18, 23, 8), (20, 30, 16))], ["apartment block", "white building"],
           texture={"pattern": "checker", "period_m": 1.2, "contrast": 0.15})
     b.add("yellow house", "building", "#D9B84A", [box((-18, 23, 5), (20, 30, 10))], ["yellow building"])
     door(b, "red door", "#B02A2A", 7.94, -20, "y", aliases=["red entrance"])
     door(b, "green door", "#2E7D4A", 7.94, -13, "y", aliases=["green entrance"])
     door(b, "blue door", "#2A4FB0", -7.94, -16, "y", aliases=["blue entrance", "door of the office tower"])
-    door(b, "glass door", "#9FC3D8", -7.94, -24, "y", width=2.0, height=2.6, aliases=["office entrance"])
+    door(b, "glass door", "#9FC3D8", -7.94, -24, "y", width=2.0, height=2.6, aliases=["office entrance"], material="glass")
     van(b, "red van", "#C0282D", 4.3, -15.0, 90, ["red delivery van", "red vehicle"])
     van(b, "blue van", "#2B4C9B", -4.3, -9.0, 270, ["blue delivery van", "blue vehicle"])
     car(b, "white car", "#E8E8E8", 4.3, -20.0, 90, ["white sedan"])
@@ -293,7 +303,7 @@ def urban_block(rng) -> SceneBuilder:
 
 def factory_hall(rng) -> SceneBuilder:
     b = SceneBuilder("factory_hall", "Factory hall with two robot arms, a conveyor belt, machines, cabinets, a gantry crane and several doors.",
-                     (0.3, -14.7, 0.2), (35.7, 14.7, 8.7), (3.0, 0.0, 1.5), 0.0, light=(0.2, 0.3, 0.93), ambient=0.45)
+                     (0.3, -14.7, 0.2), (35.7, 14.7, 8.7), (3.0, 0.0, 1.5), 0.0, light=(0.2, 0.3, 0.93), ambient=0.45, indoor=True)
     walls(b, "hall walls", 0, 36, -15, 15, 9.0, color="#AEB6BE", floor_color="#7D8084")
     for x in (10, 20, 30):
         for y in (-10, 10):
@@ -307,7 +317,7 @@ def factory_hall(rng) -> SceneBuilder:
     arm("yellow robot arm", "#E8B923", 16, -6, ["yellow robot", "yellow industrial robot"])
     arm("orange robot arm", "#E0701E", 16, 6, ["orange robot", "orange industrial robot"])
     b.add("conveyor belt", "conveyor", "#3B3E45", [box((22, -2.5, 0.45), (14, 1.0, 0.9))], ["conveyor", "assembly line"],
-          texture={"pattern": "stripes", "period_m": 0.3, "contrast": 0.4, "axis": "x"})
+          texture={"pattern": "stripes", "period_m": 0.3, "contrast": 0.4, "axis": "x"}, material="dark")
     b.add("CNC machine", "machine", "#9AA3A8", [box((30, -11.5, 1.25), (3.0, 2.4, 2.5)), box((28.45, -11.5, 1.5), (0.1, 1.2, 0.9), color=GLASS)],
           ["milling machine", "grey machine"])
     b.add("hydraulic press", "machine", "#3D6E9E", [box((22, 11.5, 1.75), (2.4, 2.0, 3.5))], ["blue machine", "press"])
@@ -339,7 +349,7 @@ def villa(rng) -> SceneBuilder:
     b.add("villa roof", "roof", "#8A4B38", [poly([(-16.3, 9.7), (6.3, 9.7), (6.3, 16.3), (-3.7, 16.3), (-3.7, 22.3), (-16.3, 22.3)], 6.5, 0.3)],
           target=False)
     door(b, "front door", "#7A4A24", -11, 9.94, "x", width=1.2, height=2.3, aliases=["wooden door", "main entrance"])
-    door(b, "glass door", "#A9CFE0", -2, 9.94, "x", width=2.4, height=2.3, aliases=["patio door", "sliding door"])
+    door(b, "glass door", "#A9CFE0", -2, 9.94, "x", width=2.4, height=2.3, aliases=["patio door", "sliding door"], material="glass")
     door(b, "garage door", "#D8D8D8", 3.5, 9.94, "x", width=3.0, height=2.5, aliases=["white garage door"])
     b.add("pool", "pool", "#3FA3D6", [plane((7, -1, 0.01), (10, 6))], ["swimming pool", "pool water"],
           texture={"pattern": "noise", "period_m": 0.3, "contrast": 0.2, "seed": 4})
@@ -390,7 +400,8 @@ def duplex(rng) -> SceneBuilder:
           ["plant on the platform", "green plant"])
     b.add("orange lounge chair", "chair", "#E07B1F", [box((10, 3, slab_z + 0.25), (0.8, 1.6, 0.5)), box((10, 3.7, slab_z + 0.7), (0.8, 0.2, 0.5))],
           ["orange chair", "deck chair on the platform"])
-    door(b, "balcony door", "#5B7FA6", 9, 9.64, "x", z0=slab_z, width=1.6, height=2.2, aliases=["upstairs door", "glass door upstairs"])
+    door(b, "balcony door", "#5B7FA6", 9, 9.64, "x", z0=slab_z, width=1.6, height=2.2, aliases=["upstairs door", "glass door upstairs"],
+         material="glass")
     door(b, "entrance door", "#7A4A24", 5, 9.64, "x", width=1.2, height=2.2, aliases=["front door", "ground floor door"])
     door(b, "storage door", "#7F868C", 12, 9.64, "x", width=1.0, height=2.0, aliases=["grey door", "utility door"])
     b.add("blue sofa", "sofa", "#2F4F8F", [box((8, 7.5, 0.4), (2.4, 0.9, 0.8)), box((8, 7.9, 0.9), (2.4, 0.2, 0.6))], ["sofa", "couch"])
@@ -405,9 +416,10 @@ def duplex(rng) -> SceneBuilder:
 
 def corridor(rng) -> SceneBuilder:
     b = SceneBuilder("corridor", "Long office corridor with numbered doors, a vending machine, an extinguisher and other sparse landmarks.",
-                     (0.4, -1.75, 0.4), (36.6, 1.75, 3.1), (2.0, 0.0, 1.5), 0.0, light=(0.3, 0.2, 0.93), ambient=0.5)
+                     (0.4, -1.75, 0.4), (36.6, 1.75, 3.1), (2.0, 0.0, 1.5), 0.0, light=(0.3, 0.2, 0.93), ambient=0.5, indoor=True)
     walls(b, "corridor walls", 0, 37, -2, 2, 3.5, color="#D9D4C7", floor_color="#9A8F7E")
-    b.add("window at the end of the corridor", "window", "#9CC8E6", [box((36.94, 0, 1.8), (0.12, 2.4, 1.6))], ["window", "end window"])
+    b.add("window at the end of the corridor", "window", "#9CC8E6", [box((36.94, 0, 1.8), (0.12, 2.4, 1.6))], ["window", "end window"],
+          material="glass")
     door(b, "red door", "#B0302A", 31, 1.94, "x", aliases=["red office door"])
     door(b, "blue door", "#2C56A8", 14, -1.94, "x", aliases=["blue office door"])
     for i, (x, side) in enumerate([(9, 1), (11, -1), (19, 1), (23, -1), (27, 1), (33, -1), (34.5, 1)]):
@@ -521,7 +533,7 @@ def parking_lot(rng) -> SceneBuilder:
 
 def warehouse(rng) -> SceneBuilder:
     b = SceneBuilder("warehouse", "Warehouse with four long shelving racks and aisles, two forklifts, pallets, crates and three dock doors.",
-                     (0.3, -15.7, 0.2), (39.7, 15.7, 8.7), (3.0, 0.0, 1.5), 0.0, light=(0.25, 0.35, 0.9), ambient=0.45)
+                     (0.3, -15.7, 0.2), (39.7, 15.7, 8.7), (3.0, 0.0, 1.5), 0.0, light=(0.25, 0.35, 0.9), ambient=0.45, indoor=True)
     walls(b, "warehouse walls", 0, 40, -16, 16, 9.0, color="#B7B2A8", floor_color="#8A8B8D")
     for nm, y, col in (("rack A", -9, "#3B6EA5"), ("rack B", -3, "#D9822B"), ("rack C", 3, "#3B6EA5"), ("rack D", 9, "#D9822B")):
         b.add(nm, "shelf", col, [box((20, y, 3.0), (24, 2.4, 6.0))], [f"shelf {nm[-1]}", f"shelving {nm[-1]}"],

@@ -3,31 +3,48 @@
 Each subcommand lives in its own module under :mod:`onfly.commands` and exposes
 ``NAME`` (the subcommand), ``HELP`` (one line), ``add_arguments(parser)`` and
 ``run(args) -> int``. Modules are found at start-up, so adding a command never edits this file.
+
+Start-up stays fast: the command list and its one-line helps are read from the modules'
+source (``NAME`` / ``HELP`` constants, no import), and only the module of the command asked
+for is imported. Command modules import the heavy stack (open3d, torch, casadi, scipy,
+rosbags, the planner) inside ``run``, so ``onfly --help``, ``onfly <command> --help`` and
+argument errors never load it (``tests/test_cli_startup.py`` holds every command to that).
+
+Values that start with a minus sign (``--pose -3,0,6,0``, ``--goal -1.5,2,1``) are read as
+values, not as options: argparse alone refuses them.
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
 import importlib
 import logging
 import pkgutil
+import re
 import sys
+from dataclasses import dataclass
+from pathlib import Path
 
-import onfly.commands
+__all__ = ["main", "build_parser", "CliError", "task_by_id", "command_specs"]
 
-__all__ = ["main", "build_parser", "CliError", "task_by_id"]
+_COMMANDS_PACKAGE = "onfly.commands"
+_COMMANDS_DIR = Path(__file__).resolve().parent / "commands"
+
+#: A value made of numbers separated by commas (or one negative number): ``-3,0,6,0``, ``-2.5``.
+_NUMBERS = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?(,\s*[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?)*$")
 
 
 class CliError(Exception):
     """A user-facing error: printed as one line, exit status 2, no traceback."""
 
 
-def task_by_id(task_id: str):
-    """The benchmark task ``task_id`` (:class:`onfly.bench.tasks.Task`), or a CliError naming
-    some valid ids."""
+def task_by_id(task_id: str, files=None):
+    """The benchmark task ``task_id`` (:class:`onfly.bench.tasks.Task`) from the committed task
+    files (or ``files``), or a CliError naming some valid ids."""
     from onfly.bench.tasks import load_tasks
 
-    tasks = load_tasks()
+    tasks = load_tasks(files)
     for t in tasks:
         if t.task_id == task_id:
             return t
@@ -35,29 +52,100 @@ def task_by_id(task_id: str):
     raise CliError(f"no task {task_id!r}; some valid ids: {', '.join(near)} (all: `onfly tasks list`)")
 
 
-def _command_modules():
-    for info in sorted(pkgutil.iter_modules(onfly.commands.__path__), key=lambda i: i.name):
+@dataclass(frozen=True)
+class CommandSpec:
+    """A subcommand found in :mod:`onfly.commands` without importing it."""
+
+    name: str
+    help: str
+    module: str
+
+
+def _constant(tree: ast.Module, name: str) -> str | None:
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == name for t in node.targets):
+            try:
+                value = ast.literal_eval(node.value)
+            except ValueError:
+                return None
+            return value if isinstance(value, str) else None
+    return None
+
+
+def command_specs() -> list[CommandSpec]:
+    """Every subcommand (name, one-line help, module), sorted by module name, read from the
+    modules' source so nothing is imported."""
+    out = []
+    for info in sorted(pkgutil.iter_modules([str(_COMMANDS_DIR)]), key=lambda i: i.name):
         if info.name.startswith("_"):
             continue
-        yield importlib.import_module(f"onfly.commands.{info.name}")
+        path = _COMMANDS_DIR / f"{info.name}.py"
+        module = f"{_COMMANDS_PACKAGE}.{info.name}"
+        try:
+            tree = ast.parse(path.read_text(), str(path))
+            name, help_ = _constant(tree, "NAME"), _constant(tree, "HELP")
+        except (OSError, SyntaxError):
+            name = help_ = None
+        if name is None:  # not a literal: fall back to importing the module
+            mod = importlib.import_module(module)
+            name, help_ = mod.NAME, mod.HELP
+        out.append(CommandSpec(name, help_ or "", module))
+    return out
 
 
-def build_parser() -> argparse.ArgumentParser:
+def _chosen(argv: list[str], names: set[str]) -> str | None:
+    """The subcommand named in ``argv`` (the first token that is not a top-level option)."""
+    for tok in argv:
+        if tok == "--":
+            return None
+        if tok.startswith("-"):
+            continue
+        return tok if tok in names else None
+    return None
+
+
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The parser. With ``argv``, only the command ``argv`` names gets its full arguments (its
+    module is imported); without it, every command's module is imported."""
     parser = argparse.ArgumentParser(
         prog="onfly",
         description="Onboard zero-shot aerial vision-language navigation toolkit.",
     )
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv for debug)")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv for debug and tracebacks)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for mod in _command_modules():
-        p = sub.add_parser(mod.NAME, help=mod.HELP, description=getattr(mod, "DESCRIPTION", mod.HELP))
+    specs = command_specs()
+    wanted = None if argv is None else _chosen(argv, {s.name for s in specs})
+    for spec in specs:
+        if argv is not None and spec.name != wanted:
+            sub.add_parser(spec.name, help=spec.help, add_help=False)
+            continue
+        mod = importlib.import_module(spec.module)
+        p = sub.add_parser(spec.name, help=spec.help, description=getattr(mod, "DESCRIPTION", spec.help))
         mod.add_arguments(p)
         p.set_defaults(_run=mod.run)
     return parser
 
 
+def attach_negative_values(argv: list[str]) -> list[str]:
+    """``["--pose", "-3,0,6,0"]`` -> ``["--pose=-3,0,6,0"]``: an option followed by a number
+    list that starts with a minus sign takes it as its value."""
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        tok = argv[i]
+        nxt = argv[i + 1] if i + 1 < len(argv) else None
+        if tok.startswith("--") and "=" not in tok and nxt is not None and _NUMBERS.match(nxt):
+            out.append(f"{tok}={nxt}")
+            i += 2
+            continue
+        out.append(tok)
+        i += 1
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = attach_negative_values(list(sys.argv[1:] if argv is None else argv))
+    parser = build_parser(argv)
     args = parser.parse_args(argv)
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
@@ -74,7 +162,8 @@ def main(argv: list[str] | None = None) -> int:
         # name the file and field at fault; users get that line, not a traceback.
         if args.verbose >= 2:
             raise
-        print(f"onfly {args.command}: error: {exc}", file=sys.stderr)
+        msg = " ".join(str(exc).split())
+        print(f"onfly {args.command}: error: {msg}", file=sys.stderr)
         return 2
 
 

@@ -37,7 +37,7 @@ from onfly.agents import DecisionAgent, DecisionOutcome, MonitoringAgent, Monito
 from onfly.memory import MemoryConfig, make_memory
 from onfly.observation import Observation
 from onfly.runtime import AgentRuntime, Landed
-from onfly.search import Search, SearchConfig, SearchPhase, SearchTrigger, explore_target
+from onfly.search import Search, SearchConfig, SearchPhase, SearchTrigger, explore_target, open_heading, side_to_look
 from onfly.serialize import config_from_tables, to_jsonable
 from onfly.task_manager import Status, TaskEvent, TaskManager
 from planning.esdf import EsdfMap
@@ -525,7 +525,7 @@ class OnFlyPilot:
         if self.volume is not None:
             goal = self.volume.clamp(goal, margin_m=self._volume_margin_m)
         if cfg.use_planner:
-            plan = self.planner.step(state, goal, self.esdf, yaw_ref=yaw_ref)
+            plan = self.planner.step(state, goal, self.esdf, yaw_ref=yaw_ref, volume=self.volume)
             traj = plan.trajectory
         else:
             plan = None
@@ -591,7 +591,14 @@ class OnFlyPilot:
 
     def _start_search(self, t_s: float, state: VehicleState, trigger: SearchTrigger, explore_first: bool = False) -> None:
         toward = self._last_seen_yaw(state)
+        fresh = not self.search.active
+        travel = self.search.travel_heading(t_s)
         self.search.start(t_s, state.p, state.yaw, trigger, toward_yaw=toward)
+        if fresh:
+            # keep going the way the vehicle was going (its heading when it was not moving),
+            # unless that way is closed
+            ahead = travel if travel is not None else state.yaw
+            self.search.heading0 = open_heading(state.p, ahead, self.esdf, clearance_m=self.config.search.explore_clearance_m)
         self.search.reset_stall()
         self._no_goal_streak = self._not_visible_streak = self._rejected_streak = 0
         self.goal_world = None
@@ -627,9 +634,14 @@ class OnFlyPilot:
             self._explore(t_s, state)
             point, yaw_ref, _ = self.search.control(t_s, state.p, state.yaw)
         elif ev == "explore_done":
-            # chain the next leg at once: the camera faces each leg's direction, so the turn
-            # between legs sweeps new sectors; a scan in place only when nothing is reachable
-            self._explore(t_s, state)
+            # the camera faced forward all the leg: look to the side with the most unknown
+            # space, then the next leg (the turn onto it sweeps more sectors)
+            side = side_to_look(state.p, state.yaw, self.esdf, config=self.config.search, volume=self.volume)
+            if side is None:
+                self._explore(t_s, state)
+            else:
+                self.search.look(t_s, state.p, [side])
+                self._event(t_s, "search_look", {"yaw": side, "position": state.p})
             point, yaw_ref, _ = self.search.control(t_s, state.p, state.yaw)
         return point, yaw_ref
 

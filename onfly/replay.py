@@ -761,7 +761,7 @@ def _process(
         goal = agents.goal_world if agents is not None and agents.goal_world is not None else state.p
     if config.volume is not None:
         goal = config.flight_volume.clamp(goal, margin_m=config.planner.d_safe_m)
-    plan = planner.step(state, goal, esdf)
+    plan = planner.step(state, goal, esdf, volume=config.flight_volume)
     samples["planner"].append(plan.solve_time_ms)
     if recorder is not None:
         _record(recorder, index, obs, state, goal, plan, clearance, esdf, decision, monitor)

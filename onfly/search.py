@@ -21,8 +21,11 @@ Policy (parameters in :class:`SearchConfig`):
 3. **Explore**: fly toward the reachable point whose view holds the most unknown space (a
    frontier of the map's known space), inside the flight volume, away from places already
    visited; the camera faces the direction of travel, so the flight itself looks for the
-   target. On arrival (or after ``explore_timeout_s``) the next leg starts at once (the turn
-   onto it sweeps new sectors past the camera); a scan in place only when nothing is reachable.
+   target. On arrival (or after ``explore_timeout_s``) the vehicle looks a quarter turn to the
+   side with the most unknown space (the camera faced forward all the leg), then the next leg
+   starts (the turn onto it sweeps more sectors past the camera); a full scan in place only
+   when nothing is reachable. Legs prefer the heading the search began with when the way ahead
+   was open then (a route goes on), and its reverse when it was not (a dead end: back out).
 4. **Hand back**: any decision that yields a verified goal for the current subtask ends the
    search (the pilot flies that goal). A STOP from the monitor is handled as always.
 
@@ -44,7 +47,17 @@ import numpy as np
 from planning.frames import wrap_angle
 from planning.volume import FlightVolume
 
-__all__ = ["SearchConfig", "SearchConfigError", "SearchPhase", "SearchTrigger", "Search", "explore_target", "known_mask"]
+__all__ = [
+    "SearchConfig",
+    "SearchConfigError",
+    "SearchPhase",
+    "SearchTrigger",
+    "Search",
+    "explore_target",
+    "known_mask",
+    "open_heading",
+    "side_to_look",
+]
 
 
 class SearchConfigError(ValueError):
@@ -83,6 +96,9 @@ class SearchConfig:
     gain_lookahead_m : how far beyond a candidate the gain fan reaches, metres
     forward_weight : score cost of a leg pointing opposite to the heading the search began
         with (0 = no preference; the gain is a fraction in [0, 1])
+    side_gain_min : after a leg, look a quarter turn to the side whose unknown fraction is at
+        least this (the camera faced forward all the leg; a target beside the way is missed
+        otherwise)
     """
 
     enabled: bool = True
@@ -104,6 +120,7 @@ class SearchConfig:
     stall_distance_m: float = 0.6
     gain_lookahead_m: float = 4.0
     forward_weight: float = 0.3
+    side_gain_min: float = 0.25
 
     def __post_init__(self) -> None:
         for name in ("not_visible_streak", "fail_streak", "reject_streak", "explore_headings"):
@@ -126,6 +143,8 @@ class SearchConfig:
                 raise SearchConfigError(f"SearchConfig.{name} must be positive, got {v}")
         if not (np.isfinite(self.scan_dwell_s) and self.scan_dwell_s >= 0):
             raise SearchConfigError(f"SearchConfig.scan_dwell_s must be >= 0, got {self.scan_dwell_s}")
+        if not (0.0 <= self.side_gain_min <= 1.0):
+            raise SearchConfigError(f"SearchConfig.side_gain_min must be in [0, 1], got {self.side_gain_min}")
         if not (np.isfinite(self.forward_weight) and self.forward_weight >= 0):
             raise SearchConfigError(f"SearchConfig.forward_weight must be >= 0, got {self.forward_weight}")
         if not (np.isfinite(self.explore_clearance_m) and self.explore_clearance_m >= 0):
@@ -228,6 +247,46 @@ def explore_target(
     return best
 
 
+def _fan_gain(p: np.ndarray, heading: float, field_map, volume: FlightVolume | None, reach_m: float) -> float:
+    """Unknown fraction of a fan of points (+-30 deg, 1 m to ``reach_m``) from ``p`` along
+    ``heading``; points outside the volume count as known (nothing to find there)."""
+    fan = heading + np.deg2rad([-30.0, 0.0, 30.0])
+    steps = np.linspace(1.0, reach_m, 4)
+    dirs = np.stack([np.cos(fan), np.sin(fan), np.zeros(3)], axis=-1)
+    pts = (p[None, None, :] + steps[None, :, None] * dirs[:, None, :]).reshape(-1, 3)
+    useful = volume.contains(pts) if volume is not None else np.ones(len(pts), dtype=bool)
+    return float(np.mean(~known_mask(field_map, pts) & useful))
+
+
+def side_to_look(
+    position: np.ndarray, yaw: float, field_map, *, config: SearchConfig, volume: FlightVolume | None
+) -> float | None:
+    """After an exploration leg (camera facing the way it flew): the side heading (yaw +- 90
+    deg) with the most unknown space, or None when neither side's unknown fraction reaches
+    ``config.side_gain_min``."""
+    p = np.asarray(position, dtype=float)
+    best, best_gain = None, config.side_gain_min
+    for side in (yaw + np.pi / 2, yaw - np.pi / 2):
+        g = _fan_gain(p, side, field_map, volume, config.gain_lookahead_m)
+        if g >= best_gain:
+            best, best_gain = float(wrap_angle(side)), g
+    return best
+
+
+def open_heading(position: np.ndarray, yaw: float, field_map, *, clearance_m: float, min_free_m: float = 2.5) -> float:
+    """The heading a search should keep going in: ``yaw`` when some way ahead (straight on or
+    45 deg to either side) is free for ``min_free_m`` (the route goes on past what is in front),
+    else the opposite (a dead end: back out)."""
+    p = np.asarray(position, dtype=float)
+    steps = np.arange(0.25, min_free_m + 1e-9, 0.25)
+    for off in (0.0, np.pi / 4, -np.pi / 4):
+        d = np.array([np.cos(yaw + off), np.sin(yaw + off), 0.0])
+        dist, _ = field_map.query(p + np.outer(steps, d))
+        if float(np.min(dist)) >= clearance_m:
+            return float(yaw)
+    return float(wrap_angle(yaw + np.pi))
+
+
 @dataclass
 class Search:
     """The search's state between ticks (owned by the pilot; one per episode).
@@ -279,6 +338,15 @@ class Search:
             return False
         return float(np.max(np.linalg.norm(recent - recent[-1], axis=1))) < self.config.stall_distance_m
 
+    def travel_heading(self, t_s: float, window_s: float = 6.0, min_travel_m: float = 1.0) -> float | None:
+        """Heading of the horizontal displacement over the last ``window_s`` (radians), or None
+        when the vehicle moved less than ``min_travel_m``."""
+        recent = [p for (ts, p) in self._track if ts >= t_s - window_s]
+        if len(recent) < 2:
+            return None
+        d = recent[-1][:2] - recent[0][:2]
+        return float(np.arctan2(d[1], d[0])) if float(np.hypot(*d)) >= min_travel_m else None
+
     def reset_stall(self) -> None:
         """Forget the stall window (after a state change that legitimately holds position)."""
         self._track = self._track[-1:]
@@ -296,7 +364,8 @@ class Search:
         ``total_rad`` (default ``scan_total_rad``) in steps of ``scan_step_rad``. Without a
         preferred heading, successive scans alternate their direction."""
         if self.phase is None:
-            self.heading0 = float(yaw)  # the direction of travel when this search began
+            self.heading0 = float(yaw)  # the direction of travel when this search began (the
+            # pilot replaces it with its reverse in a dead end, see ``open_heading``)
         self.phase = SearchPhase.SCAN
         self.trigger = trigger
         self.started_s = float(t_s)
@@ -314,6 +383,13 @@ class Search:
             sign = 1.0 if self.searches % 2 == 1 else -1.0
             yaws = [float(wrap_angle(yaw + sign * step * (k + 1))) for k in range(n)]
         self._scan_yaws = yaws
+
+    def look(self, t_s: float, position: np.ndarray, yaws: list[float]) -> None:
+        """A short scan of the given headings from ``position`` (then ``"scan_done"``)."""
+        self.phase = SearchPhase.SCAN
+        self._hold_p = np.asarray(position, dtype=float).copy()
+        self._scan_reached_s = None
+        self._scan_yaws = [float(y) for y in yaws]
 
     def stop(self) -> None:
         self.phase = None

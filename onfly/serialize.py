@@ -17,7 +17,7 @@ from typing import Any, Mapping, TypeVar
 
 import numpy as np
 
-__all__ = ["to_jsonable", "config_from_tables"]
+__all__ = ["to_jsonable", "config_from_tables", "ConfigFileError", "read_toml", "resolve_config_path"]
 
 T = TypeVar("T")
 
@@ -78,3 +78,42 @@ def config_from_tables(
             value = convert[key](value)
         kwargs[key] = value
     return cls(**kwargs)
+
+
+class ConfigFileError(ValueError):
+    """A config file that cannot be used: the message names the file and the table or key."""
+
+
+def read_toml(path: str | Path, *, allowed: tuple[str, ...] | None = None, what: str = "config") -> dict:
+    """The tables of a TOML config file.
+
+    Raises ConfigFileError naming the file when it is missing, is not valid TOML, or (with
+    ``allowed``) has a top-level table or key outside ``allowed``.
+    """
+    import tomllib
+
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigFileError(f"{p}: {what} file not found" if not p.exists() else f"{p}: not a file")
+    try:
+        data = tomllib.loads(p.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigFileError(f"{p}: not valid TOML: {exc}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigFileError(f"{p}: cannot read: {exc}") from None
+    if allowed is not None:
+        bad = sorted(set(data) - set(allowed))
+        if bad:
+            raise ConfigFileError(f"{p}: unknown table(s) or key(s) {bad}; valid tables: {list(allowed)}")
+        for k in allowed:
+            if k in data and not isinstance(data[k], dict):
+                raise ConfigFileError(f"{p}: {k!r} must be a table ([{k}]), got {type(data[k]).__name__}")
+    return data
+
+
+def resolve_config_path(value: str | Path, config_file: str | Path) -> Path:
+    """A path written inside a config file: ``~`` expanded; relative paths resolve against the
+    folder of the config file that holds them (not the working directory), so a config and the
+    files next to it can be moved together."""
+    p = Path(value).expanduser()
+    return p if p.is_absolute() else (Path(config_file).resolve().parent / p).resolve()

@@ -27,6 +27,12 @@ Parameter vector ``theta`` (see :class:`MpcLayout` for offsets)::
     speed_bound (N)   speed limit of knots 1..N, m/s (>= v_max; larger only while an initial
                       overspeed is being braked away)
     a_bar (N, 3)      accelerations of the linearization point (QP proximal term only)
+    accel_dir (N,Ka,3) unit directions of the Ka acceleration half-spaces of inputs 0..N-1
+                      (``Ka = speed_cuts`` with the norm limit, 0 with the per-axis limit)
+    pos_lo, pos_hi (3) position box of knots 1..N in the vehicle-centred frame, metres (the
+                      flight volume shrunk by the body radius; +-inf when there is none)
+    pos_active (1)    1 with a flight volume, 0 without: the QP's position rows are
+                      ``pos_active * p_k`` (see :mod:`planning.mpc_qp`)
 
 Cost::
 
@@ -47,8 +53,15 @@ Constraints::
 
     x_0 = x0,  x_{k+1} = F(x_k, u_k)                       (hard)
     |a_i| <= a_max,  |r| <= yaw_rate_max                   (per axis, hard)
+    ||a_k|| <= a_max    (accel_limit_mode "norm"; NLP: exact; QP: accel_dir_kj . a_k <= a_max)
     |v_{k,i}| <= speed_bound_k,  s_k >= 0                  (hard)
     ||v_k|| <= speed_bound_k          (NLP: exact; QP: speed_dir_kj . v_k <= bound_k, j < K)
+    pos_lo <= p_k <= pos_hi, k = 1..N                      (hard; the flight volume)
+
+The per-axis box on ``a`` is kept in both modes: with the norm limit it is implied by the norm
+(an outer bound that keeps the QP bounded in every direction); with ``"per_axis"`` it is the
+limit itself (Fast-Planner's convention). The position rows are present whether or not a
+volume is given (+-inf bounds then), so the QP's sparsity never depends on the volume.
     d(p_k) + s_k >= d_safe                                 (NLP: exact; QP: linearized)
 """
 
@@ -140,6 +153,7 @@ class MpcLayout:
 
     N: int
     speed_cuts: int = 1
+    accel_cuts: int = 0
 
     @cached_property
     def n_x(self) -> int:
@@ -196,6 +210,8 @@ class MpcLayout:
         sizes = [
             ("x0", NX), ("goal", 3), ("psi_ref", 1), ("a_prev", 3), ("lin_grad", 3 * N),
             ("lin_offset", N), ("speed_dir", 3 * N * K), ("speed_bound", N), ("a_bar", 3 * N),
+            ("accel_dir", 3 * N * self.accel_cuts), ("pos_lo", 3), ("pos_hi", 3),
+            ("pos_active", 1),
         ]
         out, off = {}, 0
         for name, size in sizes:
@@ -245,8 +261,25 @@ class MpcLayout:
         return self._th("a_bar")
 
     @cached_property
+    def th_accel_dir(self) -> slice:
+        """(N, Ka, 3) knot-major, like :attr:`th_speed_dir` (empty with the per-axis limit)."""
+        return self._th("accel_dir")
+
+    @cached_property
+    def th_pos_lo(self) -> slice:
+        return self._th("pos_lo")
+
+    @cached_property
+    def th_pos_hi(self) -> slice:
+        return self._th("pos_hi")
+
+    @cached_property
+    def th_pos_active(self) -> int:
+        return self._theta_blocks["pos_active"][0]
+
+    @cached_property
     def n_theta(self) -> int:
-        off, size = self._theta_blocks["a_bar"]
+        off, size = self._theta_blocks["pos_active"]
         return off + size
 
     def pack_theta(
@@ -260,12 +293,18 @@ class MpcLayout:
         speed_dir: np.ndarray,
         speed_bound: np.ndarray,
         a_bar: np.ndarray | None = None,
+        accel_dir: np.ndarray | None = None,
+        pos_lo: np.ndarray | None = None,
+        pos_hi: np.ndarray | None = None,
+        pos_active: float | None = None,
         out: np.ndarray | None = None,
     ) -> np.ndarray:
         """Assemble ``theta`` (n_theta,) from its parts (shapes as in the module docstring).
 
         ``speed_dir`` may be (N, 3) (one direction per knot, copied into all K cut slots) or
-        (N, K, 3).
+        (N, K, 3); ``accel_dir`` likewise (N, 3) or (N, Ka, 3), default: the speed
+        directions' first slot. ``pos_lo`` / ``pos_hi`` default to -inf / +inf (no volume);
+        ``pos_active`` defaults to 1 when any of their entries is finite, else 0.
         """
         th = np.empty(self.n_theta) if out is None else out
         th[self.th_x0] = x0
@@ -280,6 +319,16 @@ class MpcLayout:
         th[self.th_speed_dir] = sd.ravel()
         th[self.th_speed_bound] = speed_bound
         th[self.th_a_bar] = 0.0 if a_bar is None else np.ravel(a_bar)
+        if self.accel_cuts:
+            ad = sd[:, 0, :] if accel_dir is None else np.asarray(accel_dir, dtype=float)
+            if ad.shape == (self.N, 3):
+                ad = np.repeat(ad[:, None, :], self.accel_cuts, axis=1)
+            th[self.th_accel_dir] = ad.ravel()
+        th[self.th_pos_lo] = -np.inf if pos_lo is None else pos_lo
+        th[self.th_pos_hi] = np.inf if pos_hi is None else pos_hi
+        if pos_active is None:
+            pos_active = float(np.isfinite(th[self.th_pos_lo]).any() or np.isfinite(th[self.th_pos_hi]).any())
+        th[self.th_pos_active] = pos_active
         return th
 
 
@@ -295,6 +344,9 @@ class MpcFormulation:
     speed_linear : (z, theta) -> (N K,), ``speed_dir_kj . v_k - speed_bound_k`` (<= 0),
         knot-major
     speed_squared : (z, theta) -> (N,), ``||v_k||^2 - speed_bound_k^2`` (<= 0)
+    accel_linear : (z, theta) -> (N Ka,), ``accel_dir_kj . a_k - a_max`` (<= 0), knot-major
+        (an empty function with the per-axis limit)
+    accel_squared : (z) -> (N,) ``||a_k||^2 - a_max^2`` (<= 0) (empty with the per-axis limit)
     positions : (z) -> (N, 3)-flattened positions of knots 1..N, row-major (3N,)
     slack : (z) -> (N,)
     z_bounds : (theta) -> (lbz, ubz), each (n_z,), +-inf where unbounded
@@ -302,7 +354,10 @@ class MpcFormulation:
 
     def __init__(self, config: PlannerConfig) -> None:
         self.config = config
-        self.layout = MpcLayout(config.horizon_steps, config.speed_cuts_per_knot)
+        norm_accel = config.accel_limit_mode == "norm"
+        self.layout = MpcLayout(
+            config.horizon_steps, config.speed_cuts_per_knot, config.speed_cuts_per_knot if norm_accel else 0
+        )
         L = self.layout
         N, c = L.N, config
         z = ca.SX.sym("z", L.n_z)
@@ -322,6 +377,9 @@ class MpcFormulation:
         sdir = ca.reshape(th[L.th_speed_dir], 3, N * K)  # column (k-1) K + j = cut j of knot k
         sbound = th[L.th_speed_bound]
         a_bar = ca.reshape(th[L.th_a_bar], 3, N)
+        Ka = L.accel_cuts
+        adir = ca.reshape(th[L.th_accel_dir], 3, N * Ka) if Ka else None
+        pos_lo, pos_hi = th[L.th_pos_lo], th[L.th_pos_hi]
 
         J = 0
         for k in range(1, N + 1):
@@ -352,6 +410,14 @@ class MpcFormulation:
             ]
         )
         speed_sq = ca.vertcat(*[ca.sumsqr(X[k][3:6]) - sbound[k - 1] ** 2 for k in range(1, N + 1)])
+        if Ka:
+            accel_lin = ca.vertcat(
+                *[ca.dot(adir[:, k * Ka + j], U[k][0:3]) - c.a_max_mps2 for k in range(N) for j in range(Ka)]
+            )
+            accel_sq = ca.vertcat(*[ca.sumsqr(U[k][0:3]) - c.a_max_mps2**2 for k in range(N)])
+        else:
+            accel_lin = ca.SX(0, 1)
+            accel_sq = ca.SX(0, 1)
         positions = ca.vertcat(*[X[k][0:3] for k in range(1, N + 1)])
 
         lbz = ca.SX(-np.inf * np.ones(L.n_z))
@@ -365,6 +431,9 @@ class MpcFormulation:
                 lbz[int(L.idx_v[k + 1, i])] = -sbound[k]
                 ubz[int(L.idx_v[k + 1, i])] = sbound[k]
             lbz[int(L.idx_s[k])] = 0.0
+            for i in range(3):
+                lbz[int(L.idx_p[k + 1, i])] = pos_lo[i]
+                ubz[int(L.idx_p[k + 1, i])] = pos_hi[i]
 
         self.cost = ca.Function("cost", [z, th], [J], ["z", "theta"], ["J"])
         self.proximal = ca.Function("proximal", [z, th], [prox], ["z", "theta"], ["J_prox"])
@@ -372,6 +441,8 @@ class MpcFormulation:
         self.clearance_linear = ca.Function("clearance_linear", [z, th], [clear_lin], ["z", "theta"], ["g"])
         self.speed_linear = ca.Function("speed_linear", [z, th], [speed_lin], ["z", "theta"], ["g"])
         self.speed_squared = ca.Function("speed_squared", [z, th], [speed_sq], ["z", "theta"], ["g"])
+        self.accel_linear = ca.Function("accel_linear", [z, th], [accel_lin], ["z", "theta"], ["g"])
+        self.accel_squared = ca.Function("accel_squared", [z], [accel_sq], ["z"], ["g"])
         self.positions = ca.Function("positions", [z], [positions], ["z"], ["p"])
         self.slack = ca.Function("slack", [z], [S], ["z"], ["s"])
         self.z_bounds = ca.Function("z_bounds", [th], [lbz, ubz], ["theta"], ["lbz", "ubz"])

@@ -3,6 +3,9 @@
 The same cost, dynamics and bounds as the fast path, but with the **exact** constraints:
 
 - speed: ``||v_k||^2 <= speed_bound_k^2`` (the exact norm, smooth in squared form);
+- acceleration (``accel_limit_mode = "norm"``): ``||a_k||^2 <= a_max^2`` (the per-axis box
+  stays as variable bounds in both modes, like the QP);
+- flight volume: the position bounds of knots 1..N are variable bounds (+-inf without one);
 - clearance: ``d(p_k) + s_k >= d_safe`` where ``d`` is the distance field itself, queried
   through a ``casadi.Callback`` (:class:`FieldCallback`). The callback returns the field's
   distance at all N knots at once; its Jacobian is a second callback built from the field's own
@@ -153,14 +156,17 @@ class MpcNlp:
         z = ca.MX.sym("z", L.n_z)
         th = ca.MX.sym("theta", L.n_theta)
         positions = formulation.positions(z)
+        accel_sq = formulation.accel_squared(z)
         g = ca.vertcat(
             formulation.dynamics(z, th),
             formulation.speed_squared(z, th),
+            accel_sq,
             self._field_fn(positions) + formulation.slack(z) - c.d_safe_m,
         )
         n_dyn, N = formulation.dynamics.size1_out(0), L.N
-        self._lbg = np.concatenate([np.zeros(n_dyn), np.full(N, -np.inf), np.zeros(N)])
-        self._ubg = np.concatenate([np.zeros(n_dyn), np.zeros(N), np.full(N, np.inf)])
+        n_acc = accel_sq.numel()
+        self._lbg = np.concatenate([np.zeros(n_dyn), np.full(N + n_acc, -np.inf), np.zeros(N)])
+        self._ubg = np.concatenate([np.zeros(n_dyn), np.zeros(N + n_acc), np.full(N, np.inf)])
         opts = {
             "ipopt.print_level": 0,
             "ipopt.sb": "yes",

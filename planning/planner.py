@@ -1,20 +1,24 @@
 """The receding-horizon planner: build once, step every control period.
 
-``Planner(config, solver="qp")`` builds the CasADi formulation and its solver once;
-``planner.step(state, goal_world, field)`` returns a :class:`PlanResult` with the trajectory,
+``Planner(config, solver="qp")`` builds the CasADi formulation and its solver once (the fast
+path's QP data compiled once per formulation and cached, :mod:`planning.mpc_codegen`);
+``planner.step(state, goal_world, field, volume=None)`` returns a :class:`PlanResult` with the trajectory,
 the first command and everything a log needs. One step (the fast path) is one real-time
 iteration:
 
 1. **Goal check.** A goal with clearance below ``d_safe + goal_clearance_margin`` is moved to
    the nearest point with that clearance: Newton steps along the field gradient
    (``g += (target - d) grad``), and if that fails within ``goal_search_max_m``, a line search
-   back along the segment toward the vehicle. ``PlanResult.goal_adjusted`` says so.
+   back along the segment toward the vehicle. With a flight volume the goal is also clamped into
+   it (shrunk by ``body_radius_m``). ``PlanResult.goal_adjusted`` says so.
 2. **Attractor.** If the straight segment from the vehicle to the goal keeps ``d_safe``, the
    progress terms pull toward the goal. Otherwise the front-end (:mod:`planning.guide_path`, a
    clearance-aware grid search run when the goal changes or the path is blocked) supplies a
    path and the attractor is the point ``guide_lookahead_m`` ahead on it: a linearized-distance
    MPC alone stops at a wall it could fly around (Fast-Planner pairs its optimizer with a search
-   front-end for the same reason). The yaw term always uses the goal itself.
+   front-end for the same reason). The search stays inside the volume, above
+   ``guide_floor_m`` and below ``guide_ceiling_m``, out of unknown space, within its node
+   budget (``guide_max_cells``) and, if set, its time budget. The yaw term always uses the goal.
 3. **Linearization point.** The previous plan's inputs shifted by one knot, rolled out from the
    *measured* state with the exact model (so it is dynamically consistent even after a
    disturbance). On the first step (or after :meth:`Planner.reset`) the vehicle coasts
@@ -22,13 +26,18 @@ iteration:
 4. **One QP.** Field distance and gradient at the linearized knots give
    ``d(pbar_k) + grad_k . (p_k - pbar_k) + s_k >= d_safe`` for knots 1..N (knot 0 is the
    measured state, pinned, never softened); the speed norm is cut by the half-space at the
-   previous direction plus cutting planes kept from earlier solves; OSQP is updated in place and
+   previous direction plus cutting planes kept from earlier solves, and so is the acceleration
+   norm (``accel_limit_mode = "norm"``); the flight volume bounds every knot's position; the
+   QP data come from one call of the compiled (or NumPy) step data; OSQP is updated in place and
    warm-started from the shifted previous primal (its last dual iterate is kept). If the true
-   speed norm of the result exceeds the limit by more than ``speed_tolerance_rel`` a cut is
-   added at the violating knots and the QP is solved again (at most ``max_speed_refinements``
-   times). After a failed solve the next one starts from zero duals and the configured rho.
-5. **Check.** The inputs are clipped to their (exact) bounds, rolled out with the exact model,
-   and the plan is accepted only if the solve converged, the speed norm is within tolerance, and
+   speed (acceleration) norm of the result exceeds the limit by more than
+   ``speed_tolerance_rel`` (``accel_tolerance_rel``) a cut is added at the violating knots and the
+   QP is solved again (at most ``max_speed_refinements`` times). After a failed solve the next
+   one starts from zero duals and the configured rho. With ``step_time_budget_ms`` OSQP gets the
+   time left, and a step out of time skips to the fallback with status ``timeout``.
+5. **Check.** The inputs are clipped to their (exact) bounds (the acceleration scaled onto the
+   norm ball), rolled out with the exact model, and the plan is accepted only if the solve
+   converged, the speed norm is within tolerance, the knots are inside the volume, and
    the field's true clearance over the braking horizon stays above
    ``min(d_safe, d(p_0)) - safety_tolerance_m``.
 6. **Fallback.** Otherwise the shifted previous plan is used if it passes the same check, and
@@ -56,10 +65,11 @@ import numpy as np
 
 from planning.field import DistanceField
 from planning.frames import unwrap_near, wrap_angle
-from planning.guide_path import carrot_on_path, search_guide_path, segment_clear, segment_points
+from planning.guide_path import carrot_on_path, guide_search, segment_clear, segment_points
 from planning.mpc_model import NU, NX, MpcFormulation, simulate
 from planning.planner_config import PlannerConfig
 from planning.trajectory import Trajectory, VehicleState
+from planning.volume import FlightVolume
 
 __all__ = [
     "Planner",
@@ -97,6 +107,8 @@ class SolveStatus(enum.Enum):
     """Converged, but the rolled-out plan failed the speed or clearance check."""
     FAILED = "failed"
     """Numerical failure (NaN) or solver error."""
+    TIMEOUT = "timeout"
+    """The step's time budget (``step_time_budget_ms``) ran out before or during the solve."""
 
 
 class Fallback(enum.Enum):
@@ -166,6 +178,12 @@ class PlanResult:
     attractor : array (3,), the point the progress terms pulled toward this step: the goal
         used, or a point on the front-end's guide path when the straight segment to the goal
         lacks clearance (world ENU)
+    cpu_time_ms : float, CPU time of this thread over the step, milliseconds (beside the wall
+        time ``solve_time_ms``: a large gap means the process waited for a core)
+    guide_search_ms : float, wall time of the guide search run this step, milliseconds (0 when
+        none ran)
+    guide_status : str, ``""`` (no search this step) or the search's status (``"found"``,
+        ``"budget"``, ``"unreachable"``, see :class:`planning.guide_path.GuideResult`)
     """
 
     trajectory: Trajectory
@@ -180,6 +198,9 @@ class PlanResult:
     goal_used: np.ndarray
     goal_adjusted: bool
     attractor: np.ndarray
+    cpu_time_ms: float = 0.0
+    guide_search_ms: float = 0.0
+    guide_status: str = ""
 
     @property
     def ok(self) -> bool:
@@ -202,7 +223,7 @@ def _query(field: DistanceField, points: np.ndarray) -> tuple[np.ndarray, np.nda
         raise PlannerInputError(
             f"field.query returned shapes {d.shape}, {g.shape}; expected ({n},), ({n}, 3)"
         )
-    if not (np.all(np.isfinite(d)) and np.all(np.isfinite(g))):
+    if not (np.isfinite(d).all() and np.isfinite(g).all()):
         raise PlannerInputError("field.query returned NaN or inf distance/gradient")
     return d, g
 
@@ -266,6 +287,11 @@ def adjust_goal(
     return pts[int(np.argmax(dd))].copy(), True
 
 
+def _row_norms(M: np.ndarray) -> np.ndarray:
+    """Euclidean norm of each row of ``M`` (n, 3) (cheaper than ``np.linalg.norm`` on small arrays)."""
+    return np.sqrt(np.einsum("ij,ij->i", M, M))
+
+
 class ShiftedField:
     """A :class:`DistanceField` seen from a frame translated to ``origin`` (3,), world ENU:
     ``query(points)`` answers for ``points + origin``. The planner poses its problems in the
@@ -285,8 +311,11 @@ class Planner:
     ----------
     config : PlannerConfig
     solver : ``"qp"`` (fast path: persistent OSQP, one QP per step) or ``"nlp"`` (reference:
-        ipopt with exact speed norm and exact field constraints, every step from the shifted
-        previous plan)
+        ipopt with exact speed and acceleration norms and exact field constraints, every step
+        from the shifted previous plan)
+    qp_backend : how the fast path builds its QP data (:data:`planning.mpc_qp.QP_BACKENDS`):
+        ``"auto"`` (the compiled C function of :mod:`planning.mpc_codegen`, built once and
+        cached, or NumPy when no compiler is available), ``"compiled"`` or ``"python"``
     """
 
     #: Keep a :class:`ProblemSnapshot` of every step in :attr:`last_problem` (benchmarks,
@@ -294,7 +323,7 @@ class Planner:
     record_problems: bool = False
     last_problem: ProblemSnapshot | None = None
 
-    def __init__(self, config: PlannerConfig | None = None, solver: str = "qp") -> None:
+    def __init__(self, config: PlannerConfig | None = None, solver: str = "qp", qp_backend: str = "auto") -> None:
         if solver not in SOLVERS:
             raise ValueError(f"solver must be one of {SOLVERS}, got {solver!r}")
         self.config = config if config is not None else PlannerConfig()
@@ -303,27 +332,44 @@ class Planner:
         self.solver_name = solver
         self.formulation = MpcFormulation(self.config)
         self.layout = self.formulation.layout
+        from planning.mpc_qp import DataLayout
+
         if solver == "qp":
             from planning.mpc_qp import MpcQp
 
-            self._qp = MpcQp(self.formulation)
+            self._qp = MpcQp(self.formulation, backend=qp_backend)
             self._nlp = None
+            self._dl = self._qp.data_layout
         else:
             from planning.mpc_nlp import MpcNlp
 
             self._qp = None
             self._nlp = MpcNlp(self.formulation)
+            self._dl = DataLayout(self.layout, 0, 0, 0)
         c, L = self.config, self.layout
         N, K = L.N, L.speed_cuts
+        self._norm_accel = L.accel_cuts > 0
         self._k_dt = np.arange(1, N + 1) * c.dt_s
         self._u_max = np.array([c.a_max_mps2] * 3 + [c.yaw_rate_max_rps])
         self._idx_u = L.idx_u
+        self._idx_a = L.idx_a
         self._idx_v1 = L.idx_v[1:]
         self._idx_s = L.idx_s
-        self._theta = np.zeros(L.n_theta)
+        self._w = np.zeros(self._dl.n_w)
+        W = self._dl.w
+        self._w_u = self._w[W["u_bar"]].reshape(N, NU)
+        self._w_d = self._w[W["lin_d"]]
+        self._w_g = self._w[W["lin_grad"]].reshape(N, 3)
         self._check_steps = c.braking_steps
+        self._pos_lo = np.full(3, -np.inf)
+        self._pos_hi = np.full(3, np.inf)
         self.reset()
-        logger.debug("Planner built: solver=%s N=%d K=%d", solver, N, K)
+        logger.debug("Planner built: solver=%s N=%d K=%d backend=%s", solver, N, K, self.qp_backend)
+
+    @property
+    def qp_backend(self) -> str:
+        """``"compiled"`` or ``"python"`` (how the QP data are built), ``"nlp"`` for ipopt."""
+        return "nlp" if self._qp is None else self._qp.backend
 
     def reset(self) -> None:
         """Forget the previous plan (the next step cold-starts)."""
@@ -331,13 +377,16 @@ class Planner:
         self._prev_u: np.ndarray | None = None
         self._prev_s = np.zeros(L.N)
         self._cuts: np.ndarray | None = None  # (N, K, 3)
+        self._acuts: np.ndarray | None = None  # (N, Ka, 3)
         self._qp_healthy = False
         self._guide: np.ndarray | None = None  # (n, 3) world ENU
         self._guide_goal: np.ndarray | None = None
         self._guide_attempt_t: float | None = None
+        self._guide_ms = 0.0
+        self._guide_status = ""
 
     # ------------------------------------------------------------------ validation
-    def _validate(self, state, goal_world, field) -> np.ndarray:
+    def _validate(self, state, goal_world, field, volume) -> np.ndarray:
         if not isinstance(state, VehicleState):
             raise PlannerInputError(f"state must be a VehicleState, got {type(state).__name__}")
         goal = np.asarray(goal_world, dtype=float) if not isinstance(goal_world, str) else None
@@ -349,11 +398,46 @@ class Planner:
             raise PlannerInputError(
                 f"field must implement DistanceField.query(points), got {type(field).__name__}"
             )
+        if volume is not None and not isinstance(volume, FlightVolume):
+            raise PlannerInputError(f"volume must be a FlightVolume or None, got {type(volume).__name__}")
         return goal
+
+    def _guide_z_limits(self, box: FlightVolume | None) -> tuple[float | None, float | None]:
+        """Floor and ceiling of the guide search: the configured ones intersected with the
+        volume's z-extent (already shrunk by the body radius)."""
+        c = self.config
+        lo, hi = c.guide_floor_m, c.guide_ceiling_m
+        if box is not None:
+            lo = float(box.min_m[2]) if lo is None else max(lo, float(box.min_m[2]))
+            hi = float(box.max_m[2]) if hi is None else min(hi, float(box.max_m[2]))
+        return lo, hi
+
+    def _position_box(self, box: FlightVolume | None, state: VehicleState) -> tuple[np.ndarray, np.ndarray]:
+        """Position bounds of knots 1..N in the vehicle-centred frame: the shrunk volume, widened
+        on an axis only as far as a vehicle already outside it (or unable to stop inside it)
+        needs to brake at ``a_max`` along ``-v`` (so the QP stays feasible); +-inf without one."""
+        if box is None:
+            return self._pos_lo, self._pos_hi
+        c = self.config
+        p, v = state.p, state.v
+        speed = float(np.linalg.norm(v))
+        excursion = np.abs(v) * speed / (2.0 * c.a_max_mps2) + 1e-3
+        lo = np.minimum(box.min_m, p - np.where(v < 0, excursion, 1e-3)) if np.any(
+            p - np.where(v < 0, excursion, 0.0) < box.min_m
+        ) else box.min_m.copy()
+        hi = np.maximum(box.max_m, p + np.where(v > 0, excursion, 1e-3)) if np.any(
+            p + np.where(v > 0, excursion, 0.0) > box.max_m
+        ) else box.max_m.copy()
+        return lo - p, hi - p
 
     # ------------------------------------------------------------------ step
     def step(
-        self, state: VehicleState, goal_world: np.ndarray, field: DistanceField, yaw_ref: float | None = None
+        self,
+        state: VehicleState,
+        goal_world: np.ndarray,
+        field: DistanceField,
+        yaw_ref: float | None = None,
+        volume: FlightVolume | None = None,
     ) -> PlanResult:
         """Plan from ``state`` toward ``goal_world`` in ``field``; always returns a command.
 
@@ -365,6 +449,11 @@ class Planner:
         yaw_ref : optional heading in radians that replaces the goal bearing as the yaw
             reference (e.g. turning in place toward a target or a recovery heading); it is
             unwrapped relative to the current yaw like the bearing
+        volume : optional operator flight volume (:class:`planning.volume.FlightVolume`, world
+            ENU). Every plan knot 1..N stays inside it shrunk by ``body_radius_m`` (hard
+            position bounds in the QP and the NLP), the goal is clamped into that box
+            (``goal_adjusted`` then), and the guide search never leaves it. A vehicle already
+            outside (or too fast to stop inside) gets the least widening that lets it brake.
 
         Raises
         ------
@@ -372,14 +461,23 @@ class Planner:
             Wrong types, shapes, or non-finite values in the inputs or in the field's answer.
         """
         t_start = time.perf_counter()
-        goal = self._validate(state, goal_world, field)
+        cpu_start = time.thread_time()
+        goal = self._validate(state, goal_world, field, volume)
         c, L = self.config, self.layout
-        N, K, dt = L.N, L.speed_cuts, c.dt_s
+        N, dt = L.N, c.dt_s
+        budget_s = c.step_time_budget_ms * 1e-3
+        box = volume.shrunk(c.body_radius_m) if volume is not None else None
+        clamped = False
+        if box is not None:
+            inside = box.clamp(goal)
+            clamped = bool(np.any(inside != goal))
+            goal = inside
         origin = state.p.copy()
         x0 = np.empty(NX)
         x0[0:3] = 0.0
         x0[3:6] = state.v
         x0[6] = state.yaw
+        self._guide_ms, self._guide_status = 0.0, ""
 
         # linearization point first: one field query serves it, the goal check and the attractor
         cold = self._prev_u is None
@@ -400,8 +498,11 @@ class Planner:
         goal_used, adjusted = adjust_goal(
             goal, origin, field, goal_clear, c.goal_search_max_m, goal_query=(float(d_all[0]), g_all[0])
         )
+        if box is not None and adjusted:
+            goal_used = box.clamp(goal_used)
+        adjusted = adjusted or clamped
         pre = None if adjusted else (extra, d_all[N + 2 :])
-        attractor = self._attractor(state.t_s, origin, d0, goal_used, field, pre)
+        attractor = self._attractor(state.t_s, origin, d0, goal_used, field, pre, box)
         goal_local = attractor - origin
         to_goal = goal_used - origin
         horiz = float(np.hypot(to_goal[0], to_goal[1]))
@@ -417,13 +518,17 @@ class Planner:
         # speed bound per knot (above v_max only while braking an initial overspeed)
         speed0 = float(np.linalg.norm(state.v))
         bound = np.maximum(c.v_max_mps, speed0 - c.a_max_mps2 * self._k_dt)
+        pos_lo, pos_hi = self._position_box(box, state)
 
-        th = self._theta
-        th[L.th_x0] = x0
-        th[L.th_goal] = goal_local
-        th[L.th_psi_ref] = psi_ref
-        th[L.th_a_prev] = state.a
-        th[L.th_speed_bound] = bound
+        w, W = self._w, self._dl.w
+        w[W["x0"]] = x0
+        w[W["goal"]] = goal_local
+        w[W["psi_ref"]] = psi_ref
+        w[W["a_prev"]] = state.a
+        w[W["speed_bound"]] = bound
+        w[W["pos_lo"]] = pos_lo
+        w[W["pos_hi"]] = pos_hi
+        w[W["pos_active"]] = 0.0 if box is None else 1.0
 
         iterations = 0
         solves = 0
@@ -441,30 +546,37 @@ class Planner:
             self._qp.reset_rho()
         s_warm = np.zeros(N) if cold else np.concatenate([self._prev_s[1:], self._prev_s[-1:]])
         knots_query = (d_all[2 : N + 2], g_all[2 : N + 2])
+        theta = None
         z_init = None
+        deadline = t_start + budget_s if budget_s > 0 else None
         for outer in range(n_outer):
+            if deadline is not None and time.perf_counter() >= deadline:
+                status = SolveStatus.TIMEOUT
+                break
             if outer > 0:
                 X_bar = simulate(x0, u_bar, dt)
                 knots_query = None
             cuts_mode = ("fresh" if outer == 0 else "keep") if cold else "shift"
-            self._linearize(X_bar, u_bar, origin, goal_local, field, cuts_mode, knots_query)
-            z_warm = self._assemble_z(X_bar, u_bar, s_warm)
+            self._linearize(X_bar, u_bar, s_warm, origin, goal_local, field, cuts_mode, knots_query)
+            sol = self._solve(field, origin, deadline, y_warm=y_warm, record=z_init is None)
             if z_init is None:
-                z_init = z_warm.copy()
-            sol = self._solve(th, z_warm, y_warm, field, origin)
+                theta, z_init = sol[5], sol[6]
             iterations += sol[2]
             solves += sol[3]
             status, z, y = sol[0], sol[1], sol[4]
             self._qp_healthy = status in (SolveStatus.SOLVED, SolveStatus.UNSAFE)
-            if status is not SolveStatus.SOLVED or z is None:
+            # a cold start's early iterations may end with the speed norm not yet cut tight
+            # enough (its cuts start at one guessed direction): re-linearize and go on
+            more = status is SolveStatus.UNSAFE and z is not None and outer < n_outer - 1
+            if (status is not SolveStatus.SOLVED or z is None) and not more:
                 break
-            u_bar = np.clip(z[self._idx_u], -self._u_max, self._u_max)
+            u_bar = self._clip_inputs(z[self._idx_u])
             s_warm = z[self._idx_s]
             y_warm = y
         if status is SolveStatus.SOLVED:
             U = u_bar
             X = simulate(x0, U, dt)
-            ok, dmin, d_knots = self._check(X, U, origin, field, d0, bound)
+            ok, dmin, d_knots = self._check(X, U, origin, field, d0, bound, pos_lo, pos_hi)
             if ok:
                 plan = (X, U, d_knots)
                 slack_max = float(np.max(z[self._idx_s], initial=0.0))
@@ -477,7 +589,7 @@ class Planner:
             U[:-1] = self._prev_u[1:]
             U[-1] = 0.0
             X = simulate(x0, U, dt)
-            ok, _, d_knots = self._check(X, U, origin, field, d0, bound)
+            ok, _, d_knots = self._check(X, U, origin, field, d0, bound, pos_lo, pos_hi)
             if ok:
                 plan, fallback = (X, U, d_knots), Fallback.SHIFTED
         if plan is None:
@@ -491,8 +603,11 @@ class Planner:
         X, U, d_knots = plan
         self._prev_u = U
         if self.record_problems:
+            if theta is None:  # no solve ran (out of time): the problem as posed
+                self._linearize(X_bar, u_bar, s_warm, origin, goal_local, field, "keep", knots_query)
+                theta, z_init = self._theta_and_warm()
             self.last_problem = ProblemSnapshot(
-                theta=th.copy(),
+                theta=theta,
                 origin=origin,
                 z_init=z_init,
                 z_plan=self._assemble_z(X, U, np.maximum(c.d_safe_m - d_knots, 0.0)),
@@ -516,6 +631,9 @@ class Planner:
             goal_used=goal_used,
             goal_adjusted=adjusted,
             attractor=attractor,
+            cpu_time_ms=(time.thread_time() - cpu_start) * 1e3,
+            guide_search_ms=self._guide_ms,
+            guide_status=self._guide_status,
         )
 
     def converge(
@@ -524,10 +642,10 @@ class Planner:
         """Iterate the fast path's QP on one problem to its fixed point (sequential QP).
 
         The step solves *one* QP about the shifted previous plan (real-time iteration); this
-        re-linearizes clearance and speed about each new solution, with the goal, state and
-        bounds of ``problem`` fixed, until the inputs change by less than ``tol`` (m/s^2,
-        rad/s). At the fixed point the proximal term vanishes and the QP's optimum is a KKT
-        point of the exact problem, which is what :mod:`planning.mpc_nlp` solves. The
+        re-linearizes clearance, speed and acceleration about each new solution, with the goal,
+        state and bounds of ``problem`` fixed, until the inputs change by less than ``tol``
+        (m/s^2, rad/s). At the fixed point the proximal term vanishes and the QP's optimum is a
+        KKT point of the exact problem, which is what :mod:`planning.mpc_nlp` solves. The
         planner's own state (previous plan, cuts) is left untouched.
 
         Returns
@@ -539,33 +657,47 @@ class Planner:
         if self._qp is None:
             raise ValueError("converge() needs the QP solver (Planner(solver='qp'))")
         c, L = self.config, self.layout
-        saved_theta, saved_cuts = self._theta.copy(), None if self._cuts is None else self._cuts.copy()
+        saved = (
+            self._w.copy(),
+            None if self._cuts is None else self._cuts.copy(),
+            None if self._acuts is None else self._acuts.copy(),
+        )
         try:
-            self._theta[:] = problem.theta
-            th = self._theta
+            th = problem.theta
+            w, W = self._w, self._dl.w
             x0 = th[L.th_x0].copy()
             goal_local = th[L.th_goal].copy()
-            U = np.clip(problem.z_plan[self._idx_u], -self._u_max, self._u_max)
-            z_warm, y_warm = problem.z_plan.copy(), None
+            w[W["x0"]] = x0
+            w[W["goal"]] = goal_local
+            w[W["psi_ref"]] = th[L.th_psi_ref]
+            w[W["a_prev"]] = th[L.th_a_prev]
+            w[W["speed_bound"]] = th[L.th_speed_bound]
+            w[W["pos_lo"]] = th[L.th_pos_lo]
+            w[W["pos_hi"]] = th[L.th_pos_hi]
+            w[W["pos_active"]] = th[L.th_pos_active]
+            U = self._clip_inputs(problem.z_plan[self._idx_u])
+            s = problem.z_plan[self._idx_s].copy()
+            y_warm = None
             self._cuts = th[L.th_speed_dir].reshape(L.N, L.speed_cuts, 3).copy()
+            self._acuts = th[L.th_accel_dir].reshape(L.N, L.accel_cuts, 3).copy() if L.accel_cuts else None
             it = 0
             for it in range(1, max_iterations + 1):
                 X = simulate(x0, U, c.dt_s)
-                self._linearize(X, U, problem.origin, goal_local, field, "keep")
-                status, z, _, _, y = self._solve(th, z_warm, y_warm, field, problem.origin)
+                self._linearize(X, U, s, problem.origin, goal_local, field, "keep")
+                status, z, _, _, y, _, _ = self._solve(field, problem.origin, None, y_warm=y_warm)
                 if z is None:
                     break
-                U_new = np.clip(z[self._idx_u], -self._u_max, self._u_max)
+                U_new = self._clip_inputs(z[self._idx_u])
                 change = float(np.max(np.abs(U_new - U)))
-                U, z_warm, y_warm = U_new, z, y
+                U, s, y_warm = U_new, z[self._idx_s], y
                 if change < tol:
                     break
             X = simulate(x0, U, c.dt_s)
             d, _ = _query(field, X[1:, 0:3] + problem.origin)
             return self._assemble_z(X, U, np.maximum(c.d_safe_m - d, 0.0)), it
         finally:
-            self._theta[:] = saved_theta
-            self._cuts = saved_cuts
+            self._w[:] = saved[0]
+            self._cuts, self._acuts = saved[1], saved[2]
 
     # ------------------------------------------------------------------ pieces
     def _attractor_points(self, origin: np.ndarray, goal: np.ndarray) -> np.ndarray:
@@ -576,11 +708,12 @@ class Planner:
         seg = segment_points(origin, goal, 0.1)
         return seg if self._guide is None else np.concatenate([seg, self._guide])
 
-    def _attractor(self, t_s, origin, d0, goal, field, pre=None) -> np.ndarray:
+    def _attractor(self, t_s, origin, d0, goal, field, pre=None, box: FlightVolume | None = None) -> np.ndarray:
         """The point the progress terms pull toward: the goal when the straight segment to it
         keeps ``d_safe``, else a point ``guide_lookahead_m`` ahead on the guide path.
 
         ``pre``: ``(points, distances)`` of :meth:`_attractor_points` already queried.
+        ``box``: the flight volume shrunk by the body radius (the guide search stays inside).
         """
         c = self.config
         if not c.guide_enable:
@@ -593,7 +726,7 @@ class Planner:
         path = self._guide
         n_seg = pts.shape[0] - (0 if path is None else path.shape[0])
         skip = 0.3 + max(0.0, c.d_safe_m - d0)
-        far = np.linalg.norm(pts[:n_seg] - origin, axis=1) > skip
+        far = _row_norms(pts[:n_seg] - origin) > skip
         if segment_clear(d[:n_seg][far], c.d_safe_m):
             self._guide = None
             return goal
@@ -602,6 +735,8 @@ class Planner:
             still_valid = np.linalg.norm(self._guide_goal - goal) < 0.25 and np.all(
                 d[n_seg + nearest + 1 :] >= c.d_safe_m
             )
+            if still_valid and box is not None:
+                still_valid = bool(np.all(box.contains(path[nearest + 1 :], margin_m=-1e-9)))
             if not still_valid:
                 path = self._guide = None
         if path is None:
@@ -610,53 +745,109 @@ class Planner:
             if due or goal_moved:
                 self._guide_attempt_t = t_s
                 self._guide_goal = goal.copy()
-                path = self._guide = search_guide_path(
+                z_min, z_max = self._guide_z_limits(box)
+                res = guide_search(
                     field,
                     origin,
                     goal,
                     clearance_m=c.d_safe_m + c.guide_clearance_margin_m,
                     preferred_clearance_m=c.guide_preferred_clearance_m,
                     resolution_m=c.guide_resolution_m,
+                    max_cells=c.guide_max_cells,
+                    z_min_m=z_min,
+                    z_max_m=z_max,
+                    bounds=None if box is None else (box.min_m, box.max_m),
+                    time_budget_s=c.guide_time_budget_ms * 1e-3 if c.guide_time_budget_ms > 0 else None,
+                    unknown_blocked=c.guide_unknown_blocked,
                 )
+                path = self._guide = res.path
+                self._guide_ms, self._guide_status = res.elapsed_ms, res.status
         if path is None:
             return goal
         carrot, _ = carrot_on_path(path, origin, c.guide_lookahead_m)
         return carrot
 
     # ------------------------------------------------------------------ pieces (solver)
-    def _linearize(self, X_bar, u_bar, origin, goal_local, field, cuts_mode: str, knots_query=None) -> None:
-        """Fill the clearance, speed-direction and proximal parts of theta about ``X_bar``.
+    def _clip_inputs(self, U: np.ndarray) -> np.ndarray:
+        """Inputs (N, 4) onto their exact bounds: yaw rate (and, per axis, the acceleration)
+        clipped; with the norm limit the acceleration scaled onto the ball ``||a|| <= a_max``."""
+        U = np.clip(U, -self._u_max, self._u_max)
+        if self._norm_accel:
+            a_max = self.config.a_max_mps2
+            n = _row_norms(U[:, 0:3])
+            over = n > a_max
+            if over.any():
+                U[over, 0:3] *= (a_max / n[over])[:, None]
+        return U
+
+    @staticmethod
+    def _directions(vectors: np.ndarray, floor: float, default: np.ndarray) -> np.ndarray:
+        """Unit directions of ``vectors`` (n, 3); ``default`` where the norm is below ``floor``."""
+        norm = _row_norms(vectors)
+        moving = norm > floor
+        return np.where(moving[:, None], vectors / np.where(moving, norm, 1.0)[:, None], default)
+
+    @staticmethod
+    def _update_cuts(old: np.ndarray | None, dirs: np.ndarray, K: int, mode: str) -> np.ndarray:
+        if mode == "fresh" or old is None:
+            return np.repeat(dirs[:, None, :], K, axis=1)
+        if mode == "shift":
+            cuts = np.empty_like(old)
+            cuts[:-1] = old[1:]
+            cuts[-1] = old[-1]
+        else:
+            cuts = old
+        cuts[:, 0, :] = dirs
+        return cuts
+
+    def _linearize(self, X_bar, u_bar, s_warm, origin, goal_local, field, cuts_mode: str, knots_query=None) -> None:
+        """Fill the linearization parts of the step inputs ``w`` about ``(X_bar, u_bar)``: the
+        field's distance and gradient at knots 1..N, the inputs, the speed and acceleration
+        cut directions, the slack warm start.
 
         ``cuts_mode``: ``"fresh"`` (all K cuts of a knot at its direction), ``"shift"`` (cuts
         of the previous step moved one knot on), ``"keep"`` (same step, cuts kept); slot 0 is
         always the tangent at the linearization point's direction.
         """
-        L, th = self.layout, self._theta
-        N, K = L.N, L.speed_cuts
-        P = X_bar[1:, 0:3]
-        d, g = _query(field, P + origin) if knots_query is None else knots_query
-        th[L.th_lin_grad] = g.ravel()
-        th[L.th_lin_offset] = d - np.einsum("ij,ij->i", g, P)
-        th[L.th_a_bar] = u_bar[:, 0:3].ravel()
-        V = X_bar[1:, 3:6]
-        speed = np.linalg.norm(V, axis=1)
+        L, c = self.layout, self.config
+        w, W = self._w, self._dl.w
+        d, g = _query(field, X_bar[1:, 0:3] + origin) if knots_query is None else knots_query
+        self._w_d[:] = d
+        self._w_g[:] = g
+        self._w_u[:] = u_bar
+        w[W["s_warm"]] = s_warm
         default = goal_local.copy()
         nd = np.linalg.norm(default)
         default = default / nd if nd > 1e-6 else np.array([1.0, 0.0, 0.0])
-        moving = speed > 0.05 * self.config.v_max_mps
-        dirs = np.where(moving[:, None], V / np.where(moving, speed, 1.0)[:, None], default)
-        if cuts_mode == "fresh" or self._cuts is None:
-            cuts = np.repeat(dirs[:, None, :], K, axis=1)
-        elif cuts_mode == "shift":
-            cuts = np.empty((N, K, 3))
-            cuts[:-1] = self._cuts[1:]
-            cuts[-1] = self._cuts[-1]
-            cuts[:, 0, :] = dirs
-        else:
-            cuts = self._cuts
-            cuts[:, 0, :] = dirs
-        self._cuts = cuts
-        th[L.th_speed_dir] = cuts.ravel()
+        dirs = self._directions(X_bar[1:, 3:6], 0.05 * c.v_max_mps, default)
+        self._cuts = self._update_cuts(self._cuts, dirs, L.speed_cuts, cuts_mode)
+        w[W["speed_dir"]] = self._cuts.ravel()
+        if self._norm_accel:
+            # Acceleration cuts: slot 0 is the tangent at the linearization point's direction
+            # (on a cold start only where its norm is near the limit; a zero row, always
+            # satisfied, where the direction is undefined); other slots
+            # hold cuts added where a solution exceeded the norm. Zero rows rather than
+            # tangents at small or arbitrary directions: a cold start with every knot's tangent
+            # at the goal direction measured 4x the ADMM iterations.
+            a_bar = u_bar[:, 0:3]
+            norm = _row_norms(a_bar)
+            near = norm > (0.5 if cuts_mode == "fresh" or self._acuts is None else 0.05) * c.a_max_mps2
+            adirs = np.where(near[:, None], a_bar / np.where(near, norm, 1.0)[:, None], 0.0)
+            if cuts_mode == "fresh" or self._acuts is None:
+                self._acuts = np.zeros((L.N, L.accel_cuts, 3))
+            elif cuts_mode == "shift":
+                shifted = np.empty_like(self._acuts)
+                shifted[:-1] = self._acuts[1:]
+                shifted[-1] = self._acuts[-1]
+                self._acuts = shifted
+            self._acuts[:, 0, :] = adirs
+            w[W["accel_dir"]] = self._acuts.ravel()
+
+    def _theta_and_warm(self) -> tuple[np.ndarray, np.ndarray]:
+        """``theta`` and the unscaled warm-start ``z`` of the current step inputs (NumPy)."""
+        from planning.mpc_qp import theta_and_warm_start
+
+        return theta_and_warm_start(self.layout, self._dl, self._w, self.config.dt_s)
 
     def _assemble_z(self, X, U, s) -> np.ndarray:
         L = self.layout
@@ -666,53 +857,101 @@ class Planner:
         z[L.n_x + L.n_u :] = s
         return z
 
-    def _solve(self, th, z_warm, y_warm, field, origin):
-        """Solve with speed refinement. Returns ``(status, z, iterations, solves, y)``.
+    def _solve(self, field, origin, deadline, y_warm=None, record: bool = False):
+        """Solve the problem in ``self._w`` with speed and acceleration refinement.
 
-        ``z`` is None when the solver failed; with ``UNSAFE`` (speed still above tolerance after
+        Returns ``(status, z, iterations, solves, y, theta, z_init)``; ``theta`` and the
+        unscaled warm start ``z_init`` only with ``record`` (else None). ``z`` is None when the
+        solver failed or ran out of time; with ``UNSAFE`` (speed still above tolerance after
         ``max_speed_refinements``) it is the last solution, which :meth:`converge` keeps
-        iterating from and :meth:`step` rejects.
+        iterating from and :meth:`step` rejects. An acceleration norm still above tolerance
+        after the refinements is not rejected: the command is scaled onto the ball.
         """
         c, L = self.config, self.layout
         K = L.speed_cuts
         iterations, solves = 0, 0
+        theta = z_init = None
         if self._nlp is not None:
-            sol = self._nlp.solve(th, ShiftedField(field, origin), z_warm)
+            theta, z_init = self._theta_and_warm()
+            sol = self._nlp.solve(theta, ShiftedField(field, origin), z_init)
             ok = sol.converged and np.all(np.isfinite(sol.z))
-            return (SolveStatus.SOLVED if ok else SolveStatus.NOT_CONVERGED), sol.z, sol.iterations, 1, None
-        bound = th[L.th_speed_bound]
+            return (SolveStatus.SOLVED if ok else SolveStatus.NOT_CONVERGED), sol.z, sol.iterations, 1, None, theta, z_init
+        qp = self._qp
+        O = self._dl.out
+        out = qp.data(self._w)
+        if record or self.record_problems:
+            theta = out[O["theta"]].copy()
+            z_init = out[O["z_warm"]] * qp._D
+        bound = self._w[self._dl.w["speed_bound"]]
         limit = bound * (1.0 + c.speed_tolerance_rel)
+        a_limit = c.a_max_mps2 * (1.0 + c.accel_tolerance_rel)
+        z_warm_scaled = out[O["z_warm"]]
+        update_vectors = True
+        sol = None
         for r in range(c.max_speed_refinements + 1):
-            sol = self._qp.solve(th, z_warm, y_warm)
+            if deadline is not None:
+                left = deadline - time.perf_counter()
+                if left <= 0:
+                    return SolveStatus.TIMEOUT, None, iterations, solves, None, theta, z_init
+                qp.set_time_limit(left)
+            elif qp._time_limit_s < 1e9:
+                qp.set_time_limit(0.0)
+            sol = qp.solve_data(out, z_warm_scaled, y_warm, update_vectors)
             iterations += sol.iterations
             solves += 1
-            if not np.all(np.isfinite(sol.z)):
-                return SolveStatus.FAILED, None, iterations, solves, None
+            if not np.isfinite(sol.z).all():
+                return SolveStatus.FAILED, None, iterations, solves, None, theta, z_init
             if "infeasible" in sol.status:
-                return SolveStatus.INFEASIBLE, None, iterations, solves, None
+                return SolveStatus.INFEASIBLE, None, iterations, solves, None, theta, z_init
+            if "time limit" in sol.status:
+                return SolveStatus.TIMEOUT, None, iterations, solves, None, theta, z_init
             if not sol.converged:
-                return SolveStatus.NOT_CONVERGED, None, iterations, solves, None
+                return SolveStatus.NOT_CONVERGED, None, iterations, solves, None, theta, z_init
             V = sol.z[self._idx_v1]
-            speed = np.linalg.norm(V, axis=1)
+            speed = _row_norms(V)
             bad = np.flatnonzero(speed > limit)
-            if bad.size == 0:
-                return SolveStatus.SOLVED, sol.z, iterations, solves, sol.y
-            # cutting plane at the violating directions (slot 0 stays the linearization)
+            bad_a = np.empty(0, dtype=int)
+            if self._norm_accel:
+                A = sol.z[self._idx_a]
+                a_norm = _row_norms(A)
+                bad_a = np.flatnonzero(a_norm > a_limit)
+            if bad.size == 0 and bad_a.size == 0:
+                return SolveStatus.SOLVED, sol.z, iterations, solves, sol.y, theta, z_init
+            if r == c.max_speed_refinements:
+                break
+            # cutting planes at the violating directions (slot 0 stays the linearization)
             slot = 1 + r % (K - 1) if K > 1 else 0
-            self._cuts[bad, slot, :] = V[bad] / speed[bad, None]
-            th[L.th_speed_dir] = self._cuts.ravel()
-            z_warm, y_warm = sol.z, sol.y
-        return SolveStatus.UNSAFE, sol.z, iterations, solves, sol.y
+            w, W = self._w, self._dl.w
+            if bad.size:
+                self._cuts[bad, slot, :] = V[bad] / speed[bad, None]
+                w[W["speed_dir"]] = self._cuts.ravel()
+            if bad_a.size:
+                Ka = L.accel_cuts
+                aslot = 1 + r % (Ka - 1) if Ka > 1 else 0
+                self._acuts[bad_a, aslot, :] = A[bad_a] / a_norm[bad_a, None]
+                w[W["accel_dir"]] = self._acuts.ravel()
+            out = qp.data(self._w)
+            update_vectors = False  # only A changed
+            z_warm_scaled, y_warm = sol.z / qp._D, sol.y
+        speed_ok = bool((_row_norms(sol.z[self._idx_v1]) <= limit).all())
+        status = SolveStatus.SOLVED if speed_ok else SolveStatus.UNSAFE
+        return status, sol.z, iterations, solves, sol.y, theta, z_init
 
-    def _check(self, X, U, origin, field, d0, bound):
-        """Speed within tolerance everywhere; clearance over the braking horizon."""
+    def _check(self, X, U, origin, field, d0, bound, pos_lo=None, pos_hi=None):
+        """Speed within tolerance everywhere; clearance over the braking horizon; knots inside
+        the position box (vehicle-centred frame) within ``safety_tolerance_m``."""
         c = self.config
-        speed = np.linalg.norm(X[1:, 3:6], axis=1)
+        speed = _row_norms(X[1:, 3:6])
         d_knots, _ = _query(field, X[1:, 0:3] + origin)
-        if np.any(speed > bound * (1.0 + c.speed_tolerance_rel)):
+        if (speed > bound * (1.0 + c.speed_tolerance_rel)).any():
             return False, float(d_knots.min()), d_knots
+        if pos_lo is not None and pos_lo is not self._pos_lo:
+            P = X[1:, 0:3]
+            tol = c.safety_tolerance_m
+            if (P < pos_lo - tol).any() or (P > pos_hi + tol).any():
+                return False, float(d_knots.min()), d_knots
         floor = min(c.d_safe_m, d0) - c.safety_tolerance_m
-        ok = bool(np.all(d_knots[: self._check_steps] >= floor))
+        ok = bool((d_knots[: self._check_steps] >= floor).all())
         return ok, float(d_knots.min()), d_knots
 
     def _braking_inputs(self, v0: np.ndarray) -> np.ndarray:

@@ -9,11 +9,24 @@ documented choice:
   from every obstacle surface.
 - ``horizon_steps = 40`` at ``dt_s = 0.1``: a 4 s horizon, longer than the 1 s stopping time
   at the default limits (0.6 / 0.6), so every plan can brake inside its own horizon.
-- The acceleration limit is **per axis** (``|a_i| <= a_max_mps2``, the convention of
-  Fast-Planner's feasibility check); the speed limit is on the **norm** ``||v|| <= v_max_mps``
-  (exact in the NLP; in the QP an outer polyhedral approximation, the tangent at the previous
-  direction plus cutting planes added until the true norm is within ``speed_tolerance_rel``,
-  see :mod:`planning.mpc_qp`).
+- The acceleration limit is on the **norm** ``||a|| <= a_max_mps2`` by default
+  (``accel_limit_mode = "norm"``): the paper's ``a_m`` bounds the norm, and so do the simulated
+  vehicle (:mod:`onfly.world.vehicle`) and the MAVLink bridge's feed-forward clip. ``"per_axis"``
+  keeps Fast-Planner's convention (``|a_i| <= a_max_mps2``, which lets the norm reach
+  ``sqrt(3) a_max``). The speed limit is on the **norm** ``||v|| <= v_max_mps``. Both norms are
+  exact in the NLP; in the QP each is an outer polyhedral approximation, the tangent at the
+  previous direction plus cutting planes added until the true norm is within
+  ``speed_tolerance_rel`` / ``accel_tolerance_rel`` (see :mod:`planning.mpc_qp`), and the
+  commanded acceleration is then scaled onto the ball, so the executed norm never exceeds
+  ``a_max_mps2``.
+- ``body_radius_m = 0.25``: the vehicle's radius with props; the operator flight volume
+  (:class:`planning.volume.FlightVolume`) is shrunk by it for plans, goals and guide paths.
+- Bounded step: the guide search visits at most ``guide_max_cells`` grid cells (the grid is
+  coarsened to fit; deterministic), and optionally stops refining when ``guide_time_budget_ms``
+  is spent (anytime: the finest completed level is the answer); a step that has used
+  ``step_time_budget_ms`` before or during its solve returns the shifted previous plan with
+  status ``timeout``. Both time budgets are 0 (off) by default so runs are reproducible
+  whatever the machine's load; set them on a vehicle (e.g. 30 and 80 ms at 10 Hz).
 - Cost weights (dimensionless ratios; only their ratios matter): the stage progress weight pulls
   every knot toward the goal, the terminal weights make the plan end at rest on the goal,
   ``w_accel`` / ``w_jerk`` keep commands small and smooth, ``w_yaw`` is the paper's
@@ -32,7 +45,10 @@ import tomllib
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
-__all__ = ["PlannerConfig", "PlannerConfigError"]
+__all__ = ["PlannerConfig", "PlannerConfigError", "ACCEL_LIMIT_MODES"]
+
+#: Values of :attr:`PlannerConfig.accel_limit_mode`.
+ACCEL_LIMIT_MODES = ("norm", "per_axis")
 
 
 class PlannerConfigError(ValueError):
@@ -48,7 +64,13 @@ class PlannerConfig:
     horizon_steps : int, number of control intervals N (default 40)
     dt_s : float, interval length in seconds (default 0.1; horizon 4 s)
     v_max_mps : float, speed norm limit, m/s (paper: 0.6)
-    a_max_mps2 : float, per-axis acceleration limit, m/s^2 (paper: 0.6)
+    a_max_mps2 : float, acceleration limit, m/s^2 (paper: 0.6), on the norm or per axis
+        (``accel_limit_mode``)
+    accel_limit_mode : ``"norm"`` (default, ``||a|| <= a_max``) or ``"per_axis"``
+        (``|a_i| <= a_max``, Fast-Planner's convention)
+    accel_tolerance_rel : relative tolerance on the acceleration norm after the QP (cuts are
+        added until it holds; the command is then scaled onto the ball exactly)
+    body_radius_m : vehicle radius with props, metres; the flight volume is shrunk by it
     yaw_rate_max_rps : float, yaw rate limit, rad/s (paper: 0.4)
     d_safe_m : float, minimum clearance of the body centre to obstacles, metres (0.25 m body
         radius + 0.2 m dilation)
@@ -85,6 +107,20 @@ class PlannerConfig:
     guide_preferred_clearance_m : edges through cells with less clearance cost more, metres
     guide_lookahead_m : arc length from the vehicle's nearest path point to the attractor
     guide_replan_period_s : least time between two searches while no valid path exists
+    guide_max_cells : node budget of the guide search: the grid is coarsened until it has at
+        most this many cells (deterministic bound on the search's work)
+    guide_time_budget_ms : time budget of the guide search, milliseconds (0 = none). With a
+        budget the search runs coarse-to-fine (4x, 2x, 1x ``guide_resolution_m``) and does not
+        start a level it predicts will not finish; the finest completed path is the answer
+    guide_floor_m, guide_ceiling_m : the guide search never goes below / above these heights,
+        metres, world ENU (None = no limit). With a flight volume its z-extent shrunk by
+        ``body_radius_m`` is used (intersected with these when both are set)
+    guide_unknown_blocked : cells the distance field reports as unknown (when it exposes
+        ``is_unknown(points)`` or ``known(points)``, as :class:`planning.esdf.EsdfMap` does)
+        are blocked for the guide search
+    step_time_budget_ms : wall-time budget of one step, milliseconds (0 = none): OSQP's time
+        limit is the budget left, and a step past it returns the shifted previous plan (status
+        ``timeout``; a braking plan if the shifted plan fails its check)
     qp_eps_abs, qp_eps_rel : OSQP tolerances (the problem is posed in a frame centred on the
         vehicle, so absolute tolerances do not depend on where in the world it flies)
     qp_max_iter : OSQP iteration cap; hitting it counts as a non-converged solve
@@ -104,6 +140,9 @@ class PlannerConfig:
     a_max_mps2: float = 0.6
     yaw_rate_max_rps: float = 0.4
     d_safe_m: float = 0.45
+    accel_limit_mode: str = "norm"
+    accel_tolerance_rel: float = 0.01
+    body_radius_m: float = 0.25
     w_goal: float = 1.0
     w_terminal_pos: float = 20.0
     w_terminal_vel: float = 20.0
@@ -129,6 +168,12 @@ class PlannerConfig:
     guide_preferred_clearance_m: float = 1.0
     guide_lookahead_m: float = 3.0
     guide_replan_period_s: float = 1.0
+    guide_max_cells: int = 60000
+    guide_time_budget_ms: float = 0.0
+    guide_floor_m: float | None = None
+    guide_ceiling_m: float | None = None
+    guide_unknown_blocked: bool = True
+    step_time_budget_ms: float = 0.0
     qp_eps_abs: float = 1e-3
     qp_eps_rel: float = 1e-3
     qp_max_iter: int = 1000
@@ -143,6 +188,12 @@ class PlannerConfig:
     def __post_init__(self) -> None:
         for f in fields(self):
             value = getattr(self, f.name)
+            if f.type in ("str", str):
+                if not isinstance(value, str):
+                    raise PlannerConfigError(f"{f.name} must be a string, got {value!r}")
+                continue
+            if f.type == "float | None" and value is None:
+                continue
             if f.type in ("int", int):
                 if isinstance(value, bool) or not isinstance(value, int):
                     raise PlannerConfigError(f"{f.name} must be an int, got {value!r}")
@@ -157,7 +208,7 @@ class PlannerConfig:
                 object.__setattr__(self, f.name, float(value))
         positive = (
             "dt_s", "v_max_mps", "a_max_mps2", "yaw_rate_max_rps", "d_safe_m", "w_goal",
-            "w_slack_l1", "w_slack_l2", "speed_tolerance_rel", "qp_eps_abs",
+            "w_slack_l1", "w_slack_l2", "speed_tolerance_rel", "accel_tolerance_rel", "qp_eps_abs",
             "qp_rho", "nlp_tol", "guide_resolution_m", "guide_lookahead_m",
         )
         for name in positive:
@@ -168,6 +219,7 @@ class PlannerConfig:
             "w_yaw_rate", "w_prox_accel", "goal_clearance_margin_m", "goal_search_max_m", "yaw_hold_radius_m",
             "safety_tolerance_m", "max_speed_refinements", "qp_adaptive_rho_interval", "qp_eps_rel",
             "guide_clearance_margin_m", "guide_preferred_clearance_m", "guide_replan_period_s",
+            "body_radius_m", "guide_time_budget_ms", "step_time_budget_ms",
         )
         for name in non_negative:
             if getattr(self, name) < 0:
@@ -176,13 +228,28 @@ class PlannerConfig:
             raise PlannerConfigError(f"horizon_steps must be >= 2, got {self.horizon_steps}")
         for name in (
             "qp_max_iter", "qp_check_termination", "nlp_max_iter", "speed_cuts_per_knot",
-            "cold_start_iterations",
+            "cold_start_iterations", "guide_max_cells",
         ):
             if getattr(self, name) < 1:
                 raise PlannerConfigError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.speed_tolerance_rel > 0.1:
+        for name in ("speed_tolerance_rel", "accel_tolerance_rel"):
+            if getattr(self, name) > 0.1:
+                raise PlannerConfigError(f"{name} must be <= 0.1, got {getattr(self, name)}")
+        if self.accel_limit_mode not in ACCEL_LIMIT_MODES:
             raise PlannerConfigError(
-                f"speed_tolerance_rel must be <= 0.1, got {self.speed_tolerance_rel}"
+                f"accel_limit_mode must be one of {ACCEL_LIMIT_MODES}, got {self.accel_limit_mode!r}"
+            )
+        if self.body_radius_m > self.d_safe_m:
+            raise PlannerConfigError(
+                f"body_radius_m ({self.body_radius_m}) must be <= d_safe_m ({self.d_safe_m})"
+            )
+        if (
+            self.guide_floor_m is not None
+            and self.guide_ceiling_m is not None
+            and self.guide_floor_m >= self.guide_ceiling_m
+        ):
+            raise PlannerConfigError(
+                f"guide_floor_m ({self.guide_floor_m}) must be below guide_ceiling_m ({self.guide_ceiling_m})"
             )
 
     @property

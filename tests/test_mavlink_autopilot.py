@@ -30,7 +30,7 @@ FAST = OffboardConfig(prestream_s=0.35, state_timeout_s=3.0, confirm_timeout_s=2
 def make_rig(autopilot, **vehicle_kw):
     a, b = memory_link_pair(1, 191, 1, 1)
     # Stiff gains keep flights short in wall time; the sequencing is what these tests check.
-    vcfg = dict(autopilot=autopilot, heartbeat_period_s=0.2, offboard_prestream_s=0.3, takeoff_speed_mps=3.0,
+    vcfg = dict(autopilot=autopilot, heartbeat_period_s=0.2,
                 k_pos=4.0, k_vel=8.0, a_max_mps2=8.0)
     vcfg.update(vehicle_kw)
     vehicle = SimMavlinkVehicle(b, SimVehicleConfig(**vcfg)).start()
@@ -95,10 +95,12 @@ def test_px4_refuses_offboard_without_a_stream(px4):
 
 
 def test_px4_engage_failure_stops_the_stream():
-    # The vehicle wants 1.5 s of stream; the session only waits 0.4 s -> OFFBOARD refused.
-    bridge, vehicle = make_rig("px4", offboard_prestream_s=1.5)
+    # The estimator has no position: the pre-arm check refuses arming (FAILED), the stream stops.
+    bridge, vehicle = make_rig("px4")
     try:
-        with pytest.raises(CommandRejectedError, match="DO_SET_MODE rejected"):
+        bridge.wait_for_state(2.0)
+        vehicle.set_position_valid(False)
+        with pytest.raises(CommandRejectedError, match="COMPONENT_ARM_DISARM rejected by the vehicle: MAV_RESULT_FAILED"):
             Px4Offboard(bridge, FAST).engage()
         assert not bridge.streaming
         n = vehicle.setpoints_received

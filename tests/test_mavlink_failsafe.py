@@ -79,17 +79,14 @@ LOSS_TIMEOUT_S = 0.5  # the vehicle's COM_OF_LOSS_T in these tests
 NOTICE_BOUND_S = 0.5  # the issue's bound for the companion
 
 
-@pytest.fixture
-def flight():
+def engaged_flight(**vehicle_kw):
     """Bridge (udpin) <-> simulated PX4 (udpout) on 127.0.0.1, engaged in OFFBOARD, hovering at 1 m."""
     bridge_link = MavlinkLink("udpin:127.0.0.1:0", 1, 191)
     bridge_link.connect()
     port = bridge_link.local_address[1]
-    vehicle = SimMavlinkVehicle(
-        MavlinkLink(f"udpout:127.0.0.1:{port}", 1, 1),
-        SimVehicleConfig(heartbeat_period_s=0.2, offboard_prestream_s=0.25, offboard_loss_timeout_s=LOSS_TIMEOUT_S,
-                         k_pos=4.0, k_vel=8.0, a_max_mps2=8.0),
-    ).start()
+    cfg = dict(heartbeat_period_s=0.2, offboard_loss_timeout_s=LOSS_TIMEOUT_S, k_pos=4.0, k_vel=8.0, a_max_mps2=8.0)
+    cfg.update(vehicle_kw)
+    vehicle = SimMavlinkVehicle(MavlinkLink(f"udpout:127.0.0.1:{port}", 1, 1), SimVehicleConfig(**cfg)).start()
     bridge = MavlinkBridge(bridge_link, BridgeConfig(failsafe=FailsafeConfig(odometry_max_age_s=0.3, link_timeout_s=0.3, vlm_hold_after_s=0.6))).start()
     bridge.wait_for_vehicle(3.0)
     Px4Offboard(bridge, OffboardConfig(prestream_s=0.3)).engage()
@@ -101,9 +98,44 @@ def flight():
     bridge.set_trajectory(Trajectory(bridge.clock(), dt, p, v, np.zeros(n + 1), np.zeros((n, 3)), np.zeros(n)))
     time.sleep(0.8)
     assert vehicle.mode_name == "offboard" and vehicle.position_enu()[2] > 0.8
+    return bridge, vehicle
+
+
+@pytest.fixture
+def flight():
+    bridge, vehicle = engaged_flight()
     yield bridge, vehicle
     bridge.stop()
     vehicle.stop()
+
+
+@pytest.mark.parametrize("profile, params, reaction", [
+    ("outdoor", (), "fallback loiter"),  # PX4's default Position mode needs an RC link this vehicle lacks: Hold
+    ("indoor", (("COM_OBL_RC_ACT", 4),), "land"),  # configured to land: lands and disarms (COM_DISARM_LAND)
+])
+def test_cut_link_the_vehicle_reacts_as_configured(profile, params, reaction):
+    bridge, vehicle = engaged_flight(profile=profile, params=params, telemetry_rate_hz=50.0)
+    try:
+        t_cut = time.monotonic()
+        vehicle.set_link_cut(True)
+        time.sleep(LOSS_TIMEOUT_S + 0.3)
+        lost = next(text for t, text in vehicle.events if text.startswith("mode") and "offboard lost" in text)
+        assert vehicle.first_event("mode") is not None and vehicle.armed
+        if reaction == "land":
+            assert lost.startswith("mode auto.land") and lost.endswith("Land")
+            deadline = time.monotonic() + 10.0
+            while vehicle.armed and time.monotonic() < deadline:
+                time.sleep(0.1)
+            assert not vehicle.armed and vehicle.position_enu()[2] < 0.02  # landed, then COM_DISARM_LAND
+            assert vehicle.first_event("disarmed: landed") - t_cut > 2.0
+        else:
+            assert lost.startswith("mode auto.loiter") and lost.endswith("-> fallback loiter")
+            p = vehicle.position_enu()
+            time.sleep(0.3)
+            assert np.linalg.norm(vehicle.position_enu() - p) < 0.1 and vehicle.mode_name == "auto.loiter"
+    finally:
+        bridge.stop()
+        vehicle.stop()
 
 
 def test_cut_link_vehicle_holds_within_loss_timeout_and_companion_notices_within_half_a_second(flight):

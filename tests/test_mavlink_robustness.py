@@ -61,7 +61,7 @@ def loopback(autopilot="px4"):
     port = bridge_link.local_address[1]
     vehicle = SimMavlinkVehicle(
         MavlinkLink(f"udpout:127.0.0.1:{port}", 1, 1),
-        SimVehicleConfig(autopilot=autopilot, heartbeat_period_s=0.2, offboard_prestream_s=0.3, offboard_loss_timeout_s=0.5),
+        SimVehicleConfig(autopilot=autopilot, heartbeat_period_s=0.2, offboard_loss_timeout_s=0.5),
     ).start()
     bridge = MavlinkBridge(bridge_link, BridgeConfig()).start()
     bridge.wait_for_vehicle(3.0)

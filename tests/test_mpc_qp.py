@@ -18,12 +18,16 @@ def qp() -> MpcQp:
     return MpcQp(MpcFormulation(SMALL))
 
 
-def random_theta(layout, rng) -> np.ndarray:
+def random_theta(layout, rng, volume: bool = True) -> np.ndarray:
     N = layout.N
     g = rng.normal(size=(N, 3))
     g /= np.linalg.norm(g, axis=1, keepdims=True)
     sd = rng.normal(size=(N, layout.speed_cuts, 3))
     sd /= np.linalg.norm(sd, axis=2, keepdims=True)
+    ad = rng.normal(size=(N, layout.accel_cuts, 3))
+    ad /= np.linalg.norm(ad, axis=2, keepdims=True)
+    lo = -rng.uniform(1.0, 5.0, size=3) if volume else None
+    hi = rng.uniform(1.0, 5.0, size=3) if volume else None
     return layout.pack_theta(
         x0=rng.normal(size=NX),
         goal=rng.normal(size=3) * 3,
@@ -34,6 +38,9 @@ def random_theta(layout, rng) -> np.ndarray:
         speed_dir=sd,
         speed_bound=rng.uniform(0.6, 1.0, size=N),
         a_bar=rng.normal(size=(N, 3)) * 0.2,
+        accel_dir=ad,
+        pos_lo=lo,
+        pos_hi=hi,
     )
 
 
@@ -78,23 +85,29 @@ def test_constraint_data_reproduce_the_casadi_constraints(qp):
     rng = np.random.default_rng(2)
     form = qp.formulation
     L = form.layout
-    for _ in range(5):
-        th = random_theta(L, rng)
+    for i in range(6):
+        th = random_theta(L, rng, volume=i % 2 == 0)
         z = rng.normal(size=L.n_z)
         A = qp.constraint_matrix(th)
         _, l, u = qp.vectors(th)
         lbz, ubz = (np.array(b).ravel() for b in form.z_bounds(th))
+        # the flight-volume rows come last and are scaled by pos_active (0 without a volume)
+        row_scale = np.ones(qp.bounded_z.size)
+        row_scale[-3 * L.N :] = th[L.th_pos_active]
         G = np.concatenate(
             [
                 np.array(form.dynamics(z, th)).ravel(),
                 np.array(form.clearance_linear(z, th)).ravel(),
                 np.array(form.speed_linear(z, th)).ravel(),
-                z[qp.bounded_z],
+                np.array(form.accel_linear(z, th)).ravel(),
+                row_scale * z[qp.bounded_z],
             ]
         )
-        n_dyn, N, K = NX * (L.N + 1), L.N, L.speed_cuts
-        lower = np.concatenate([np.zeros(n_dyn), np.zeros(N), np.full(N * K, -np.inf), lbz[qp.bounded_z]])
-        upper = np.concatenate([np.zeros(n_dyn), np.full(N, np.inf), np.zeros(N * K), ubz[qp.bounded_z]])
+        n_dyn, N, K, Ka = NX * (L.N + 1), L.N, L.speed_cuts, L.accel_cuts
+        lower = np.concatenate(
+            [np.zeros(n_dyn), np.zeros(N), np.full(N * (K + Ka), -np.inf), lbz[qp.bounded_z]]
+        )
+        upper = np.concatenate([np.zeros(n_dyn), np.full(N, np.inf), np.zeros(N * (K + Ka)), ubz[qp.bounded_z]])
         Az = A @ z
         fin_l, fin_u = np.isfinite(lower), np.isfinite(upper)
         np.testing.assert_allclose((Az - l)[fin_l], (G - lower)[fin_l], atol=1e-10)
@@ -189,5 +202,5 @@ def test_sparsity_is_fixed_by_construction(qp):
     np.testing.assert_array_equal(A1.indptr, A2.indptr)
     np.testing.assert_array_equal(A1.indices, A2.indices)
     assert not np.allclose(A1.data, A2.data)
-    # only clearance gradients and speed directions move: 3 N + 3 N K values
-    assert np.count_nonzero(A1.data != A2.data) <= 3 * L.N + 3 * L.N * L.speed_cuts
+    # only clearance gradients and speed and acceleration directions move: 3 N (1 + K + Ka)
+    assert np.count_nonzero(A1.data != A2.data) <= 3 * L.N * (1 + L.speed_cuts + L.accel_cuts)

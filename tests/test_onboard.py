@@ -3,6 +3,7 @@ times, no sleeping), and one real-time flight of the real pilot through the real
 simulated PX4 in the embedded world, where the VLM dies mid-flight and then the RC pilot takes
 over."""
 
+import dataclasses
 import threading
 import time
 from types import SimpleNamespace
@@ -65,6 +66,10 @@ class FakeBridge:
         self.handed = []  # (t, trajectory) given by set_trajectory
         self.commands = []
         self.reader = SimpleNamespace(attitude=lambda: np.eye(3))
+        self.T_local_world = np.eye(4)
+
+    def attitude(self):
+        return np.eye(3)
 
     def wait_for_vehicle(self, timeout_s):
         return self.status()
@@ -112,9 +117,13 @@ class FakeSession:
 
     def __init__(self):
         self.engaged = False
+        self.expected = []
 
     def engage(self):
         self.engaged = True
+
+    def expect(self, predicate, why):
+        self.expected.append(why)
 
 
 def hold_plan(t, p):
@@ -193,11 +202,14 @@ def test_the_loop_ticks_at_10_hz_on_its_clock_and_hands_every_plan_to_the_bridge
     # 20 mission ticks up to the STOP at 2.0 s, then 5 ticks of the finished pilot holding
     assert times[0] == pytest.approx(t_begin + 0.1) and times[-1] == pytest.approx(t_begin + 2.5) and len(times) == 25
     assert sum(t <= t_begin + 2.0 + 1e-9 for t in times) == 20
-    handed = [(t, tr) for t, tr in bridge.handed if t > t_begin]
+    handed = [(t, tr) for t, tr in bridge.handed if t > t_begin and tr is not None]
     assert [t for t, _ in handed] == list(times) and all(tr.t0_s == t for t, tr in handed)
-    # STOP -> hold 0.5 s (the finished pilot's plans keep streaming) -> hand the hover to PX4
+    # STOP -> hold 0.5 s (the finished pilot's plans keep streaming) -> our own HOLD setpoint, then
+    # PX4 is switched to Hold (AUTO.LOITER) before the stream ends: never left to the loss failsafe
     assert summary.end_reason == "finished" and summary.flight_time_s == pytest.approx(2.0)
     assert not bridge.streaming and not bridge.released
+    assert bridge.handed[-1][1] is None and [(c, p) for _, c, p in bridge.commands] == [
+        (M.MAV_CMD_DO_SET_MODE, (M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, PX4_MAIN["auto"], PX4_AUTO_SUB["loiter"]))]
     kinds = [e["kind"] for e in summary.events]
     assert kinds == ["connect", "engage", "engaged", "begin", "mission_end", "hold", "handover_hold"]
     assert summary.loop["overruns"] == 0 and summary.loop["paused_ticks"] == 0
@@ -327,33 +339,113 @@ def test_time_limit_and_lost_link_end_the_mission():
     assert 0.5 < end["data"]["lost_for_s"] <= 0.6 + 1e-6  # the first tick after link_lost_abort_s
 
 
-def test_landing_hands_over_to_px4_auto_land_and_waits_for_the_disarm():
-    clock = FakeClock()
+def _landing_flight(clock, esdf=None, p0=(0.0, 0.0, 1.5)):
+    pilot = FakePilot(finish_after_s=0.5)
+    if esdf is not None:
+        pilot.esdf = esdf
+    session = FakeSession()
     f, bridge, pilot, _ = flight(clock=clock, config=OnboardConfig(takeoff_alt_m=0.0, on_finish="land", hold_after_finish_s=0.3),
-                                 pilot=FakePilot(finish_after_s=0.5))
+                                 pilot=pilot, p0=p0, session=session)
 
     def land(cmd, params):
         bridge.commands.append((clock.t, cmd, tuple(params)))
-        clock.at(clock.t + 1.0, lambda: setattr(bridge, "armed", False))
+
+        def touchdown():
+            here = bridge.state().p
+            bridge.traj, bridge.p, bridge.armed = None, np.array([here[0], here[1], 0.0]), False
+        clock.at(clock.t + 1.0, touchdown)
+
+    bridge.command = land
+    return f, bridge, session
+
+
+def test_landing_descends_under_the_planner_then_commands_nav_land_and_waits_for_the_disarm():
+    clock = FakeClock()
+    f, bridge, session = _landing_flight(clock)
+    summary = f.run()
+    # a commanded landing is a hand-over, not a takeover: the bridge is not released
+    assert not bridge.released and session.expected == ["commanded landing"]
+    (t_cmd, cmd, params), = bridge.commands
+    assert cmd == M.MAV_CMD_NAV_LAND and not bridge.streaming
+    site = next(e for e in summary.events if e["kind"] == "land_site")
+    assert site["data"]["found_by"] == "no_map"
+    # the descent to the hand-over height was ours (planned setpoints), the autopilot lands the last 0.7 m
+    land = next(e for e in summary.events if e["kind"] == "land")
+    assert land["data"]["height_m"] == pytest.approx(0.7, abs=0.15)
+    landed = next(e for e in summary.events if e["kind"] == "landed")
+    assert 1.0 <= landed["data"]["duration_s"] <= 1.1
+    assert summary.landed and not summary.crashed and not any(x["cause"] == "pilot_takeover" for x in summary.failsafes)
+
+
+class BoxField:
+    """A distance field with one box obstacle (a parked car) on flat ground: ``is_free`` as EsdfMap's."""
+
+    def __init__(self, lo, hi):
+        self.lo, self.hi = np.asarray(lo, float), np.asarray(hi, float)
+
+    def query(self, points):
+        P = np.asarray(points, float)
+        return np.linalg.norm(np.maximum(np.maximum(self.lo - P, P - self.hi), 0.0), axis=1), np.zeros_like(P)
+
+    def is_free(self, points, margin_m=0.0):
+        return self.query(points)[0] > margin_m
+
+
+def test_landing_moves_off_an_obstacle_under_the_stopping_point():
+    clock = FakeClock()
+    car = BoxField([-1.0, -1.5, -1.0], [1.0, 1.5, 1.35])  # a car right below the stopping point (0, 0, 1.5)
+    f, bridge, session = _landing_flight(clock, esdf=car, p0=(0.0, 0.0, 2.5))
+    site, how = f.landing_site(np.array([0.0, 0.0, 2.5]))
+    assert how == "map" and not car.is_free(np.array([[0.0, 0.0, 1.0]]), 0.6)[0]
+    column = np.column_stack([np.full(9, site[0]), np.full(9, site[1]), np.linspace(0.3, 2.5, 9)])
+    assert car.is_free(column, 0.6).all() and np.linalg.norm(site[:2]) <= 1.0 + 0.6 + 0.5 + 1e-9  # the nearest clear column
+    summary = f.run()
+    land = next(e for e in summary.events if e["kind"] == "land")
+    touchdown = next(e for e in summary.events if e["kind"] == "landed")["data"]["position_m"]
+    assert car.is_free(np.array([[touchdown[0], touchdown[1], 0.5]]), 0.5)[0]  # not on the car
+    assert land["data"]["height_m"] == pytest.approx(0.7, abs=0.15) and summary.landed and not summary.crashed
+
+
+def test_a_disarm_in_the_air_during_the_landing_is_a_crash():
+    clock = FakeClock()
+    f, bridge, session = _landing_flight(clock)
+
+    def land(cmd, params):
+        bridge.commands.append((clock.t, cmd, tuple(params)))
+        clock.at(clock.t + 0.3, lambda: setattr(bridge, "armed", False))  # disarmed at 0.7 m: it hit something
 
     bridge.command = land
     summary = f.run()
-    assert bridge.released and "landing" in bridge.release_reason
-    assert [(c, p) for _, c, p in bridge.commands] == [(M.MAV_CMD_DO_SET_MODE, (M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, PX4_MAIN["auto"], PX4_AUTO_SUB["land"]))]
-    landed = next(e for e in summary.events if e["kind"] == "landed")
-    assert 1.0 <= landed["data"]["duration_s"] <= 1.1
+    assert summary.crashed and not summary.landed
+    assert any(e["kind"] == "disarmed_in_the_air" for e in summary.events)
 
 
-def test_pose_source_combines_the_bridge_position_and_attitude():
+def test_pose_source_gives_the_local_pose_and_the_flight_reposes_frames_in_its_world():
     clock = FakeClock()
     bridge = FakeBridge(clock, (1.0, 2.0, 3.0))
     R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    bridge.reader = SimpleNamespace(attitude=lambda: R)
-    T = pose_source(bridge)()
+    bridge.reader = SimpleNamespace(attitude=lambda: R, state=bridge.state)
+    T = pose_source(bridge)()  # the estimator's local frame, as the autopilot reports it
     np.testing.assert_allclose(T[:3, :3], R)
     np.testing.assert_allclose(T[:3, 3], [1.0, 2.0, 3.0])
-    bridge.reader = SimpleNamespace(attitude=lambda: None)
+    bridge.reader = SimpleNamespace(attitude=lambda: None, state=bridge.state)
     assert pose_source(bridge)() is None
+    # a flight anchored 5 m east of the local origin, turned 90 deg: a frame at local (6, 0, 1) is at world (0, -1, 1)
+    f = flight(clock=clock)[0]
+    T_local_world = np.eye(4)
+    T_local_world[:3, :3] = R
+    T_local_world[:3, 3] = [5.0, 0.0, 0.0]
+    f.bridge.T_local_world = T_local_world
+    T_local_cam = np.eye(4)
+    T_local_cam[:3, 3] = [6.0, 0.0, 1.0]
+    out = f.to_world(FramePose(T_local_cam))
+    np.testing.assert_allclose(out.T_world_cam[:3, 3], [0.0, -1.0, 1.0], atol=1e-12)
+    np.testing.assert_allclose(out.T_world_cam[:3, :3], R.T, atol=1e-12)
+
+
+@dataclasses.dataclass(frozen=True)
+class FramePose:
+    T_world_cam: np.ndarray
 
 
 # -- real time: real pilot, real bridge, simulated PX4 in the embedded world --------------------------
@@ -399,9 +491,9 @@ def test_vlm_dies_mid_flight_the_flight_holds_then_a_takeover_stops_the_companio
     clock = MonotonicClock()
     model = WorldVehicleModel.from_scene("urban_block", position_m=[1.0, -24.0, 1.5], yaw_rad=np.deg2rad(75))
     comp, veh = memory_link_pair(1, 191, 1, 1)
-    vehicle = SimMavlinkVehicle(veh, SimVehicleConfig(heartbeat_period_s=0.2, offboard_prestream_s=0.3), model=model).start()
+    vehicle = SimMavlinkVehicle(veh, SimVehicleConfig(heartbeat_period_s=0.2), model=model).start()
     bridge = MavlinkBridge(comp, BridgeConfig(failsafe=FailsafeConfig(vlm_hold_after_s=1.0)), clock=clock.now_s).start()
-    camera = CameraFeed(PolledSource(model.observe, 0.5, clock), clock=clock.now_s).start()
+    camera = CameraFeed(PolledSource(lambda: vehicle.observation_in_local(model.observe()), 0.5, clock), clock=clock.now_s).start()
     backend = DyingBackend(SimulatedVlm("perfect", seed=0), die_after=3)
     runtime = ThreadRuntime(clock.now_s)  # answers land at once: the test is about the failure, not the latency
     pilot = OnFlyPilot(PilotConfig(goal_timeout_s=1.5), backend, runtime)
@@ -447,7 +539,9 @@ def test_vlm_dies_mid_flight_the_flight_holds_then_a_takeover_stops_the_companio
     assert [x["cause"] for x in summary.failsafes if x["cause"] == "vlm_silent"] == ["vlm_silent"]  # held until the end
     assert holding and all(s.kind is SetpointKind.HOLD for s in holding)
     # braking from up to 0.6 m/s at 0.6 m/s^2 onto the captured hold point: slow and close to it 3 s after the death
-    assert v_now < 0.2 and np.linalg.norm(p_hold - holding[-1].p) < 0.35
+    T_world_scene = np.linalg.inv(bridge.T_local_world) @ vehicle.T_local_scene  # the pilot's frame is anchored at the start
+    p_hold_world = T_world_scene[:3, :3] @ p_hold + T_world_scene[:3, 3]
+    assert v_now < 0.2 and np.linalg.norm(p_hold_world - holding[-1].p) < 0.35
     assert model.collision is None and vehicle.mode_name == "posctl"  # pilot_takeover() switched to POSCTL
     # the takeover: noticed within a heartbeat period, no command after it, the pilot kept running
     assert summary.end_reason == "takeover" and 0.0 <= f.t_takeover_s - t_takeover <= 0.2 + 0.15

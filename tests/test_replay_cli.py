@@ -94,7 +94,7 @@ def test_not_a_recording_is_one_line(tmp_path, capsys):
         (["--every", "0"], "--every must be a positive integer"),
         (["--future-pose-s", "-1"], "--future-pose-s must be a positive number"),
         (["--intrinsics", "585,585,320"], "--intrinsics (fx,fy,cx,cy) must be 4"),
-        (["--depth-topic", "/depth"], "option(s) depth_topic do not apply to a tum source"),
+        (["--depth-topic", "/depth"], "option(s) --depth-topic do not apply to a tum source"),
         (["--vlm", "gpt4"], "vlm must be a backend spec"),
         (["--instruction", "go", "--vlm", "tiny:llama"], "tiny model family must be one of"),
     ],
@@ -114,7 +114,7 @@ def test_unreachable_vlm_server_is_one_line(capsys):
     _one_line_error(
         capsys,
         ["replay", str(KITCHEN), "--instruction", "fly to the kettle", "--vlm", "http:127.0.0.1:9", "--no-progress"],
-        "VLM backend 'http:127.0.0.1:9': connection refused",
+        "--vlm: VLM backend 'http:127.0.0.1:9' cannot be reached: connection refused",
     )
 
 

@@ -155,3 +155,27 @@ def test_the_documented_example_loads(tmp_path):
     s = load_scene(write(tmp_path, example, "driveway.toml"))
     assert s.name == "driveway" and [o.name for o in s.targets] == ["red van", "blue van", "garage"]
     assert s.label_ids["van"] == 3
+
+
+def test_materials_on_objects_and_parts_and_the_indoor_flag(tmp_path):
+    text = VALID.replace('aliases = ["red vehicle"]', 'aliases = ["red vehicle"]\nmaterial = "dark"').replace(
+        "color = [10, 20, 30] }", 'color = [10, 20, 30], material = "glass" }').replace('description = "two objects"', 'description = "two objects"\nindoor = true')
+    scene = load_scene(write(tmp_path, text))
+    van, ground = scene.object_by_name("red van"), scene.object_by_name("ground")
+    assert scene.indoor and load_scene(write(tmp_path, VALID, "plain.toml")).indoor is False
+    assert van.material == "dark" and ground.material == "opaque"
+    assert [van.part_material(p) for p in van.parts] == ["dark", "glass"]
+
+
+@pytest.mark.parametrize(
+    "old, new, pattern",
+    [
+        ('aliases = ["red vehicle"]', 'aliases = ["red vehicle"]\nmaterial = "velvet"', r"object 'red van': field 'material': unknown material 'velvet' \(known: opaque, glass, mirror, dark\)"),
+        ("color = [10, 20, 30] }", "color = [10, 20, 30], material = 3 }", r"object 'red van': field 'parts\[1\]\.material': unknown material 3"),
+        ('description = "two objects"', 'description = "two objects"\nindoor = "yes"', r"field 'indoor': expected true or false"),
+    ],
+)
+def test_bad_materials_name_the_field(tmp_path, old, new, pattern):
+    assert old in VALID
+    with pytest.raises(SceneFormatError, match=pattern):
+        load_scene(write(tmp_path, VALID.replace(old, new, 1)))

@@ -123,3 +123,19 @@ def test_every_target_is_reachable_through_free_space_from_the_start(world):
         lo, hi = world.geometry.object_bounds(o.instance_id)
         d = np.linalg.norm(np.maximum(np.maximum(lo - R, 0.0), R - hi), axis=1).min()
         assert d <= 3.0, f"{o.name}: nearest reachable free voxel is {d:.1f} m away"
+
+
+def test_committed_scenes_carry_the_materials_a_depth_camera_misses():
+    from onfly.world.scene import load_scene, resolve_scene
+
+    scenes = {name: load_scene(resolve_scene(name)) for name in EXPECTED}
+    urban = scenes["urban_block"]
+    assert urban.object_by_name("glass door").material == "glass"
+    assert urban.object_by_name("glass office tower").material == "mirror"  # a mirror-like facade
+    assert scenes["villa"].object_by_name("glass door").material == "glass"
+    assert scenes["corridor"].object_by_name("window at the end of the corridor").material == "glass"
+    assert scenes["factory_hall"].object_by_name("conveyor belt").material == "dark"
+    # van and car windscreens are glass, tyres and forklift masts dark
+    van = urban.object_by_name("red van")
+    assert {van.part_material(p) for p in van.parts} == {"opaque", "glass", "dark"}
+    assert {n for n, s in scenes.items() if s.indoor} == {"factory_hall", "corridor", "warehouse"}

@@ -14,7 +14,16 @@ from onfly.bench.episode import EpisodeConfig, run_episode
 from onfly.bench.metrics import GoalRegion
 from onfly.bench.onfly_method import OnFlyMethod, ablation_config
 from onfly.pilot import OnFlyPilot, PilotConfig, PilotMode
-from onfly.search import Search, SearchConfig, SearchConfigError, SearchPhase, SearchTrigger, explore_target
+from onfly.search import (
+    Search,
+    SearchConfig,
+    SearchConfigError,
+    SearchPhase,
+    SearchTrigger,
+    explore_target,
+    open_heading,
+    side_to_look,
+)
 from onfly.world.scene import parse_scene
 from onfly.world.world import World
 from planning.analytic_field import AnalyticField, Box, HalfSpace
@@ -163,6 +172,42 @@ def test_visited_places_are_avoided():
     target = explore_target(p, 0.0, f, config=SearchConfig(), volume=None, volume_margin_m=0.45, visited=visited, z_m=1.5)
     assert target is not None
     assert abs(wrap_angle(np.arctan2(target[1], target[0]))) > 2.5  # the unvisited sector behind
+
+
+def test_a_dead_end_reverses_the_heading_to_keep_and_an_open_way_keeps_it():
+    f = pocket_field()
+    # inside the pocket facing its end wall: back out
+    assert open_heading(np.array([3.0, 0.0, 1.5]), 0.0, f, clearance_m=0.45) == pytest.approx(math.pi)
+    # at the pocket's mouth facing out: keep going
+    assert open_heading(np.array([0.5, 0.0, 1.5]), math.pi, f, clearance_m=0.45) == pytest.approx(math.pi)
+    # a narrow obstacle right ahead with free space 45 deg to the side: the route goes on past it
+    post = AnalyticField(boxes=[Box(center=[1.2, 0.0, 1.5], half_extents=[0.2, 0.3, 2.0])])
+    assert open_heading(np.zeros(3) + [0, 0, 1.5], 0.0, post, clearance_m=0.45) == pytest.approx(0.0)
+
+
+def test_after_a_leg_the_side_with_unknown_space_is_looked_at():
+    free = AnalyticField(half_spaces=[HalfSpace(point=[0, 0, 0], normal=[0, 0, 1])])
+    cfg = SearchConfig()
+    # known everywhere but y > 1: the left side (yaw 0 -> +90 deg)
+    f = KnownField(free, [-50, -50, -1], [50, 1.0, 10])
+    assert side_to_look(np.array([0, 0, 1.5]), 0.0, f, config=cfg, volume=None) == pytest.approx(math.pi / 2)
+    # nothing unknown: no look
+    f_all = KnownField(free, [-50, -50, -1], [50, 50, 10])
+    assert side_to_look(np.array([0, 0, 1.5]), 0.0, f_all, config=cfg, volume=None) is None
+    # the unknown side lies outside the flight volume: nothing to find there
+    vol = FlightVolume(np.array([-20.0, -20.0, 0.0]), np.array([20.0, 0.5, 5.0]))
+    assert side_to_look(np.array([0, 0, 1.5]), 0.0, f, config=cfg, volume=vol) is None
+
+
+def test_travel_heading_is_the_recent_displacement():
+    s = Search(SearchConfig())
+    for k in range(30):
+        s.remember(k * 0.2, np.array([0.0, -0.1 * k, 1.0]))  # flying toward -y
+    assert s.travel_heading(5.8) == pytest.approx(-math.pi / 2)
+    still = Search(SearchConfig())
+    for k in range(30):
+        still.remember(k * 0.2, np.array([0.0, 0.0, 1.0]))
+    assert still.travel_heading(5.8) is None
 
 
 # -- closed loop ------------------------------------------------------------------------------

@@ -3,6 +3,7 @@ model's limits, the loopback camera channel, and the `onfly sim-vehicle` command
 
 import argparse
 import socket
+import struct
 import threading
 import time
 
@@ -77,8 +78,8 @@ class Companion:
 def rig(**kw):
     a, b = memory_link_pair(1, 191, 1, 1)
     # Stiff gains: these tests are about the rules, not the dynamics (kept short in wall time).
-    cfg = dict(heartbeat_period_s=0.2, offboard_prestream_s=0.3, offboard_loss_timeout_s=0.3, guided_timeout_s=0.5,
-               takeoff_speed_mps=3.0, k_pos=4.0, k_vel=8.0, a_max_mps2=8.0)
+    cfg = dict(heartbeat_period_s=0.2, offboard_loss_timeout_s=0.3, guided_timeout_s=0.5,
+               k_pos=4.0, k_vel=8.0, a_max_mps2=8.0)
     cfg.update(kw)
     vehicle = SimMavlinkVehicle(b, SimVehicleConfig(**cfg)).start()
     return Companion(a), vehicle
@@ -155,20 +156,19 @@ def test_heartbeat_and_telemetry_rates_and_ids(px4):
 def test_px4_offboard_rules(px4):
     c, v = px4
     assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
-    assert c.command(M.MAV_CMD_DO_SET_MODE, 1, 6) == M.MAV_RESULT_TEMPORARILY_REJECTED
-    c.stream([0, 0, 1.0], 0.15)  # too short a stream
-    assert c.command(M.MAV_CMD_DO_SET_MODE, 1, 6) == M.MAV_RESULT_TEMPORARILY_REJECTED
-    c.stream([0, 0, 1.0], 0.4)
+    assert c.command(M.MAV_CMD_DO_SET_MODE, 1, 6) == M.MAV_RESULT_TEMPORARILY_REJECTED  # no setpoint yet
+    c.setpoint([0, 0, 1.0])  # one recent setpoint is enough (COM_OF_LOSS_T), no pre-stream duration
+    time.sleep(0.02)
     assert c.command(M.MAV_CMD_DO_SET_MODE, 1, 6) == M.MAV_RESULT_ACCEPTED
     c.stream([0, 0, 1.0], 1.0)
     assert v.mode_name == "offboard" and v.position_enu()[2] == pytest.approx(1.0, abs=0.1)
     # in the air: disarm refused unless forced
     assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 0) == M.MAV_RESULT_DENIED
-    # stream stops -> AUTO.LOITER after the loss timeout, holding position
-    t_stop = time.monotonic()
+    # stream stops -> COM_OBL_RC_ACT after COM_OF_LOSS_T: the indoor setting's Hold (AUTO.LOITER)
+    assert v.setpoint_times
     time.sleep(0.6)
     t_lost = v.first_event("mode auto.loiter: offboard lost")
-    assert t_lost is not None and 0.3 - 0.06 <= t_lost - t_stop <= 0.3 + 0.1
+    assert t_lost is not None and 0.3 <= t_lost - v.setpoint_times[-1] <= 0.3 + 0.1  # COM_OF_LOSS_T after the last setpoint
     assert v.position_enu()[2] == pytest.approx(1.0, abs=0.15)
     last_hb = c.of_type("HEARTBEAT")[-1][1]
     assert px4_main_mode(last_hb.custom_mode) == PX4_MAIN["auto"] and last_hb.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED
@@ -179,7 +179,8 @@ def test_px4_offboard_rules(px4):
         c.setpoint([9.0, 9.0, 9.0], target_system=7)
     time.sleep(0.05)
     assert v.foreign_setpoints == n + 5
-    assert c.command(M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 2.0) == M.MAV_RESULT_UNSUPPORTED
+    # an AMSL take-off altitude needs a global origin the indoor vehicle does not have
+    assert c.command(M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 2.0) == M.MAV_RESULT_DENIED
 
 
 def test_ardupilot_guided_rules(ardu):
@@ -192,13 +193,22 @@ def test_ardupilot_guided_rules(ardu):
     time.sleep(0.9)
     assert v.first_event("takeoff complete") is not None
     np.testing.assert_allclose(v.position_enu(), [0.0, 0.0, 1.0], atol=0.15)
-    c.stream([1.0, 0, 1.0], 1.0)
-    assert v.position_enu()[0] == pytest.approx(1.0, abs=0.15)
-    # guided timeout (0.5 s here, 3 s on ArduCopter): the vehicle stops and stays in GUIDED
-    t_stop = time.monotonic()
+    # a position-only target has no GUID_TIMEOUT: it is held after the stream stops
+    c.stream([1.0, 0, 1.0], 0.3)
+    time.sleep(1.2)
+    assert v.first_event("guided timeout") is None
+    assert v.position_enu()[0] == pytest.approx(1.0, abs=0.1)
+    # a velocity target times out (0.5 s here, GUID_TIMEOUT = 3 s on ArduCopter): the vehicle stops, stays GUIDED
+    vel_mask = 0x09C7
+    for _ in range(6):
+        c.link.send(c.link.mav.set_position_target_local_ned_encode(
+            0, 1, 1, M.MAV_FRAME_LOCAL_NED, vel_mask, 0, 0, 0, 0.5, 0, 0, 0, 0, 0, 0, 0))  # 0.5 m/s north
+        time.sleep(0.05)
+    assert v.setpoint_times
     time.sleep(0.8)
     t_to = v.first_event("guided timeout")
-    assert t_to is not None and 0.5 - 0.06 <= t_to - t_stop <= 0.5 + 0.1
+    assert t_to is not None and 0.5 <= t_to - v.setpoint_times[-1] <= 0.5 + 0.1  # GUID_TIMEOUT after the last target
+    assert np.linalg.norm(v.velocity_enu()) < 0.05 and v.position_enu()[1] > 0.1
     assert v.mode_name == "guided"
     assert len(c.of_type("ATTITUDE")) > 50  # ArduPilot reports Euler ATTITUDE
     assert c.of_type("HEARTBEAT")[-1][1].autopilot == M.MAV_AUTOPILOT_ARDUPILOTMEGA
@@ -297,7 +307,7 @@ def test_cli_sim_vehicle_serves_heartbeats(capsys):
                 heartbeats.append(m)
     sock.close()
     assert heartbeats and heartbeats[0].autopilot == M.MAV_AUTOPILOT_ARDUPILOTMEGA
-    assert "ardupilot vehicle (system 1)" in capsys.readouterr().out
+    assert "ardupilot vehicle (indoor, system 1)" in capsys.readouterr().out
     with pytest.raises(CliError, match="unsupported link URL 'bogus:1'"):
         _cli(["--mavlink", "bogus:1"])
     with pytest.raises(CliError, match="--duration-s must be positive"):
@@ -340,3 +350,123 @@ def test_two_processes_cli_vehicle_and_bridge_fly_px4_offboard():
         bridge.stop()
         proc.terminate()
         proc.wait(5)
+
+
+# -- the stricter rules, one by one (PX4 / ArduCopter behaviour cited in onfly/mavlink/sim_vehicle.py) --
+def _wait(pred, timeout_s=3.0):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(0.01)
+    return False
+
+
+def test_commands_with_nan_params_request_message_and_parameters():
+    c, v = rig(autopilot="px4", params=(("COM_DISARM_PRFLT", 30.0),))
+    try:
+        nan = float("nan")
+        # MAVSDK's arm: NaN in every unused parameter must not break the handler
+        assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1, nan, nan, nan, nan, nan, nan) == M.MAV_RESULT_ACCEPTED and v.armed
+        assert c.command(M.MAV_CMD_REQUEST_MESSAGE, M.MAVLINK_MSG_ID_AUTOPILOT_VERSION, nan) == M.MAV_RESULT_ACCEPTED
+        assert _wait(lambda: c.of_type("AUTOPILOT_VERSION"))
+        av = c.of_type("AUTOPILOT_VERSION")[-1][1]
+        assert av.capabilities & M.MAV_PROTOCOL_CAPABILITY_COMMAND_INT and av.capabilities & M.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE
+        assert c.command(M.MAV_CMD_GET_HOME_POSITION) == M.MAV_RESULT_ACCEPTED  # home was set at arming
+        assert _wait(lambda: c.of_type("HOME_POSITION"))
+        # PX4 sends integer parameters bytewise in the float field
+        c.link.send(c.link.mav.param_request_read_encode(1, 1, b"COM_OBL_RC_ACT", -1))
+        assert _wait(lambda: c.of_type("PARAM_VALUE"))
+        pv = c.of_type("PARAM_VALUE")[-1][1]
+        assert pv.param_type == M.MAV_PARAM_TYPE_INT32 and struct.unpack("<i", struct.pack("<f", pv.param_value))[0] == 5  # indoor: Hold
+    finally:
+        c.stop()
+        v.stop()
+
+
+def test_px4_per_axis_type_mask_preflight_disarm_and_land_detector_in_any_mode():
+    c, v = rig(autopilot="px4", params=(("COM_DISARM_PRFLT", 0.6), ("LNDMC_TRIG_TIME", 0.2), ("COM_DISARM_LAND", 0.3)))
+    try:
+        assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+        t_arm = time.monotonic()
+        assert _wait(lambda: not v.armed, 2.0)  # no take-off within COM_DISARM_PRFLT
+        assert 0.6 <= v.first_event("disarmed: no take-off") - t_arm <= 0.9
+        # x/y position with z velocity (PX4 takes each axis on its own)
+        mask = 0x0DE0 | M.POSITION_TARGET_TYPEMASK_Z_IGNORE  # ignore accelerations, yaw rate, z position
+        mask &= ~(M.POSITION_TARGET_TYPEMASK_VZ_IGNORE)
+        mask |= M.POSITION_TARGET_TYPEMASK_VX_IGNORE | M.POSITION_TARGET_TYPEMASK_VY_IGNORE
+
+        def send(vz_up):
+            c.link.send(c.link.mav.set_position_target_local_ned_encode(
+                0, 1, 1, M.MAV_FRAME_LOCAL_NED, mask, 1.0, 0.5, 0.0, 0, 0, -vz_up, 0, 0, 0, 0, 0))  # north 1, east 0.5
+
+        send(1.0)
+        assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+        assert c.command(M.MAV_CMD_DO_SET_MODE, 1, 6) == M.MAV_RESULT_ACCEPTED
+        end = time.monotonic() + 1.2
+        while time.monotonic() < end:
+            send(1.0)
+            time.sleep(0.05)
+        p = v.position_enu()
+        assert p[0] == pytest.approx(0.5, abs=0.1) and p[1] == pytest.approx(1.0, abs=0.1) and p[2] > 0.8
+        # descend onto the ground still in OFFBOARD: the land detector disarms in any mode
+        end = time.monotonic() + 4.0
+        while v.armed and time.monotonic() < end:
+            send(-1.0)
+            time.sleep(0.05)
+        assert not v.armed and v.mode_name == "offboard" and v.first_event("landed") is not None
+    finally:
+        c.stop()
+        v.stop()
+
+
+def test_estimator_frame_is_not_the_scene_frame_and_the_bridge_anchors_its_world():
+    from onfly.mavlink.autopilot import OffboardConfig, Px4Offboard
+    from onfly.mavlink.bridge import BridgeConfig, MavlinkBridge
+
+    a, b = memory_link_pair(1, 191, 1, 1)
+    start, yaw0 = (4.0, -3.0, 0.0), 0.6
+    vehicle = SimMavlinkVehicle(b, SimVehicleConfig(heartbeat_period_s=0.2, k_pos=4.0, k_vel=8.0, a_max_mps2=8.0, initial_position_m=start,
+                                                    initial_yaw_rad=yaw0, estimator_origin_m=(1.0, 1.0, 0.0), estimator_yaw_rad=-0.9)).start()
+    bridge = MavlinkBridge(a, BridgeConfig()).start()
+    try:
+        bridge.wait_for_vehicle(3.0)
+        local = bridge.wait_for_state(3.0)
+        # LOCAL_POSITION_NED is relative to the estimator origin, in its rotated frame
+        np.testing.assert_allclose(local.p, vehicle.local_from_scene(np.array(start)), atol=0.02)
+        assert np.linalg.norm(local.p - np.array(start)) > 1.0
+        bridge.anchor_world()
+        st = bridge.state()
+        np.testing.assert_allclose(st.p, 0.0, atol=0.02)
+        assert abs(st.yaw) < 0.02
+        Px4Offboard(bridge, OffboardConfig(prestream_s=0.2)).engage()
+        from onfly.mavlink.bridge import Setpoint
+
+        bridge.set_setpoint_source(lambda t: Setpoint.hold(t, [1.0, 0.0, 1.5], 0.0))  # 1 m ahead, 1.5 m up, in the world frame
+        c0, s0 = np.cos(yaw0), np.sin(yaw0)
+        want = np.array([start[0] + c0, start[1] + s0, 1.5])  # ahead = along the start heading in the scene
+        assert _wait(lambda: np.linalg.norm(vehicle.position_enu() - want) < 0.05, 6.0), vehicle.position_enu()
+        np.testing.assert_allclose(bridge.state().p, [1.0, 0.0, 1.5], atol=0.05)
+    finally:
+        bridge.stop()
+        vehicle.stop()
+
+
+def test_px4_takeoff_accepted_disarmed_climbs_once_armed_to_mis_takeoff_alt():
+    c, v = rig(autopilot="px4", params=(("MIS_TAKEOFF_ALT", 1.0),))
+    try:
+        nan = float("nan")
+        assert c.command(M.MAV_CMD_NAV_TAKEOFF, nan, nan, nan, nan, nan, nan, nan) == M.MAV_RESULT_ACCEPTED
+        assert v.mode_name == "auto.takeoff" and not v.armed
+        time.sleep(0.3)
+        assert v.position_enu()[2] == 0.0  # disarmed: motors off
+        assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+        assert _wait(lambda: v.mode_name == "auto.loiter", 4.0)  # take-off complete -> Hold
+        assert v.position_enu()[2] == pytest.approx(1.0, abs=0.1)
+        # a fresh arm in AUTO.LAND is refused: the mode prevents arming
+        assert c.command(M.MAV_CMD_NAV_LAND) == M.MAV_RESULT_ACCEPTED
+        assert _wait(lambda: not v.armed, 8.0)
+        assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_FAILED
+    finally:
+        c.stop()
+        v.stop()

@@ -120,4 +120,4 @@ def test_the_simulated_px4_disarms_when_its_world_vehicle_crashes(model_factory)
         deadline = time.monotonic() + 2.0
         while vehicle.armed and time.monotonic() < deadline:
             time.sleep(0.01)
-    assert not vehicle.armed and vehicle.first_event("crashed into 'lamp post': disarmed") is not None
+    assert not vehicle.armed and vehicle.first_event("disarmed: crashed into 'lamp post'") is not None

@@ -81,16 +81,19 @@ def test_planner_variant_flies_the_same_goals_through_esdf_and_mpc():
     calls = []
     real_step = Planner.step
 
-    def spy(self, state, goal, field, yaw_ref=None):
-        calls.append((np.asarray(goal, float).copy(), field))
-        return real_step(self, state, goal, field, yaw_ref)
+    def spy(self, state, goal, field, yaw_ref=None, volume=None):
+        calls.append((np.asarray(goal, float).copy(), field, volume))
+        return real_step(self, state, goal, field, yaw_ref, volume)
 
     import unittest.mock as um
 
     with um.patch.object(Planner, "step", spy):
         res, _ = fly(m, "park-o01", time_limit_s=30.0)
     assert res.end_reason == "stopped" and res.metrics.success
-    assert isinstance(m.esdf, EsdfMap) and all(f is m.esdf for _, f in calls)
+    assert isinstance(m.esdf, EsdfMap) and all(f is m.esdf for _, f, _ in calls)
+    # the operator's flight volume (the scene bounds) reaches every planner step
+    assert all(v is not None for _, _, v in calls)
+    assert all(bool(v.contains(g, margin_m=0.45 - 1e-9)[0]) for g, _, v in calls)
     assert m.summary()["uses_map"] is True and len(calls) > 50
 
 

@@ -159,7 +159,7 @@ class SpfMethod:
                 # the operator's flight volume: every method that flies our planner honours it
                 goal = volume.clamp(goal, margin_m=self.planner.config.d_safe_m)
                 self.stats["goals_clamped"] += 1
-            plan = self.planner.step(state, goal, self.esdf)
+            plan = self.planner.step(state, goal, self.esdf, volume=volume)
             if not plan.ok:
                 self.fallbacks[plan.fallback.value] += 1
             return MethodStep(plan.trajectory, False)

@@ -5,6 +5,10 @@ its stop, at the first collision, when the vehicle leaves the scene bounds, or a
 limit (70 s). The control period is 0.1 s; camera frames reach the method every
 ``frame_period_s``. VLM latency is charged on the world's virtual clock: calls land after their
 modelled latency while the vehicle keeps flying the last plan.
+
+Under a realism profile the method reads estimates (``world.estimate``, each frame's pose) and
+frames arrive late or never (``world.capture`` / ``world.receive``); the trace, the collision
+and the out-of-bounds check use the truth (``world.state``).
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from onfly import defaults
 from onfly.bench.method import EpisodeSpec, Method, PrivilegedGoal
 from onfly.bench.metrics import EpisodeMetrics, EpisodeTrace, GoalRegion, episode_metrics
 from onfly.runtime import ClockRuntime
@@ -32,12 +37,14 @@ END_REASONS = ("stopped", "collision", "time_limit", "out_of_bounds", "method_er
 
 @dataclass(frozen=True)
 class EpisodeConfig:
-    """Protocol constants (paper defaults)."""
+    """Protocol constants: the paper's limit, control period and success radius; a camera
+    frame every 0.5 s as the CLI and the benchmark fly (one set of defaults:
+    :mod:`onfly.defaults`)."""
 
-    time_limit_s: float = 70.0
-    control_period_s: float = 0.1
-    frame_period_s: float = 0.2
-    success_radius_m: float = 5.0
+    time_limit_s: float = defaults.TIME_LIMIT_S
+    control_period_s: float = defaults.CONTROL_PERIOD_S
+    frame_period_s: float = defaults.FRAME_PERIOD_S
+    success_radius_m: float = defaults.SUCCESS_RADIUS_M
 
     def __post_init__(self) -> None:
         for name in ("time_limit_s", "control_period_s", "frame_period_s", "success_radius_m"):
@@ -50,13 +57,15 @@ class EpisodeConfig:
 
 @dataclass(frozen=True, eq=False)
 class EpisodeStep:
-    """What an observer sees each control period (before the world steps)."""
+    """What an observer sees each control period (before the world steps): ``state`` is the
+    true state, ``estimate`` the one the method read (the same object under ``ideal``)."""
 
     t_s: float
     state: Any
     obs: Any
     output: Any
     method: Any
+    estimate: Any = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -121,7 +130,7 @@ def run_episode(
     spec = EpisodeSpec(
         instruction=instruction,
         camera=world.camera,
-        start_state=world.state,
+        start_state=world.estimate,
         seed=seed,
         runtime=runtime,
         error_model=error_model,
@@ -139,18 +148,19 @@ def run_episode(
         t = t0
         n_steps = int(round(cfg.time_limit_s / cfg.control_period_s))
         for _ in range(n_steps):
-            obs = None
             if t >= next_frame_s - 1e-9:
-                obs = world.observe()
+                world.capture()
                 next_frame_s += cfg.frame_period_s
-            out = method.step(t, world.state, obs)
+            obs = world.receive()
+            estimate = world.estimate
+            out = method.step(t, estimate, obs)
             if out.done:
                 end_reason = "stopped"
                 break
             if out.trajectory is not None:
                 world.set_trajectory(out.trajectory)
             if observer is not None:
-                observer(EpisodeStep(t, world.state, obs, out, method))
+                observer(EpisodeStep(t, world.state, obs, out, method, estimate))
             ws = world.step(cfg.control_period_s)
             runtime.deliver(ws.completed)
             t = world.clock.now_s

@@ -32,6 +32,7 @@ import hashlib
 import json
 import logging
 import multiprocessing as mp
+import os
 import time
 import tomllib
 from dataclasses import asdict, dataclass, field, fields, replace
@@ -40,11 +41,14 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
+from onfly import defaults
 from onfly.serialize import to_jsonable
-from onfly.bench.episode import EpisodeConfig, run_episode
+from onfly.bench.episode import EpisodeConfig, EpisodeResult, run_episode
 from onfly.bench.metrics import EpisodeMetrics, summarize
+from onfly.bench.motion import MOTION_KEYS, motion_metrics
 from onfly.bench.registry import get_factory, method_names
 from onfly.bench.tasks import KINDS, Task, load_tasks, select_tasks
+from onfly.world.realism import PROFILES, realism_profile
 from onfly.world.render import RenderConfig
 from onfly.world.scene import Scene, load_scene, resolve_scene
 from onfly.world.world import World
@@ -66,13 +70,16 @@ __all__ = [
     "BenchResult",
     "EPISODES_FILE",
     "with_overrides",
+    "check_bench",
+    "fly_task",
+    "check_vlm_spec",
 ]
 
 log = logging.getLogger(__name__)
 
 EPISODES_FILE = "episodes.jsonl"
 SHARED_TABLES = ("planner", "esdf", "verifier")
-_WORLD_KEYS = ("width_px", "height_px", "hfov_deg", "vfov_deg", "render_threads")
+_WORLD_KEYS = ("width_px", "height_px", "hfov_deg", "vfov_deg", "render_threads", "realism")
 
 
 class BenchConfigError(ValueError):
@@ -95,7 +102,8 @@ class BenchConfig:
     vlm : VLM spec for every method (``sim:<preset>``, see :mod:`vlm.factory`)
     workers : local worker processes
     episode : EpisodeConfig fields; world : camera and renderer (``width_px``, ``height_px``,
-        ``hfov_deg``, ``vfov_deg``, ``render_threads``)
+        ``hfov_deg``, ``vfov_deg``, ``render_threads``) and the realism profile (``realism``:
+        ``"ideal"``, the default, ``"realistic"`` or ``"realistic_calm"``; see ``docs/realism.md``)
     shared : ``planner`` / ``esdf`` / ``verifier`` override tables passed to every method
     method_options : method name -> its own option table (``[methods.<name>]``)
     source : the file it was read from
@@ -109,8 +117,8 @@ class BenchConfig:
     count: int | None = None
     task_files: tuple[str, ...] | None = None
     runs: int = 3
-    seed: int = 0
-    vlm: str = "sim:nominal"
+    seed: int = defaults.SEED
+    vlm: str = defaults.VLM
     workers: int = 1
     episode: dict = field(default_factory=dict)
     world: dict = field(default_factory=dict)
@@ -139,6 +147,9 @@ class BenchConfig:
         bad = sorted(set(self.world) - set(_WORLD_KEYS))
         if bad:
             raise BenchConfigError(f"{where}[world]: unknown field(s) {bad}; valid: {list(_WORLD_KEYS)}")
+        realism = self.world.get("realism", "ideal")
+        if not isinstance(realism, str) or realism not in PROFILES:
+            raise BenchConfigError(f"{where}[world] realism: unknown profile {realism!r}; valid: {', '.join(PROFILES)}")
         bad = sorted(set(self.shared) - set(SHARED_TABLES))
         if bad:
             raise BenchConfigError(f"{where}unknown shared table(s) {bad}; valid: {list(SHARED_TABLES)}")
@@ -194,7 +205,7 @@ class BenchConfig:
             scenes=tup(sel.get("scenes"), "bench.tasks.scenes"),
             kinds=tup(sel.get("kinds"), "bench.tasks.kinds"),
             count=sel.get("count"),
-            task_files=tup(sel.get("files"), "bench.tasks.files"),
+            task_files=_relative_to(tup(sel.get("files"), "bench.tasks.files"), source),
             runs=b.get("runs", 3),
             seed=b.get("seed", 0),
             vlm=b.get("vlm", "sim:nominal"),
@@ -214,25 +225,38 @@ class BenchConfig:
         return opts
 
     def method_hash(self, method: str) -> str:
-        """Hash of everything that can change ``method``'s results (see the module docstring)."""
+        """Hash of everything that can change ``method``'s results (see the module docstring).
+        The ideal realism profile is left out, so hashes of runs before profiles still match."""
+        world = self.world_settings()
+        if world.get("realism") == "ideal":
+            del world["realism"]
         return _digest(
             {
                 "method": method,
                 "options": self.method_options_for(method),
                 "episode": asdict(EpisodeConfig(**self.episode)),
-                "world": self.world_settings(),
+                "world": world,
                 "vlm": self.vlm,
                 "seed": self.seed,
             }
         )
 
     def world_settings(self) -> dict:
-        w = {"width_px": 640, "height_px": 427, "hfov_deg": 90.0, "vfov_deg": 60.0, "render_threads": 1}
+        w = dict(defaults.WORLD)
+        w.setdefault("realism", "ideal")
         w.update(self.world)
         return w
 
     def to_dict(self) -> dict:
         return to_jsonable(asdict(self))
+
+
+def _relative_to(paths: tuple[str, ...] | None, source: str | None) -> tuple[str, ...] | None:
+    """Relative paths inside a config resolve against the config file's folder."""
+    if paths is None or source is None:
+        return paths
+    base = Path(source).resolve().parent
+    return tuple(str(p if Path(p).is_absolute() else (base / p).resolve()) for p in (Path(x).expanduser() for x in paths))
 
 
 def episode_seed(base_seed: int, task_id: str, run_index: int) -> int:
@@ -304,8 +328,15 @@ def _tasks_by_id(files: tuple[str, ...] | None) -> dict[str, Task]:
 
 
 @functools.lru_cache(maxsize=16)
-def _scene(name: str) -> Scene:
-    return load_scene(resolve_scene(name))
+def _scene(name_or_path: str) -> Scene:
+    return load_scene(resolve_scene(name_or_path))
+
+
+def _task_scene(task: Task) -> Scene:
+    """The scene a task flies in: the file its task file named (external scenes), else the
+    committed scene of that name."""
+    scene_file = getattr(task, "scene_file", None)
+    return _scene(str(scene_file) if scene_file is not None else task.scene)
 
 
 def _failure(end_reason: str, m: EpisodeMetrics) -> str:
@@ -316,32 +347,99 @@ def _failure(end_reason: str, m: EpisodeMetrics) -> str:
     return end_reason
 
 
-def run_job(job: EpisodeJob) -> dict:
-    """Run one episode and return its JSON-able record (the line written to episodes.jsonl)."""
-    task = _tasks_by_id(job.task_files)[job.task_id]
+def fly_task(
+    task: Task,
+    method: str,
+    *,
+    vlm: str = defaults.VLM,
+    seed: int = defaults.SEED,
+    options: dict | None = None,
+    episode: dict | None = None,
+    world: dict | None = None,
+    observer: Callable | None = None,
+    on_world: Callable[[World], None] | None = None,
+) -> tuple[EpisodeResult, dict]:
+    """Fly one task with a registered method exactly as the benchmark does.
+
+    Parameters
+    ----------
+    task : the task (its scene, start, goal and reference)
+    method : registered method name (:func:`onfly.bench.registry.method_names`)
+    vlm : VLM spec; seed : episode seed
+    options : the method's options (shared ``planner`` / ``esdf`` / ``verifier`` tables and its
+        own fields, as in a benchmark config)
+    episode : EpisodeConfig fields (defaults: :mod:`onfly.defaults`)
+    world : camera and renderer settings (``width_px`` ...; defaults: :data:`onfly.defaults.WORLD`)
+    observer : called with every :class:`onfly.bench.episode.EpisodeStep` (must not change the world)
+    on_world : called once with the fresh World before the episode (recordings: the scene mesh)
+
+    Returns
+    -------
+    (EpisodeResult, extras) : extras holds ``min_clearance_m`` (exact, to the scene mesh),
+    ``failure`` (empty on success), ``motion`` (:class:`onfly.bench.motion.MotionMetrics` as a
+    dict) and ``cpu_s``.
+    """
     if task.reference is None:
         raise ValueError(f"task {task.task_id!r} has no reference path: run `onfly tasks check --write`")
-    w = job.world
+    w = dict(defaults.WORLD)
+    w.update(world or {})
+    ep = EpisodeConfig(**(episode or {}))
     camera = PinholeCamera.from_fov(int(w["width_px"]), int(w["height_px"]), float(w["hfov_deg"]), float(w["vfov_deg"]))
     start = VehicleState(0.0, task.start.position_m.copy(), np.zeros(3), float(task.start.yaw_rad))
-    world = World(_scene(task.scene), camera=camera, render_config=RenderConfig(threads=int(w["render_threads"])), initial_state=start)
+    realism = realism_profile(w.get("realism", "ideal"))
+    the_world = World(_task_scene(task), camera=camera, render_config=RenderConfig(threads=int(w["render_threads"])), initial_state=start,
+                      realism=realism, seed=seed)
+    if on_world is not None:
+        on_world(the_world)
     cpu0 = time.process_time()
-    factory = get_factory(job.method)
-    method = factory(job.vlm, job.seed, **{k: (dict(v) if isinstance(v, dict) else v) for k, v in job.options.items()})
+    factory = get_factory(method)
+    the_method = factory(vlm, seed, **{k: (dict(v) if isinstance(v, dict) else v) for k, v in (options or {}).items()})
+    yaws = {0.0: float(start.yaw)}
+
+    def watch(step) -> None:
+        yaws[round(float(step.t_s), 6)] = float(step.state.yaw)
+        if observer is not None:
+            observer(step)
+
     result = run_episode(
-        world,
-        method,
+        the_world,
+        the_method,
         instruction=task.instruction,
         goal=task.goal_region,
         reference_path_m=task.reference.path_length_m,
-        seed=job.seed,
-        error_model=error_model_name(job.vlm),
-        config=EpisodeConfig(**job.episode),
+        seed=seed,
+        error_model=error_model_name(vlm),
+        config=ep,
         privileged=task.privileged_goal(),
+        observer=watch,
     )
     cpu_s = time.process_time() - cpu0
+    tr = result.trace
+    yaw = np.array([yaws.get(round(float(t), 6), np.nan) for t in tr.t_s])
+    yaw[-1] = float(the_world.state.yaw)
+    good = np.isfinite(yaw)  # the last control period's heading is the world's final state
+    if not good.all():
+        idx = np.arange(len(yaw))
+        yaw[~good] = np.interp(idx[~good], idx[good], yaw[good])
+    goal = task.goal_region
+    motion = motion_metrics(tr.t_s, tr.positions, yaw, goal.center, goal.distance(tr.positions), ep.success_radius_m)
+    clearance = the_world.collision.clearance(tr.positions)
+    extras = {
+        "min_clearance_m": float(clearance.min()),
+        "failure": _failure(result.end_reason, result.metrics),
+        "motion": motion.to_dict(),
+        "cpu_s": cpu_s,
+    }
+    return result, extras
+
+
+def run_job(job: EpisodeJob) -> dict:
+    """Run one episode and return its JSON-able record (the line written to episodes.jsonl)."""
+    task = _tasks_by_id(job.task_files)[job.task_id]
+    result, extras = fly_task(
+        task, job.method, vlm=job.vlm, seed=job.seed, options=job.options, episode=job.episode, world=job.world
+    )
     rec = result.to_dict()
-    clearance = world.collision.clearance(result.trace.positions)
     return to_jsonable(
         {
             "key": job.key,
@@ -354,14 +452,96 @@ def run_job(job: EpisodeJob) -> dict:
             "seed": job.seed,
             "vlm": job.vlm,
             "error_model": error_model_name(job.vlm),
+            "realism": realism_profile(job.world.get("realism", "ideal")).name,
             "metrics": rec.pop("metrics"),
             "end_reason": rec.pop("end_reason"),
-            "failure": _failure(result.end_reason, result.metrics),
-            "min_clearance_m": float(clearance.min()),
-            "cpu_s": cpu_s,
+            **extras,
             **rec,
         }
     )
+
+
+# -- checks before the first episode ------------------------------------------------------------
+
+
+def check_vlm_spec(spec: str, *, reach: bool = True, timeout_s: float = 3.0) -> None:
+    """Raise a ValueError naming what is wrong with a VLM spec, before any episode flies.
+
+    ``sim:`` specs are built once (an unknown preset fails here); ``http:`` servers are
+    reached once (``GET /v1/models``) when ``reach``; ``transformers:`` needs its checkpoint
+    directory (or a hub id) and is not loaded here.
+    """
+    from vlm.factory import VALID_SPECS, make_backend
+
+    if not isinstance(spec, str) or ":" not in spec:
+        raise ValueError(f"bad VLM backend spec {spec!r}: expected <kind>:<argument>; valid forms: {VALID_SPECS}")
+    kind = spec.split(":", 1)[0].strip().lower()
+    if kind == "sim":
+        make_backend(spec, seed=0)
+        return
+    if kind in ("http", "https"):
+        from vlm.types import VlmError
+
+        url, _, model = spec.split(":", 1)[1].partition("#")
+        try:
+            backend = make_backend(spec if model.strip() else spec + "#probe", timeout_s=timeout_s)
+            models = backend.list_models(timeout_s=timeout_s) if reach else None
+        except VlmError as exc:
+            raise ValueError(f"VLM backend {spec!r} cannot be reached: {exc}") from None
+        except OSError as exc:
+            raise ValueError(f"VLM backend {spec!r} cannot be reached: {exc}") from None
+        if reach and not models:
+            raise ValueError(f"VLM backend {spec!r} serves no models")
+        if reach and model.strip() and model.strip() not in models:
+            raise ValueError(f"VLM backend {spec!r}: the server has no model {model.strip()!r} (it serves {', '.join(models)})")
+        return
+    if kind == "transformers":
+        path = spec.split(":", 1)[1].strip()
+        from vlm.factory import _HUB_ID  # the same rule make_backend applies
+
+        if not path or not (Path(path).expanduser().is_dir() or _HUB_ID.match(path)):
+            raise ValueError(f"bad VLM backend spec {spec!r}: no checkpoint directory at {path!r}")
+        return
+    make_backend(spec)  # raises the factory's own message for an unknown kind
+
+
+def check_bench(config: BenchConfig, *, reach_vlm: bool = True) -> list[Task]:
+    """Everything a benchmark run needs, checked before the first episode; returns its tasks.
+
+    Checks: method names, the task files and selection, the tasks' reference paths, the VLM
+    spec (an ``http:`` server is reached once) and every method's options (each factory is
+    built once, so an unknown planner field fails here, naming the config file).
+    Raises BenchConfigError (a ValueError) with one line naming what is wrong.
+    """
+    where = f"{config.source}: " if config.source else ""
+    unknown = [m for m in config.methods if m not in method_names()]
+    if unknown:
+        raise BenchConfigError(f"{where}unknown method(s) {unknown}; registered methods: {', '.join(method_names())}")
+    unknown = sorted(m for m in config.method_options if m not in method_names())
+    if unknown:
+        raise BenchConfigError(f"{where}[methods.{unknown[0]}]: no registered method {unknown[0]!r}; registered: {', '.join(method_names())}")
+    try:
+        all_tasks = load_tasks(config.task_files)
+        tasks = select_tasks(all_tasks, ids=config.task_ids, scenes=config.scenes, kinds=config.kinds, count=config.count)
+    except (ValueError, FileNotFoundError) as exc:
+        raise BenchConfigError(f"{where}task selection: {exc}") from None
+    if not tasks:
+        raise BenchConfigError(f"{where}the task selection is empty")
+    unchecked = [t.task_id for t in tasks if t.reference is None]
+    if unchecked:
+        raise BenchConfigError(f"{where}task(s) without a reference path {unchecked[:5]}: run `onfly tasks check --write`")
+    try:
+        check_vlm_spec(config.vlm, reach=reach_vlm)
+    except ValueError as exc:
+        raise BenchConfigError(f"{where}bench.vlm: {' '.join(str(exc).split())}") from None
+    for m in config.methods:
+        opts = config.method_options_for(m)
+        try:
+            get_factory(m)(config.vlm, 0, **{k: (dict(v) if isinstance(v, dict) else v) for k, v in opts.items()})
+        except (ValueError, TypeError) as exc:
+            tables = sorted(set(opts))
+            raise BenchConfigError(f"{where}options of method {m!r} (tables/keys {tables}): {' '.join(str(exc).split())}") from None
+    return tasks
 
 
 # -- results ------------------------------------------------------------------------------------
@@ -402,6 +582,9 @@ def _block(recs: list[dict]) -> dict:
     s["cpu_s"] = cpu
     clear = [r["min_clearance_m"] for r in recs if r.get("min_clearance_m") is not None]
     s["min_clearance_m"] = min(clear) if clear else None
+    for key in MOTION_KEYS:
+        vals = [r["motion"][key] for r in recs if r.get("motion") and r["motion"].get(key) is not None]
+        s[key] = float(np.mean(vals)) if vals else None
     s["failures"] = {}
     for r in recs:
         if r["failure"]:
@@ -484,10 +667,34 @@ class BenchResult:
     skipped: int
     out_dir: Path
     wall_s: float
+    errored: tuple = ()
 
 
-def _worker_init(level: int) -> None:
+#: Compute threads per local worker process (BLAS/OpenMP, Open3D, torch), set deliberately so
+#: two workers on two cores do not spin extra pools (issue 22); ``ONFLY_WORKER_THREADS``
+#: overrides it.
+WORKER_THREADS = 1
+
+
+def worker_threads() -> int:
+    """Threads per worker: ``$ONFLY_WORKER_THREADS`` (an int >= 1) or :data:`WORKER_THREADS`."""
+    raw = os.environ.get("ONFLY_WORKER_THREADS")
+    if raw is None:
+        return WORKER_THREADS
+    try:
+        n = int(raw)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise BenchConfigError(f"ONFLY_WORKER_THREADS must be an integer >= 1, got {raw!r}")
+    return n
+
+
+def _worker_init(level: int, threads: int = WORKER_THREADS) -> None:
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    from planning.threads import limit_threads
+
+    limit_threads(threads)
 
 
 def _run_local(jobs: list[EpisodeJob], workers: int, on_record: Callable[[dict], None]) -> None:
@@ -496,7 +703,10 @@ def _run_local(jobs: list[EpisodeJob], workers: int, on_record: Callable[[dict],
             on_record(run_job(job))
         return
     ctx = mp.get_context("spawn")
-    pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init, initargs=(logging.getLogger().level,))
+    pool = cf.ProcessPoolExecutor(
+        max_workers=workers, mp_context=ctx, initializer=_worker_init,
+        initargs=(logging.getLogger().level, worker_threads()),
+    )
     try:
         futures = [pool.submit(run_job, j) for j in jobs]
         for fut in cf.as_completed(futures):
@@ -535,7 +745,8 @@ def run_bench(
     workers: int | None = None,
     ray_address: str | None = None,
     max_episodes: int | None = None,
-    progress: bool = False,
+    progress: bool | Callable[[dict, int, int], None] = False,
+    checked_tasks: Sequence[Task] | None = None,
 ) -> BenchResult:
     """Run (or resume) a benchmark and write episodes.jsonl, summary.json, summary.md, config.json.
 
@@ -548,21 +759,18 @@ def run_bench(
     ray_address : None (local processes), ``"local"`` (start a local Ray instance) or a Ray
         cluster address
     max_episodes : stop after this many new episodes (for tests of resumption)
-    progress : show a tqdm bar with an ETA
+    progress : True shows a tqdm bar with an ETA; a callable gets ``(record, done, total)``
+        after every episode (a caller's own progress line)
+    checked_tasks : the tasks :func:`check_bench` returned for this config (skips the checks
+        when the caller already ran them); otherwise everything is checked before the first
+        episode and nothing is written on a bad config
+
+    The result's ``errored`` lists the episodes that ended with ``method_error``.
     """
     wall0 = time.perf_counter()
     out = Path(out_dir)
+    tasks = check_bench(config) if checked_tasks is None else list(checked_tasks)
     out.mkdir(parents=True, exist_ok=True)
-    unknown = [m for m in config.methods if m not in method_names()]
-    if unknown:
-        raise BenchConfigError(f"unknown method(s) {unknown}; registered methods: {', '.join(method_names())}")
-    all_tasks = load_tasks(config.task_files)
-    tasks = select_tasks(all_tasks, ids=config.task_ids, scenes=config.scenes, kinds=config.kinds, count=config.count)
-    if not tasks:
-        raise BenchConfigError("the task selection is empty")
-    unchecked = [t.task_id for t in tasks if t.reference is None]
-    if unchecked:
-        raise BenchConfigError(f"task(s) without a reference path {unchecked[:5]}...: run `onfly tasks check --write`")
     jobs = plan_jobs(config, tasks)
     (out / "config.json").write_text(
         json.dumps({"config": config.to_dict(), "method_hashes": {m: config.method_hash(m) for m in config.methods}}, indent=1)
@@ -575,7 +783,8 @@ def run_bench(
         todo = todo[:max_episodes]
     n_workers = config.workers if workers is None else int(workers)
     bar = None
-    if progress:
+    callback = progress if callable(progress) else None
+    if progress is True:
         from tqdm import tqdm
 
         bar = tqdm(total=len(todo), unit="ep", desc=config.name, dynamic_ncols=True)
@@ -590,6 +799,8 @@ def run_bench(
             if bar is not None:
                 bar.set_postfix_str(f"{rec['method']} {rec['task']} {'ok' if rec['metrics']['success'] else rec['failure']}")
                 bar.update(1)
+            if callback is not None:
+                callback(rec, ran, len(todo))
 
         try:
             if not todo:
@@ -615,7 +826,8 @@ def run_bench(
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     if records:
         (out / "summary.md").write_text(format_summary(summary) + "\n")
-    return BenchResult(summary, records, ran, skipped, out, time.perf_counter() - wall0)
+    errored = tuple(f"{r['method']}/{r['task']}/run{r['run']}: {r.get('error') or 'method_error'}" for r in records if r["end_reason"] == "method_error")
+    return BenchResult(summary, records, ran, skipped, out, time.perf_counter() - wall0, errored)
 
 
 def with_overrides(config: BenchConfig, **changes) -> BenchConfig:

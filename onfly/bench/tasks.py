@@ -150,6 +150,8 @@ class Task:
     goal : GoalSpec; start : StartPose; via : objects the route passes (long-range)
     reference : the checker's Reference, or None if the task was never checked
     source : the file the task came from (None if built in code)
+    scene_file : the scene file when the task file names one by path (an external scene; a
+        relative path resolves against the task file's folder), None for a committed scene
     """
 
     task_id: str
@@ -163,6 +165,7 @@ class Task:
     via: tuple[str, ...] = ()
     reference: Reference | None = None
     source: Path | None = None
+    scene_file: Path | None = None
 
     @property
     def goal_region(self) -> GoalRegion:
@@ -367,8 +370,13 @@ def load_task_file(path: str | Path) -> list[Task]:
     if fmt != TASK_FORMAT:
         raise ctx.err("format", f"unsupported format {fmt!r} (this reader knows {TASK_FORMAT!r})")
     scene_name = _string(ctx, data, "scene")
+    scene_file = None
+    if scene_name.endswith(".toml") or "/" in scene_name:  # a scene file: relative to this task file
+        scene_file = Path(scene_name).expanduser()
+        if not scene_file.is_absolute():
+            scene_file = (path.resolve().parent / scene_file).resolve()
     try:
-        scene = _scene(scene_name)
+        scene = _scene(str(scene_file) if scene_file is not None else scene_name)
     except FileNotFoundError as exc:
         raise ctx.err("scene", str(exc)) from None
     raw = _get(ctx, data, "tasks")
@@ -381,6 +389,8 @@ def load_task_file(path: str | Path) -> list[Task]:
         if not isinstance(t, dict):
             raise tctx.err(None, f"expected a table, got {type(t).__name__}")
         task = _parse_task(tctx, t, scene, path)
+        if scene_file is not None:
+            task = replace(task, scene_file=scene_file)
         if task.task_id in seen:
             raise TaskFormatError(path, task.task_id, "id", f"duplicate id (also tasks[{seen[task.task_id]}])")
         seen[task.task_id] = i
@@ -454,8 +464,24 @@ def _spread(tasks: list[Task], count: int) -> list[Task]:
     quota = [int(math.floor(e)) for e in exact]
     for j in sorted(range(len(groups)), key=lambda j: (quota[j] - exact[j], j))[: count - sum(quota)]:
         quota[j] += 1
-    keep = sorted(g[(i * len(g)) // q] for g, q in zip(groups, quota) for i in range(q))
-    return [tasks[i] for i in keep]
+    # Each kind's share is evenly strided over its tasks; the stride's phase is chosen, kind by
+    # kind, to land on the scenes used least so far (ties: the smallest phase), so a small
+    # count spreads over scenes instead of taking the first task of every kind from one scene.
+    used: dict[str, int] = {}
+    keep: list[int] = []
+    for g, q in zip(groups, quota):
+        if q == 0:
+            continue
+        best = None
+        for phase in range(max(1, len(g) // q)):
+            picks = [g[min(len(g) - 1, (i * len(g)) // q + phase)] for i in range(q)]
+            cost = sum(used.get(tasks[i].scene, 0) for i in picks)
+            if best is None or cost < best[0]:
+                best = (cost, picks)
+        for i in best[1]:
+            used[tasks[i].scene] = used.get(tasks[i].scene, 0) + 1
+        keep.extend(best[1])
+    return [tasks[i] for i in sorted(keep)]
 
 
 # -- writing -------------------------------------------------------------------------------
@@ -474,13 +500,15 @@ def _toml_vec(v) -> str:
     return "[" + ", ".join(_toml_num(x) for x in np.asarray(v, float).reshape(-1)) + "]"
 
 
-def write_task_file(path: str | Path, scene: str, tasks: Sequence[Task], header: str = "") -> None:
+def write_task_file(path: str | Path, scene: str, tasks: Sequence[Task], header: str = "", scene_ref: str | None = None) -> None:
     """Write tasks (with their references, if any) in the format :func:`load_task_file` reads.
 
     Numbers are rounded to millimetres; ``header`` lines are written as comments on top.
+    ``scene_ref`` is written as the file's ``scene`` instead of the name (an external scene's
+    path as the file had it).
     """
     lines = [f"# {h}" if h else "#" for h in header.splitlines()]
-    lines += [f'format = "{TASK_FORMAT}"', f"scene = {_toml_str(scene)}", ""]
+    lines += [f'format = "{TASK_FORMAT}"', f"scene = {_toml_str(scene_ref or scene)}", ""]
     for t in tasks:
         if t.scene != scene:
             raise ValueError(f"task {t.task_id!r} belongs to scene {t.scene!r}, not {scene!r}")

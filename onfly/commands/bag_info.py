@@ -6,7 +6,6 @@ import argparse
 import json
 from datetime import datetime, timezone
 
-from onfly.readers.rosbag import BagSummary, bag_summary
 
 NAME = "bag-info"
 HELP = "list the topics, message types, counts and time span of a ROS 1 .bag or ROS 2 bag directory"
@@ -26,7 +25,7 @@ def _stamp(ns: int) -> str:
     return f"{t:%Y-%m-%d %H:%M:%S.%f} UTC ({ns / 1e9:.6f})"
 
 
-def format_summary(s: BagSummary) -> str:
+def format_summary(s) -> str:
     """The human-readable table ``onfly bag-info`` prints."""
     lines = [
         f"path:      {s.path}",
@@ -47,6 +46,8 @@ def format_summary(s: BagSummary) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from onfly.readers.rosbag import bag_summary
+
     s = bag_summary(args.path)
     if args.json:
         print(

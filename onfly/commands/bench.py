@@ -10,13 +10,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from dataclasses import replace
 from pathlib import Path
 
-from onfly.bench.runner import BenchConfig, format_summary, run_bench, with_overrides
-from onfly.bench.tasks import KINDS
 from onfly.cli import CliError
+
+#: Task kinds (as :data:`onfly.bench.tasks.KINDS`; kept here so ``--help`` imports nothing heavy).
+KINDS = ("object", "precise", "long_range")
 
 NAME = "bench"
 HELP = "run the embedded benchmark (methods x tasks x runs) and print SR / OSR / CR / FT / NE / SPL"
@@ -29,7 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sel.add_argument("--tasks", default=None, help="comma-separated task ids")
     sel.add_argument("--scene", default=None, help="only the tasks of this scene")
     sel.add_argument("--kind", default=None, choices=KINDS, help="only tasks of this kind")
-    sel.add_argument("--count", type=int, default=None, help="an evenly spread subset of this many tasks")
+    sel.add_argument("--count", type=int, default=None, help="an evenly spread subset of this many tasks (over kinds and scenes)")
     parser.add_argument("--runs", type=int, default=None, help="runs per task (the paper: 3)")
     parser.add_argument("--seed", type=int, default=None, help="base seed")
     parser.add_argument("--workers", type=int, default=None, help="local worker processes")
@@ -40,7 +42,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-def build_config(args) -> BenchConfig:
+def build_config(args):
+    from onfly.bench.runner import BenchConfig, with_overrides
+
     cfg = BenchConfig.from_toml(args.config)
     changes: dict = {}
     if args.methods:
@@ -59,12 +63,21 @@ def build_config(args) -> BenchConfig:
 
 
 def run(args) -> int:
-    cfg = build_config(args)
     if args.ray is not None and not args.ray.strip():
         raise CliError("--ray needs a cluster address or 'local'")
+    for option in ("runs", "workers", "count"):
+        v = getattr(args, option)
+        if v is not None and v < 1:
+            raise CliError(f"--{option} must be a positive integer, got {v}")
+    if args.seed is not None and args.seed < 0:
+        raise CliError(f"--seed must be >= 0, got {args.seed}")
+    from onfly.bench.runner import check_bench, format_summary, run_bench
+
+    cfg = build_config(args)
+    tasks = check_bench(cfg)  # before anything is written or flown
     out = Path(args.out) if args.out else Path("runs") / "bench" / cfg.name
     t0 = time.perf_counter()
-    res = run_bench(cfg, out, ray_address=args.ray, progress=not args.no_progress)
+    res = run_bench(cfg, out, ray_address=args.ray, progress=not args.no_progress, checked_tasks=tasks)
     print(format_summary(res.summary))
     print(
         f"\n{res.ran} episodes run, {res.skipped} already done (resumed), wall {time.perf_counter() - t0:.1f} s, "
@@ -74,4 +87,9 @@ def run(args) -> int:
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(res.summary, indent=1))
+    if res.errored:
+        print(f"\n{len(res.errored)} episode(s) ended with a method error (see {out}/episodes.jsonl):", file=sys.stderr)
+        for line in res.errored[:10]:
+            print(f"  {line}", file=sys.stderr)
+        return 1
     return 0

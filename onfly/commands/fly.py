@@ -2,14 +2,20 @@
 
 The companion side of a real flight: connects to the autopilot, engages it (PX4 offboard or
 ArduPilot guided), takes off, runs the OnFly pilot at 10 Hz on the camera's newest frame and
-the autopilot's odometry, and when the pilot declares its STOP holds and hands the hover back to the
-autopilot (or lands). Every failsafe event is written with its time and cause to the
-``--json`` summary. See ``onfly/onboard.py`` for phases and failsafes.
+the autopilot's odometry, and when the pilot declares its STOP holds (PX4: switched to Hold;
+ArduPilot: a position target in GUIDED) or lands over ground its map shows clear. Every
+failsafe event is written with its time and cause to the ``--json`` summary; ``--log DIR``
+writes the OnFly log (`onfly replay DIR`, `onfly export DIR --out BAG`), ``--rrd`` a rerun
+recording. See ``onfly/onboard.py`` for phases and failsafes and docs/flight.md.
+
+The pilot's world frame is anchored at the vehicle's estimated pose when the flight starts
+(x along its heading, z up): heights, --volume and the log are relative to the take-off point.
 
 Without hardware, fly against ``onfly sim-vehicle`` (the embedded world as a MAVLink vehicle):
 
   onfly sim-vehicle --mavlink udpin:127.0.0.1:14550 --task urban_block-o01 --camera tcp://127.0.0.1:5600 &
-  onfly fly --connect udpout:127.0.0.1:14550 --camera tcp://127.0.0.1:5600 --task urban_block-o01 --vlm sim:perfect
+  onfly fly --connect udpout:127.0.0.1:14550 --camera tcp://127.0.0.1:5600 --task urban_block-o01 --vlm sim:perfect \\
+            --on-finish land --log runs/flight-log --rrd runs/flight.rrd --json runs/flight.json
 
 More examples:
   onfly fly --connect udpin:0.0.0.0:14540 --camera realsense --vlm http://127.0.0.1:8000#Qwen2.5-VL-3B \\
@@ -57,8 +63,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--time-limit-s", type=float, default=70.0, help="mission time limit after the start (paper: 70 s)")
     p.add_argument("--hold-s", type=float, default=2.0, help="hold after the STOP before --on-finish (default 2 s)")
     p.add_argument("--on-finish", choices=("hold", "land"), default="hold",
-                   help="hold: hand the hover back to the autopilot (default); land: straight down where the pilot stopped")
+                   help="hold: leave the vehicle holding (default); land: over the nearest ground the map shows clear")
+    p.add_argument("--volume", metavar="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX",
+                   help="operator flight volume in the flight's world frame (metres from the take-off point); also `volume` in --config")
+    p.add_argument("--start", nargs=3, type=float, metavar=("X", "Y", "YAW_DEG"),
+                   help="with --task: where the vehicle started in the task's scene (as `sim-vehicle --start`), to score the flight; default the task's start")
     p.add_argument("--json", type=Path, help="write the flight summary (failsafes, events, metrics, trace) here")
+    p.add_argument("--log", type=Path, metavar="DIR", help="write the OnFly log (frames, pilot and flight events, failsafes) to this new folder")
+    p.add_argument("--rrd", type=Path, help="write a rerun recording of the flight here")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -73,6 +85,9 @@ def run(args: argparse.Namespace) -> int:
     from vlm.factory import make_backend
 
     task = task_by_id(args.task) if args.task else None
+    volume = _volume(args)
+    if args.log is not None and args.log.exists():
+        raise CliError(f"--log {args.log} already exists; choose a new folder")
     if task is None and not args.instruction:
         raise CliError("give --instruction TEXT or --task ID")
     instruction = args.instruction or task.instruction
@@ -81,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
         config = OnboardConfig(
             takeoff_alt_m=takeoff, time_limit_s=args.time_limit_s, hold_after_finish_s=args.hold_s, on_finish=args.on_finish
         )
-        pilot_config = PilotConfig.from_toml(args.config) if args.config else PilotConfig()
+        pilot_config = _fly_config(args.config)[0] if args.config else PilotConfig()
         bridge_config = BridgeConfig(target_system=args.system_id, source_system=args.system_id)
         offboard = OffboardConfig(takeoff_alt_m=max(takeoff, 0.5))
     except ValueError as exc:
@@ -89,20 +104,21 @@ def run(args: argparse.Namespace) -> int:
     honour = args.modelled_latency == "on" or (args.modelled_latency == "auto" and args.vlm.strip().lower().startswith("sim:"))
     ground_truth = None
     if task is not None:
-        ground_truth = GroundTruth(task.goal_region, task.reference.path_length_m if task.reference else 0.0, task_id=task.task_id)
+        ground_truth = GroundTruth(task.goal_region, task.reference.path_length_m if task.reference else 0.0, task_id=task.task_id,
+                                   T_scene_world=_task_start_frame(task, args.start))
 
     clock = MonotonicClock()
     backend = make_backend(args.vlm, seed=args.seed)  # ValueError names the valid specs
     runtime = ThreadRuntime(clock.now_s, honour_modelled_latency=honour)
     print(f"onfly fly: building the pilot (planner set-up) ...", flush=True)
-    pilot = OnFlyPilot(pilot_config, backend, runtime)
+    pilot = OnFlyPilot(pilot_config, backend, runtime, volume=volume)
     try:
         bridge = MavlinkBridge.from_url(args.connect, bridge_config, clock=clock.now_s)
         bridge.start()
     except (LinkError, BridgeError, OSError) as exc:
         runtime.close()
         raise CliError(f"cannot open the autopilot link {args.connect}: {exc}") from exc
-    camera = None
+    camera = writer = recorder = None
     try:
         if args.camera:
             try:
@@ -112,7 +128,18 @@ def run(args: argparse.Namespace) -> int:
         else:
             print("onfly fly: no --camera: the pilot gets no frames and will hold", flush=True)
         session = make_session(args.autopilot, bridge, offboard)
-        flight = OnboardFlight(bridge, session, pilot, camera, instruction, config, clock=clock, ground_truth=ground_truth)
+        if args.log is not None:
+            from onfly.logs.writer import LogWriter
+
+            writer = LogWriter(args.log, meta={"instruction": instruction, "task": args.task, "vlm": args.vlm, "seed": args.seed,
+                                               "source": "onfly fly", "autopilot": args.autopilot, "connect": args.connect,
+                                               "frame": "flight world: anchored at the estimator pose at the start"})
+        if args.rrd is not None:
+            from onfly.viz import RerunRecorder
+
+            recorder = RerunRecorder(args.rrd)
+        flight = OnboardFlight(bridge, session, pilot, camera, instruction, config, clock=clock, ground_truth=ground_truth,
+                               writer=writer, recorder=recorder)
         print(f"onfly fly: {args.autopilot} on {args.connect}; vlm {args.vlm} (modelled latency {'on' if honour else 'off'}); "
               f"camera {args.camera or 'none'}; instruction: {instruction}", flush=True)
         try:
@@ -125,6 +152,10 @@ def run(args: argparse.Namespace) -> int:
             camera.close()
         runtime.close()
         backend.close()
+        if writer is not None:
+            writer.close()
+        if recorder is not None:
+            recorder.close()
 
     print(f"end        {summary.end_reason}   pilot finished {summary.finished}   flight {summary.flight_time_s:.1f} s   take-off {summary.takeoff_s:.1f} s")
     if summary.metrics:
@@ -132,6 +163,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"task       {m['task']}   success {m['success']}   NE {m['navigation_error_m']:.2f} m   path {m['path_length_m']:.1f} m   SPL {m['spl']:.2f}")
     active = [f for f in summary.failsafes if not f["cleared"]]
     print(f"failsafes  {len(active)} raised: " + (", ".join(f"{f['cause']}@{f['t_s']:.2f}s" for f in active[:8]) or "none"))
+    print(f"landing    {'landed and disarmed' if summary.landed else 'not landed'}   crashed {summary.crashed}")
     print(f"loop       ticks {summary.loop['ticks']}  overruns {summary.loop['overruns']}  tick p95 {summary.loop['tick_ms_p95']:.0f} ms  "
           f"camera frames {summary.camera.get('received', 0)}")
     if args.json:
@@ -139,7 +171,82 @@ def run(args: argparse.Namespace) -> int:
         out = {"connect": args.connect, "vlm": args.vlm, "seed": args.seed, "camera": args.camera, "honour_modelled_latency": honour,
                "onboard_config": dataclasses.asdict(config), **summary.to_dict()}
         args.json.write_text(json.dumps(out, indent=1, default=str))
-    return 0 if summary.end_reason in ("finished", "time_limit") else 1
+    if args.log is not None:
+        print(f"log        {args.log}   (replay: onfly replay {args.log}; export: onfly export {args.log} --out BAG)")
+    if args.rrd is not None:
+        print(f"recording  {args.rrd}   (open with: rerun {args.rrd})")
+    return 0 if summary.end_reason in ("finished", "time_limit") and not summary.crashed else 1
+
+
+def _volume(args):
+    """The operator volume of --volume or the config's ``volume`` key (a string or six numbers)."""
+    from planning.volume import FlightVolume, FlightVolumeError
+
+    text = args.volume
+    if text is None and args.config is not None:
+        raw = _fly_config(args.config)[1]
+        if raw is not None:
+            text = ",".join(str(v) for v in raw) if isinstance(raw, (list, tuple)) else str(raw)
+    if text is None:
+        return None
+    try:
+        return FlightVolume.parse(text)
+    except FlightVolumeError as exc:
+        raise CliError(f"--volume: {exc}") from exc
+
+
+#: What a ``fly --config`` file may hold: the pilot's table and the operator volume (top level
+#: or in a ``[fly]`` table).
+FLY_CONFIG_KEYS = ("pilot", "fly", "volume")
+
+
+def _fly_config(path):
+    """``(PilotConfig, volume or None)`` of a ``fly --config`` file; unknown tables and keys are
+    errors naming the file and the key (CliError)."""
+    from onfly.pilot import PilotConfig
+    from onfly.serialize import ConfigFileError, read_toml
+
+    try:
+        data = read_toml(path)
+    except ConfigFileError as exc:
+        raise CliError(str(exc)) from exc
+    bad = sorted(set(data) - set(FLY_CONFIG_KEYS))
+    if bad:
+        raise CliError(f"{path}: unknown table(s) or key(s) {bad}; valid: {list(FLY_CONFIG_KEYS)}")
+    for table in ("pilot", "fly"):
+        if table in data and not isinstance(data[table], dict):
+            raise CliError(f"{path}: {table!r} must be a table ([{table}])")
+    fly = data.get("fly", {})
+    if sorted(set(fly) - {"volume"}):
+        raise CliError(f"{path}: unknown key(s) in [fly] {sorted(set(fly) - {'volume'})}; valid: ['volume']")
+    if "volume" in data and "volume" in fly:
+        raise CliError(f"{path}: 'volume' given both at the top level and in [fly]")
+    try:
+        pilot = PilotConfig.from_dict(data.get("pilot", {}))
+    except ValueError as exc:
+        raise CliError(f"{path}: [pilot]: {exc}") from exc
+    return pilot, data.get("volume", fly.get("volume"))
+
+
+def _task_start_frame(task, start=None):
+    """T_scene_world (4, 4) of a flight anchored at the task's start: the start pose's x, y and
+    heading on the ground below it (where `onfly sim-vehicle --task` puts the vehicle). Used only
+    to score the flown trace against the task's goal region."""
+    import numpy as np
+
+    from onfly.mavlink.sim_world import ground_below
+    from onfly.world.world import World
+
+    p = np.asarray(task.start.position_m, dtype=float)
+    yaw = task.start.yaw_rad
+    if start is not None:
+        p, yaw = np.array([start[0], start[1], p[2]]), float(np.deg2rad(start[2]))
+    ground = ground_below(World.from_scene(task.scene), p)
+    c, s = np.cos(yaw), np.sin(yaw)
+    T = np.eye(4)
+    T[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+    T[:3, 3] = [p[0], p[1], ground]
+    return T
 
 
 if __name__ == "__main__":  # pragma: no cover

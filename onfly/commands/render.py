@@ -5,15 +5,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import cv2
-import numpy as np
+import math
 
 from onfly.cli import CliError
-from onfly.world.geometry import SceneGeometry
-from onfly.world.render import Renderer
-from onfly.world.scene import load_scene, resolve_scene
-from planning.camera import PinholeCamera
-from planning.frames import body_transform, cam_transform_from_body
 
 NAME = "render"
 HELP = "render RGB, depth and instance ids of a scene from a pose (default: the start pose)"
@@ -26,35 +20,52 @@ DESCRIPTION = (
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", required=True, help="committed scene name (see `onfly scenes`) or path to a scene .toml")
-    parser.add_argument("--pose", default=None, help="body pose x,y,z,yaw (metres ENU, yaw in radians); default: the scene's start pose")
+    parser.add_argument("--pose", default=None, help="body pose x,y,z,yaw (metres ENU, yaw in radians; negative numbers work: --pose -3,0,6,0); default: the scene's start pose")
     parser.add_argument("--out", type=Path, default=Path("render_out"), help="output folder (created if missing)")
     parser.add_argument("--width", type=int, default=640, help="image width in pixels")
     parser.add_argument("--height", type=int, default=427, help="image height in pixels")
 
 
-def parse_pose(text: str) -> tuple[np.ndarray, float]:
-    """``"x,y,z,yaw"`` -> (position (3,), yaw radians)."""
+def parse_pose(text: str):
+    """``"x,y,z,yaw"`` -> (position (3,) array, yaw radians)."""
+    import numpy as np
+
     try:
         vals = [float(v) for v in text.split(",")]
     except ValueError:
         raise CliError(f"--pose must be four numbers x,y,z,yaw, got {text!r}") from None
-    if len(vals) != 4 or not np.all(np.isfinite(vals)):
+    if len(vals) != 4 or not all(math.isfinite(v) for v in vals):
         raise CliError(f"--pose must be four finite numbers x,y,z,yaw, got {text!r}")
     return np.array(vals[:3]), vals[3]
 
 
-def id_colors(ids: np.ndarray) -> np.ndarray:
+def id_colors(ids):
     """Colour-code an int id image (H, W) as uint8 RGB; 0 (background) is black."""
+    import numpy as np
+
     lut = np.random.default_rng(0).integers(40, 256, size=(int(ids.max()) + 1, 3), dtype=np.uint8)
     lut[0] = 0
     return lut[ids]
 
 
 def run(args: argparse.Namespace) -> int:
-    scene = load_scene(resolve_scene(args.scene))
     if args.width <= 0 or args.height <= 0:
         raise CliError(f"--width and --height must be positive, got {args.width} x {args.height}")
-    p, yaw = (scene.start.position_m, scene.start.yaw_rad) if args.pose is None else parse_pose(args.pose)
+    pose = None if args.pose is None else parse_pose(args.pose)
+    import cv2
+    import numpy as np
+
+    from onfly.world.geometry import SceneGeometry
+    from onfly.world.render import Renderer
+    from onfly.world.scene import SceneFormatError, load_scene, resolve_scene
+    from planning.camera import PinholeCamera
+    from planning.frames import body_transform, cam_transform_from_body
+
+    try:
+        scene = load_scene(resolve_scene(args.scene))
+    except (FileNotFoundError, SceneFormatError) as exc:
+        raise CliError(f"--scene: {exc}") from None
+    p, yaw = (scene.start.position_m, scene.start.yaw_rad) if pose is None else pose
     camera = PinholeCamera.from_fov(args.width, args.height, 90.0, 60.0)
     renderer = Renderer(SceneGeometry(scene), camera)
     result = renderer.render(cam_transform_from_body(body_transform(p, yaw)))

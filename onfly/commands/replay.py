@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import sys
-import tomllib
 from dataclasses import replace
 from pathlib import Path
 
@@ -33,6 +33,10 @@ examples:
   onfly replay ../shared/realdata/7scenes-kitchen-tum --json out.json --rrd out.rrd
   onfly replay runs/urban-log --instruction "fly to the red delivery van" --vlm sim:perfect
   onfly replay flight.bag --depth-topic /camera/depth/image_raw --pose-topic /odom --goal 2,0,1.5
+  onfly replay flight.bag --pose-topic /tf --tf-parent odom --tf-child camera_link --goal -2,0,1.5
+
+--config TOML: one [replay] table of ReplayConfig fields (nested [replay.planner] ...); any
+other table or unknown key is an error naming the file and key.
 """
 
 
@@ -82,6 +86,27 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     src.add_argument("--rgb-topic", help="bag: colour image topic")
     src.add_argument("--camera-info-topic", help="bag: CameraInfo topic")
     src.add_argument("--pose-topic", help="bag: Odometry / PoseStamped / TF topic")
+    src.add_argument("--tf-parent", metavar="FRAME", help="bag: with a TF pose topic (/tf), the parent frame of the camera pose, e.g. odom")
+    src.add_argument("--tf-child", metavar="FRAME", help="bag: with a TF pose topic (/tf), the child frame, e.g. camera_link")
+
+
+#: Reader config fields -> the flags that set them (reader errors are reworded to name flags).
+FIELD_FLAGS = {
+    "tf_parent_frame": "--tf-parent",
+    "tf_child_frame": "--tf-child",
+    "depth_topic": "--depth-topic",
+    "rgb_topic": "--rgb-topic",
+    "camera_info_topic": "--camera-info-topic",
+    "pose_topic": "--pose-topic",
+    "intrinsics": "--intrinsics",
+}
+
+
+def flag_names(message: str) -> str:
+    """A reader's message with its config field names replaced by the CLI flags."""
+    for name, flag in FIELD_FLAGS.items():
+        message = re.sub(rf"\b(BagConfig\.|TumConfig\.)?{name}\b", flag, message)
+    return message
 
 
 def _config(args: argparse.Namespace):
@@ -95,14 +120,13 @@ def _config(args: argparse.Namespace):
         raise CliError("give either --goal or --future-pose-s, not both")
     base = ReplayConfig()
     if args.config is not None:
+        from onfly.serialize import read_toml
+
+        data = read_toml(args.config, allowed=("replay",), what="replay config")
         try:
-            with open(args.config, "rb") as fh:
-                data = tomllib.load(fh)
-        except FileNotFoundError:
-            raise CliError(f"{args.config}: no such file") from None
-        except tomllib.TOMLDecodeError as exc:
-            raise CliError(f"{args.config}: not valid TOML ({exc})") from None
-        base = ReplayConfig.from_dict(data.get("replay", {}))
+            base = ReplayConfig.from_dict(data.get("replay", {}))
+        except ValueError as exc:
+            raise CliError(f"{args.config}: [replay]: {exc}") from None
     if goal is not None:
         mode, goal_world = "fixed", goal
     elif future_s is not None:
@@ -173,13 +197,24 @@ def run(args: argparse.Namespace) -> int:
 
     if not args.path.exists():
         raise CliError(f"{args.path}: no such file or directory")
+    if (args.tf_parent is None) != (args.tf_child is None):
+        raise CliError("--tf-parent and --tf-child go together (the transform parent -> child of the camera pose on /tf)")
     config = _config(args)
+    if config.instruction is not None and config.vlm.split(":", 1)[0].strip().lower() in ("sim", "http", "https", "transformers"):
+        from onfly.bench.runner import check_vlm_spec
+
+        try:
+            check_vlm_spec(config.vlm)
+        except ValueError as exc:
+            raise CliError(f"--vlm: {exc}") from None
     options = dict(
         intrinsics=_floats(args.intrinsics, 4, "--intrinsics (fx,fy,cx,cy)"),
         depth_topic=args.depth_topic,
         rgb_topic=args.rgb_topic,
         camera_info_topic=args.camera_info_topic,
         pose_topic=args.pose_topic,
+        tf_parent_frame=args.tf_parent,
+        tf_child_frame=args.tf_child,
     )
     recorder = None
     try:
@@ -188,6 +223,8 @@ def run(args: argparse.Namespace) -> int:
             report = replay(source, config, recorder=recorder, progress=not args.no_progress)
     except VlmError as exc:
         raise CliError(f"VLM backend {config.vlm!r}: {exc}") from None
+    except ValueError as exc:
+        raise CliError(flag_names(" ".join(str(exc).split()))) from None
     finally:
         if recorder is not None:
             recorder.close()

@@ -5,8 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 
-from onfly.world.geometry import SceneGeometry
-from onfly.world.scene import list_scenes, load_scene, resolve_scene
 
 NAME = "scenes"
 HELP = "list the committed scenes with their object counts and bounds"
@@ -18,6 +16,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from onfly.world.geometry import SceneGeometry
+    from onfly.world.scene import list_scenes, load_scene, resolve_scene
+
     rows = []
     for name in list_scenes():
         path = resolve_scene(name)

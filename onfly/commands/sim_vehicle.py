@@ -9,13 +9,20 @@ and rule tests). With them it flies in the embedded world: the world's vehicle d
 (benchmark limits), exact collisions against the scene (a collision disarms it) and, with
 ``--camera tcp://127.0.0.1:PORT``, its camera served to the companion at ``--camera-rate-hz``
 (default 2 Hz at 320 x 214, 90 x 60 deg, as the benchmark). It starts on the ground below the
-scene's (or the task's) start pose; the companion takes off. Telemetry positions are in the
-scene's world frame.
+scene's (or the task's) start pose; the companion takes off.
+
+The vehicle follows PX4's or ArduCopter's rules (docs/flight.md lists them with their sources).
+LOCAL_POSITION_NED is relative to the estimator's origin (where the vehicle boots, turned by
+--estimator-yaw-deg), not the scene's origin, and camera frames are posed in that frame too, as
+a camera stamped by the vehicle's estimator is. --profile indoor (default): GPS-less (vision
+position, no global position, PX4 offboard loss -> Hold); outdoor: a global origin
+(GLOBAL_POSITION_INT, HOME_POSITION lat/lon, DO_REPOSITION) and PX4's default loss action.
 
 examples:
   onfly sim-vehicle
   onfly sim-vehicle --mavlink udpin:127.0.0.1:14550 --task urban_block-o01 --camera tcp://127.0.0.1:5600
-  onfly sim-vehicle --autopilot ardupilot --scene villa --camera tcp://127.0.0.1:5600 --json vehicle.json
+  onfly sim-vehicle --autopilot ardupilot --profile outdoor --scene villa --camera tcp://127.0.0.1:5600 --json vehicle.json
+  onfly sim-vehicle --param COM_OBL_RC_ACT=4      (PX4: land on offboard loss)
 """
 
 from __future__ import annotations
@@ -43,7 +50,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="vehicle link: udpout:HOST:PORT (default, like PX4 SITL), udpin:, tcpin:, tcp:")
     parser.add_argument("--autopilot", choices=("px4", "ardupilot"), default="px4", help="which autopilot's rules to follow")
     parser.add_argument("--system-id", type=int, default=1, help="MAVLink system id of the vehicle (default 1)")
-    parser.add_argument("--telemetry-rate-hz", type=float, default=50.0, help="LOCAL_POSITION_NED and attitude rate")
+    parser.add_argument("--profile", choices=("indoor", "outdoor"), default="indoor", help="GPS-less indoor (default) or outdoor with GPS")
+    parser.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                        help="set an autopilot parameter at boot (repeatable), e.g. COM_OBL_RC_ACT=4, GUID_TIMEOUT=3")
+    parser.add_argument("--estimator-yaw-deg", type=float, default=0.0,
+                        help="heading of the estimator frame in the scene (a vision estimator starts at an arbitrary heading)")
+    parser.add_argument("--telemetry-rate-hz", type=float, default=None,
+                        help="LOCAL_POSITION_NED and attitude rate until the companion asks (default: the autopilot's default)")
     parser.add_argument("--duration-s", type=float, default=None, help="stop after this many seconds (default: until Ctrl-C)")
     parser.add_argument("--scene", help="fly in this embedded-world scene (name or file); see `onfly scenes`")
     parser.add_argument("--task", help="start below this benchmark task's start pose (implies its scene); see `onfly tasks list`")
@@ -90,8 +103,19 @@ def build_world_model(args: argparse.Namespace):
 
 def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     """Serve until ``--duration-s``, ``--until-landed``, Ctrl-C, or ``stop`` (for in-process use)."""
+    params = []
+    for item in args.param:
+        name, sep, value = item.partition("=")
+        try:
+            params.append((name.strip(), float(value) if "." in value or "e" in value.lower() else int(value)))
+        except ValueError:
+            sep = ""
+        if not sep:
+            raise CliError(f"--param must look like NAME=NUMBER, got {item!r}")
     try:
-        config = SimVehicleConfig(autopilot=args.autopilot, system_id=args.system_id, telemetry_rate_hz=args.telemetry_rate_hz)
+        config = SimVehicleConfig(autopilot=args.autopilot, profile=args.profile, system_id=args.system_id,
+                                  telemetry_rate_hz=args.telemetry_rate_hz, params=tuple(params),
+                                  estimator_yaw_rad=float(np.deg2rad(args.estimator_yaw_deg)))
     except ValueError as exc:
         raise CliError(str(exc)) from exc
     if args.duration_s is not None and not args.duration_s > 0:
@@ -99,27 +123,26 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     if not args.camera_rate_hz > 0:
         raise CliError(f"--camera-rate-hz must be positive, got {args.camera_rate_hz}")
     model, task = build_world_model(args)
+    try:
+        link = MavlinkLink(args.mavlink, config.system_id, config.component_id)
+        link.connect()
+    except LinkError as exc:
+        raise CliError(str(exc)) from exc
+    vehicle = SimMavlinkVehicle(link, config, model=model)
     server = None
     if args.camera:
         from onfly.mavlink.camera_channel import FrameChannelError, FrameServer, parse_tcp_url
 
         try:
             host, port = parse_tcp_url(args.camera)
-            server = FrameServer(model.observe, host=host, port=port, rate_hz=args.camera_rate_hz)
+            server = FrameServer(lambda: vehicle.observation_in_local(model.observe()), host=host, port=port, rate_hz=args.camera_rate_hz)
         except (FrameChannelError, OSError) as exc:
+            link.close()
             raise CliError(f"cannot serve the camera on {args.camera}: {exc}") from exc
-    try:
-        link = MavlinkLink(args.mavlink, config.system_id, config.component_id)
-        link.connect()
-    except LinkError as exc:
-        if server is not None:
-            server.stop()
-        raise CliError(str(exc)) from exc
-    vehicle = SimMavlinkVehicle(link, config, model=model)
     where = "point mass, no camera" if model is None else f"scene {model.world.scene.name}" + (f", task {task.task_id}" if task else "")
     cam = f"; camera {server.url} at {args.camera_rate_hz:g} Hz" if server is not None else ""
-    print(f"onfly sim-vehicle: {args.autopilot} vehicle (system {config.system_id}) on {args.mavlink}; {where}{cam}", flush=True)
-    t0 = time.monotonic()
+    print(f"onfly sim-vehicle: {args.autopilot} vehicle ({args.profile}, system {config.system_id}) on {args.mavlink}; {where}{cam}", flush=True)
+    t0 = vehicle.clock()
     last_mode = None
     flown = False
     landed_at = None
@@ -129,12 +152,12 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     try:
         with vehicle:
             try:
-                while args.duration_s is None or time.monotonic() - t0 < args.duration_s:
+                while args.duration_s is None or vehicle.clock() - t0 < args.duration_s:
                     if stop is not None and stop.is_set():
                         break
                     mode = (vehicle.mode_name, vehicle.armed)
                     p = vehicle.position_enu()
-                    t = time.monotonic() - t0
+                    t = vehicle.clock() - t0
                     trace.append([round(t, 3), *(round(float(x), 4) for x in p)])
                     if mode != last_mode:
                         print(f"t={t:7.2f} s  mode {mode[0]:<14} armed={mode[1]!s:<5} p_enu=({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}) m", flush=True)
@@ -154,13 +177,16 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             server.stop()
     if model is not None and model.collision is not None:
         c = model.collision
-        print(f"COLLISION with {c.object_name!r} at t={c.t_s:.2f} s (vehicle time)")
+        print(f"COLLISION with {c.object_name!r} at t={c.t_s:.2f} s (vehicle time since boot)")
     if args.json:
         summary = {
             "autopilot": args.autopilot,
             "task": task.task_id if task else None,
             "world": model.summary() if model is not None else None,
+            "time_base": "seconds since the vehicle started (its boot clock)",
             "vehicle_events": [{"t_s": t - t0, "text": e} for t, e in vehicle.events],
+            "statustexts": [{"t_s": t - t0, "text": e} for t, e in vehicle.statustexts],
+            "params": vehicle.params,
             "setpoints_received": vehicle.setpoints_received,
             "frames_served": server.frames_sent if server is not None else 0,
             "trace_t_x_y_z": trace,

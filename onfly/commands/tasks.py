@@ -14,11 +14,10 @@ import json
 from collections import defaultdict
 from pathlib import Path
 
-import numpy as np
-from tqdm import tqdm
+from onfly.cli import CliError
 
-from onfly.bench.checker import CheckerConfig, check_tasks
-from onfly.bench.tasks import KINDS, load_task_file, load_tasks, select_tasks, tasks_dir, write_task_file
+#: Task kinds (as :data:`onfly.bench.tasks.KINDS`; kept here so ``--help`` imports nothing heavy).
+KINDS = ("object", "precise", "long_range")
 
 NAME = "tasks"
 HELP = "list the benchmark tasks or check that each is solvable (and write the reference paths)"
@@ -40,16 +39,32 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         p.add_argument("--tasks", default=None, help="comma-separated task ids")
         p.add_argument("--scene", action="append", default=None, help="only this scene (repeatable)")
         p.add_argument("--kind", action="append", choices=KINDS, default=None, help="only this kind (repeatable)")
-        p.add_argument("--count", type=int, default=None, help="an evenly spread subset of this many tasks")
+        p.add_argument("--count", type=int, default=None, help="an evenly spread subset of this many tasks (over kinds and scenes)")
         if name == "check":
             p.add_argument("--write", action="store_true", help="store the new references in the task files")
             p.add_argument("--json", default=None, help="write the per-task results to this JSON file")
 
 
+def _scene_ref(path: Path) -> str | None:
+    """The ``scene`` string a task file holds (a name or an external scene's path)."""
+    import tomllib
+
+    with open(path, "rb") as fh:
+        value = tomllib.load(fh).get("scene")
+    return value if isinstance(value, str) else None
+
+
 def _selected(args) -> list:
+    if args.count is not None and args.count < 1:
+        raise CliError(f"--count must be a positive integer, got {args.count}")
+    from onfly.bench.tasks import load_tasks, select_tasks
+
     tasks = load_tasks(args.files)
     ids = [s for s in args.tasks.split(",") if s] if args.tasks else None
-    return select_tasks(tasks, ids=ids, scenes=args.scene, kinds=args.kind, count=args.count)
+    try:
+        return select_tasks(tasks, ids=ids, scenes=args.scene, kinds=args.kind, count=args.count)
+    except ValueError as exc:
+        raise CliError(f"task selection: {exc}") from None
 
 
 def run(args) -> int:
@@ -60,6 +75,12 @@ def run(args) -> int:
             print(f"{t.task_id:22s} {t.kind:10s} {ref:>9s}  {t.instruction}")
         print(f"{len(tasks)} tasks")
         return 0
+    import numpy as np
+    from tqdm import tqdm
+
+    from onfly.bench.checker import CheckerConfig, check_tasks
+    from onfly.bench.tasks import load_task_file, write_task_file
+
     with tqdm(total=len(tasks), desc="checking", unit="task") as bar:
         results = check_tasks(tasks, CheckerConfig(), progress=bar)
     failed = stale = 0
@@ -80,7 +101,8 @@ def run(args) -> int:
                 by_file[t.source][t.task_id] = r.reference
         for path, refs in by_file.items():
             every = load_task_file(path)
-            write_task_file(path, every[0].scene, [t.with_reference(refs.get(t.task_id, t.reference)) for t in every], HEADER)
+            write_task_file(path, every[0].scene, [t.with_reference(refs.get(t.task_id, t.reference)) for t in every], HEADER,
+                            scene_ref=_scene_ref(path))
         print(f"wrote references of {sum(len(v) for v in by_file.values())} tasks to {len(by_file)} files")
     if args.json:
         Path(args.json).write_text(json.dumps({"tasks": rows, "failed": failed, "stale": stale}, indent=1))

@@ -3,8 +3,9 @@
 PX4 offboard (:class:`Px4Offboard`)
 -----------------------------------
 1. wait for the vehicle's state; start streaming HOLD setpoints at the current position;
-2. keep streaming for ``prestream_s`` (default 1.2 s; PX4 needs a stream of > 2 Hz for more
-   than a second before it accepts OFFBOARD or arming in it);
+2. keep streaming for ``prestream_s`` (default 0.5 s). Current PX4 only needs a setpoint
+   newer than COM_OF_LOSS_T when OFFBOARD is requested (the simulated vehicle holds us to
+   exactly that); the short pre-stream makes sure the first one has arrived;
 3. arm (MAV_CMD_COMPONENT_ARM_DISARM, param1 = 1);
 4. switch with MAV_CMD_DO_SET_MODE(param1 = MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, param2 = 6
    (PX4 main mode OFFBOARD), param3 = 0); PX4's HEARTBEAT reports it as
@@ -24,8 +25,12 @@ vehicle is within ``takeoff_tolerance_m`` of it; 4. stream setpoints on all axes
 (position, velocity, acceleration, yaw) at the bridge rate, far inside ArduCopter's 3 s guided
 timeout (checked at construction).
 
-Takeover
---------
+Hand-over and takeover
+----------------------
+Before the companion changes the mode itself (Hold at the end, the landing) it calls
+:meth:`AutopilotSession.expect` with the HEARTBEAT it expects: that one is a hand-over
+(:attr:`AutopilotSession.handover_status`), not a takeover.
+
 After engaging, every autopilot HEARTBEAT is checked (in the bridge's receiver thread): if
 the mode is no longer OFFBOARD / GUIDED, or the vehicle disarmed, the session releases the bridge
 (no more motion commands, ever) and records a PILOT_TAKEOVER failsafe event. HEARTBEAT is 1 Hz,
@@ -99,7 +104,7 @@ class OffboardConfig:
 
     Attributes
     ----------
-    prestream_s : PX4: how long setpoints stream before OFFBOARD is requested (> 1 s)
+    prestream_s : PX4: how long setpoints stream before OFFBOARD is requested
     state_timeout_s : wait for the first position + attitude
     confirm_timeout_s : wait for the HEARTBEAT to confirm a mode / armed state
     takeoff_alt_m : ArduPilot takeoff altitude above home
@@ -108,7 +113,7 @@ class OffboardConfig:
     guided_timeout_s : ArduPilot's guided timeout the setpoint period must stay well inside
     """
 
-    prestream_s: float = 1.2
+    prestream_s: float = 0.5
     state_timeout_s: float = 5.0
     confirm_timeout_s: float = 3.0
     takeoff_alt_m: float = 2.0
@@ -135,6 +140,8 @@ class AutopilotSession(abc.ABC):
         self.engaged = False
         self.takeover_s: float | None = None
         self._watching = False
+        self._expected = None  # (predicate, why): a mode change the companion commands itself
+        self.handover_status: VehicleStatus | None = None
         self._lock = threading.Lock()
         bridge.add_status_listener(self._on_status)
 
@@ -174,11 +181,23 @@ class AutopilotSession(abc.ABC):
     def _arm(self) -> None:
         self.bridge.command(_M.MAV_CMD_COMPONENT_ARM_DISARM, (1,))
 
+    def expect(self, predicate, why: str) -> None:
+        """The companion is about to hand the vehicle over itself (a commanded landing or hold):
+        a HEARTBEAT for which ``predicate(status)`` is true is that hand-over, not a takeover.
+        Anything else that leaves the companion's mode still is one."""
+        with self._lock:
+            self._expected = (predicate, why)
+
     def _on_status(self, status: VehicleStatus) -> None:
         with self._lock:
             if not self._watching:
                 return
             if self.in_companion_mode(status) and status.armed:
+                return
+            if self._expected is not None and self._expected[0](status):
+                if self.handover_status is None:
+                    log.info("hand-over seen (%s): custom_mode %#x armed=%s", self._expected[1], status.custom_mode, status.armed)
+                self.handover_status = status
                 return
             self._watching = False
             self.takeover_s = self.bridge.clock()

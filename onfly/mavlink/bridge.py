@@ -31,6 +31,14 @@ How the pilot plugs in::
             # VLM outcomes: bridge.failsafe.report_vlm_ok(t) / report_vlm_failure(t, cause)
     summary = [e.as_dict() for e in bridge.failsafe.events]
 
+Frames
+------
+Telemetry arrives in the autopilot's estimator frame (LOCAL_POSITION_NED, relative to the
+EKF origin). :meth:`MavlinkBridge.anchor_world` anchors the pilot's world frame at the
+vehicle's current pose (origin at its position, x along its heading, z up); from then on
+:meth:`~MavlinkBridge.state`, :meth:`~MavlinkBridge.attitude` and every setpoint are in that
+world frame and converted at the MAVLink boundary (``T_local_world``).
+
 type_mask (POSITION_TARGET_TYPEMASK: a set bit means *ignore* that field)
 -----------------------------------------------------------------------------
 ============  ==========================================  ================
@@ -327,6 +335,7 @@ class MavlinkBridge:
         self._acks: dict[int, tuple[int, float]] = {}
         self._listeners: list[Callable[[VehicleStatus], None]] = []
         self._vehicle_seen = threading.Event()
+        self._anchor: tuple[np.ndarray, np.ndarray, float] | None = None  # (R_local_world, p0_local, yaw0)
         self.sent: collections.deque[Setpoint] = collections.deque(maxlen=config.setpoint_log_len)
         self.release_reason: str | None = None
         self.errors: list[str] = []
@@ -386,7 +395,7 @@ class MavlinkBridge:
         """Block until position and attitude have arrived; raises BridgeError on timeout."""
         deadline = time.monotonic() + timeout_s
         while True:
-            st = self.reader.state()
+            st = self.state()
             if st is not None:
                 return st
             if time.monotonic() >= deadline or self._stop.wait(0.01):
@@ -394,8 +403,45 @@ class MavlinkBridge:
 
     # -- pilot interface --------------------------------------------------------------------
     def state(self) -> VehicleState | None:
-        """Latest vehicle state in ENU on the bridge clock, or None before telemetry."""
-        return self.reader.state()
+        """Latest vehicle state in the pilot's world frame (ENU; the estimator's local frame
+        until :meth:`anchor_world`) on the bridge clock, or None before telemetry."""
+        st = self.reader.state()
+        anchor = self._anchor
+        if st is None or anchor is None:
+            return st
+        R = anchor[0].T
+        return VehicleState(t_s=st.t_s, p=R @ (st.p - anchor[1]), v=R @ st.v, yaw=wrap_angle(st.yaw - anchor[2]), yaw_rate=st.yaw_rate)
+
+    def attitude(self) -> np.ndarray | None:
+        """Latest body attitude ``R_world_flu`` (3, 3) in the pilot's world frame, or None."""
+        R = self.reader.attitude()
+        anchor = self._anchor
+        if R is None or anchor is None:
+            return R
+        return anchor[0].T @ R
+
+    def anchor_world(self) -> np.ndarray:
+        """Anchor the pilot's world frame at the vehicle's current estimated pose: origin at its
+        position, x axis along its heading, z up (so heights are relative to where the flight
+        starts). Returns ``T_local_world`` (4, 4): world coordinates -> the estimator's local ENU
+        frame (LOCAL_POSITION_NED as ENU). Call it once, before streaming starts; setpoints are
+        converted back to the local frame as they are sent."""
+        st = self.reader.state()
+        if st is None:
+            raise BridgeError("cannot anchor the world frame before the vehicle's position and attitude arrived")
+        c, s_ = np.cos(st.yaw), np.sin(st.yaw)
+        R = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+        self._anchor = (R, st.p.copy(), float(st.yaw))
+        return self.T_local_world
+
+    @property
+    def T_local_world(self) -> np.ndarray:
+        """(4, 4) world -> estimator-local ENU transform (identity before :meth:`anchor_world`)."""
+        T = np.eye(4)
+        if self._anchor is not None:
+            T[:3, :3] = self._anchor[0]
+            T[:3, 3] = self._anchor[1]
+        return T
 
     def status(self) -> VehicleStatus | None:
         return self.reader.status()
@@ -493,9 +539,13 @@ class MavlinkBridge:
         """
         if self.released:
             raise BridgeError(f"bridge was released ({self.release_reason}); refusing to send a setpoint")
-        sent = self.clip_setpoint(sp, self.reader.state())
-        p_ned, v_ned, a_ned = frames.ned_from_enu(np.stack([sent.p, sent.v, sent.a]))
-        yaw_ned = frames.yaw_ned_from_enu(sent.yaw)
+        sent = self.clip_setpoint(sp, self.state())
+        p, v, a, yaw = sent.p, sent.v, sent.a, sent.yaw
+        if self._anchor is not None:  # world -> the estimator's local frame
+            R, p0, yaw0 = self._anchor
+            p, v, a, yaw = R @ p + p0, R @ v, R @ a, wrap_angle(yaw + yaw0)
+        p_ned, v_ned, a_ned = frames.ned_from_enu(np.stack([p, v, a]))
+        yaw_ned = frames.yaw_ned_from_enu(yaw)
         msg = self.link.mav.set_position_target_local_ned_encode(
             self._time_boot_ms(),
             self.config.target_system,
@@ -678,7 +728,7 @@ class MavlinkBridge:
     def _held(self, now: float, cause: FailsafeAction) -> Setpoint | None:
         """A HOLD (or BRAKE) setpoint at the point captured when ``cause`` began."""
         if self._hold is None or self._hold_cause is not cause:
-            state = self.reader.state()
+            state = self.state()
             if state is not None:
                 p, yaw = state.p, state.yaw
             elif self.sent:

@@ -192,6 +192,8 @@ class MavlinkLink(Link):
                 import serial as _pyserial  # noqa: F401  (pymavlink needs pyserial for serial ports)
             except ImportError as exc:
                 raise LinkError(f"serial link {self.url!r} needs the pyserial package, which is not installed") from exc
+        if self.url.startswith("udpin:"):
+            _check_udp_port_free(self.url)
         try:
             conn = mavutil.mavlink_connection(
                 self.url,
@@ -269,6 +271,28 @@ class _QueueSink:
 
     def write(self, buf: bytes) -> None:
         self._owner._deliver(bytes(buf))
+
+
+def _check_udp_port_free(url: str) -> None:
+    """Raise :class:`LinkError` if another socket already listens on ``udpin:HOST:PORT``.
+
+    pymavlink opens UDP inputs with SO_REUSEADDR, so a second listener on a busy port would
+    start silently and receive nothing (or half the traffic); a plain bind tells the truth.
+    """
+    import socket
+
+    host, _, port = url[len("udpin:"):].rpartition(":")
+    try:
+        port_i = int(port)
+    except ValueError as exc:
+        raise LinkError(f"bad UDP port in {url!r}") from exc
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        probe.bind((host or "0.0.0.0", port_i))
+    except OSError as exc:
+        raise LinkError(f"UDP port {port_i} is busy ({url}): another program (a second sim-vehicle, a GCS?) listens there") from exc
+    finally:
+        probe.close()
 
 
 class MemoryLink(Link):

@@ -1,61 +1,127 @@
-"""SimMavlinkVehicle: a MAVLink vehicle on a link that follows PX4's offboard rules or
-ArduCopter's guided rules closely enough to test the companion against them.
+"""SimMavlinkVehicle: a MAVLink vehicle that answers a companion computer the way PX4 and
+ArduCopter do, so the companion is tested against the rules it will meet in the air.
 
-PX4 rules modelled (``autopilot="px4"``)
-----------------------------------------
-- Starts disarmed in AUTO.LOITER (hold). Arming (MAV_CMD_COMPONENT_ARM_DISARM) is accepted;
-  disarming in the air is DENIED unless forced (param2 = 21196).
-- MAV_CMD_DO_SET_MODE to OFFBOARD (custom main mode 6) is TEMPORARILY_REJECTED unless
-  SET_POSITION_TARGET_LOCAL_NED has been streaming for ``offboard_prestream_s`` (default 1 s)
-  with no gap longer than ``1 / offboard_min_rate_hz`` (PX4 needs > 2 Hz).
-- In OFFBOARD, if no setpoint arrives for ``offboard_loss_timeout_s`` (COM_OF_LOSS_T,
-  default 1 s) the vehicle switches to AUTO.LOITER and holds where it is; the change shows in
-  its HEARTBEAT ``custom_mode``.
-- MAV_CMD_NAV_TAKEOFF is answered UNSUPPORTED (PX4 companions take off through offboard).
+Every rule below names its source (PX4 documentation at docs.px4.io, PX4-Autopilot source
+files, the ArduPilot wiki or ArduCopter source files). ``docs/flight.md`` lists them with the
+two settings (GPS-less indoor, outdoor) and what is simplified.
 
-ArduCopter rules modelled (``autopilot="ardupilot"``)
------------------------------------------------------
-- Starts disarmed in STABILIZE (0). GUIDED is custom mode 4, LOITER 5, LAND 9.
-- MAV_CMD_NAV_TAKEOFF (param7 = altitude above home, metres) is accepted only in GUIDED and
-  armed (else FAILED); the vehicle climbs at ``takeoff_speed_mps`` and ignores position targets
-  until the altitude is reached.
-- After takeoff, position targets are followed; if none arrives for ``guided_timeout_s``
-  (3 s, ArduCopter's guided position/velocity timeout) the vehicle stops and holds.
+Commands (COMMAND_LONG and COMMAND_INT alike; unused parameters may be NaN)
+---------------------------------------------------------------------------
+Both autopilots accept a command in either message and answer every command addressed to
+them with one COMMAND_ACK (MAVLink command protocol; PX4 ``mavlink_receiver.cpp``
+``handle_message_command_both``, ArduPilot ``GCS_MAVLINK::handle_command_long/int``). A NaN
+in a parameter the command does not use is ignored, as MAVSDK sends it (PX4 and ArduPilot
+treat NaN as "unchanged / default"). Unknown commands answer UNSUPPORTED.
 
-Both: HEARTBEAT at 1 Hz, LOCAL_POSITION_NED and the attitude message (ATTITUDE_QUATERNION for
-PX4, ATTITUDE for ArduPilot) at ``telemetry_rate_hz`` (50 Hz), adjustable with
-MAV_CMD_SET_MESSAGE_INTERVAL; time_boot_ms from the vehicle's own boot clock; every
-COMMAND_LONG addressed to it gets a COMMAND_ACK; unknown commands are UNSUPPORTED.
-``pilot_takeover()`` models the RC pilot switching to POSCTL (PX4) or LOITER (ArduPilot).
+- COMPONENT_ARM_DISARM: arming runs the pre-arm checks (below); disarming in the air is
+  DENIED unless param2 = 21196 (PX4 Commander ``disarm`` with ``forced``; ArduCopter
+  ``AP_Arming::Method::MAVLINK`` "disarm while flying" needs the magic too).
+- DO_SET_MODE (and the legacy SET_MODE message, ACKed with command = 11 as ArduPilot does):
+  PX4 main/sub modes in param2/param3, ArduCopter mode number in param2. A mode that needs a
+  position estimate is refused without one (PX4: "Flying vehicles can't switch to this mode
+  without valid local position", docs.px4.io flight_modes_mc/hold and land; ArduCopter
+  ``Mode::requires_GPS``). PX4 OFFBOARD is refused unless a setpoint arrived within
+  COM_OF_LOSS_T (PX4 ``Commander`` offboard-signal check: "recent setpoint", no pre-stream
+  duration; the >2 Hz rule of docs.px4.io flight_modes/offboard is COM_OF_LOSS_T).
+- NAV_TAKEOFF: PX4 switches to AUTO.TAKEOFF (``Commander.cpp``: a user-intended mode change,
+  accepted armed or not, TEMPORARILY_REJECTED when the mode cannot run) and, armed, climbs at MPC_TKO_SPEED to param7 (AMSL,
+  needs a global origin) or, when param7 is NaN, MIS_TAKEOFF_ALT above home, then holds in
+  AUTO.LOITER (docs.px4.io flight_modes_mc/takeoff). ArduCopter accepts it only in GUIDED,
+  armed and landed, param7 = altitude above home, climbing at WPNAV_SPEED_UP
+  (``ArduCopter/GCS_Mavlink.cpp`` ``MAV_CMD_NAV_TAKEOFF`` -> ``do_user_takeoff``); a
+  position target is ignored until the take-off completes (``mode_guided.cpp``
+  ``takeoff_run``); while landed, targets are ignored (the guided run functions' ground
+  handling when ``land_complete``).
+- NAV_LAND: PX4 AUTO.LAND, ArduCopter LAND (both: land where the vehicle is;
+  docs.px4.io flight_modes_mc/land "The mode can be triggered using the MAV_CMD_NAV_LAND";
+  ArduCopter ``GCS_Mavlink.cpp`` sets LAND).
+- DO_REPOSITION (COMMAND_INT, x/y = lat/lon degE7, z = metres in the message's frame): needs a
+  global origin (FAILED without). PX4 switches to AUTO.LOITER if param2 has
+  MAV_DO_REPOSITION_FLAGS_CHANGE_MODE and flies there (PX4 ``Commander`` +
+  ``navigator_main.cpp`` reposition); ArduCopter flies there in GUIDED (switching to it with
+  the flag, else FAILED outside GUIDED; ``GCS_Mavlink.cpp`` ``handle_command_int_do_reposition``).
+- REQUEST_MESSAGE / REQUEST_AUTOPILOT_CAPABILITIES / GET_HOME_POSITION: the message is sent
+  once after the ACK (DENIED if it cannot be produced, e.g. HOME_POSITION before home is set).
+- SET_MESSAGE_INTERVAL: any stream below; interval -1 stops it, 0 restores the default.
 
-Dynamics
---------
-Two models behind one interface (``p``, ``v``, ``a``, ``yaw``, ``yaw_rate``, ``on_ground``,
-``step(dt, target, armed)``, ``R_enu_flu()``; optionally ``crashed``):
+Parameters (PARAM_REQUEST_LIST / PARAM_REQUEST_READ / PARAM_SET -> PARAM_VALUE)
+--------------------------------------------------------------------------------
+The few parameters a companion reads or sets, with the autopilots' defaults
+(:data:`PX4_PARAMS`, :data:`ARDUPILOT_PARAMS`). PX4 encodes integer parameters bytewise in
+the float field, ArduPilot casts them (AUTOPILOT_VERSION's MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_*
+bit says which; mavlink.io/en/services/parameter.html). The rules read them live:
+COM_OF_LOSS_T, COM_OBL_RC_ACT, COM_DISARM_PRFLT, COM_DISARM_LAND, MIS_TAKEOFF_ALT,
+MPC_TKO_SPEED, MPC_LAND_SPEED (PX4); GUID_TIMEOUT, DISARM_DELAY, LAND_SPEED, WPNAV_SPEED_UP
+(ArduCopter).
 
-- :class:`PointMassModel` (default, no scene): a point mass under a cascaded P (position) /
-  P (velocity) controller with velocity and acceleration feed-forward, speed, acceleration and
-  yaw-rate limits, a ground plane at z = 0, and a tilt derived from the commanded acceleration
-  (for a realistic attitude quaternion).
-- :class:`onfly.mavlink.sim_world.WorldVehicleModel` (``model=``): the embedded world's
-  vehicle, exact collisions against a scene and its camera. A model that reports ``crashed``
-  makes the vehicle disarm (``crashed: ...`` event).
+Arming and disarming
+--------------------
+- Pre-arm: a position estimate (the vehicle's :meth:`SimMavlinkVehicle.set_position_valid`;
+  PX4 ``HealthAndArmingChecks`` estimator checks; ArduCopter "PreArm: Need Position
+  Estimate") and a mode that allows arming: PX4 refuses in AUTO.LAND and AUTO.RTL ("Mode
+  prevents arming", docs.px4.io flight_modes_mc/land); OFFBOARD needs a recent setpoint;
+  ArduCopter refuses in LAND, RTL, BRAKE and AUTO (``Mode::allows_arming``). A refusal is
+  FAILED (PX4 ``Commander::arm``) / FAILED (ArduPilot) with a STATUSTEXT saying why.
+- Pre-flight auto-disarm: armed on the ground without taking off for COM_DISARM_PRFLT (10 s,
+  PX4 ``Commander``) or DISARM_DELAY (10 s, ArduCopter ``motors.cpp`` ``auto_disarm_check``).
+- Land detector, in every mode: on the ground and still for LNDMC_TRIG_TIME (1 s, PX4
+  ``land_detector``; ArduCopter ``land_detector.cpp`` LAND_DETECTOR_TRIGGER_SEC = 1 s) means
+  landed; after a flight PX4 then disarms after COM_DISARM_LAND (2 s), ArduCopter at once in
+  LAND (``mode_land.cpp``) and after DISARM_DELAY in other modes.
 
-State is ENU internally; NED/FRD appear only at the MAVLink boundary through
-:mod:`onfly.mavlink.frames`.
+Companion loss
+--------------
+- PX4 OFFBOARD: no setpoint for COM_OF_LOSS_T (1 s) -> the COM_OBL_RC_ACT action (0 Position,
+  1 Altitude, 2 Manual, 3 Return, 4 Land, 5 Hold, 6 Terminate, 7 Disarm; PX4 parameter
+  reference). Position/Altitude/Manual need an RC link (``rc_connected``), Position and
+  Hold a position estimate, Return a global origin and home; an action that cannot run
+  falls back to Hold, then to Land, then to Descend (PX4 ``failsafe.cpp`` mode fallback).
+- ArduCopter GUIDED: GUID_TIMEOUT (3 s) applies only to velocity and acceleration targets: a
+  velocity (or acceleration) target not refreshed stops the vehicle (velocity zero), a
+  position+velocity+acceleration target keeps its position with the feed-forwards zeroed,
+  and a position-only target is held for ever (``mode_guided.cpp``
+  ``velaccel_control_run`` / ``posvelaccel_control_run`` vs ``pos_control_run``).
 
-Fault injection for tests: :meth:`SimMavlinkVehicle.set_link_cut` (drop all traffic both ways)
-and :meth:`SimMavlinkVehicle.set_odometry_frozen` (keep re-sending the last position sample with
-its old timestamp, as a stuck estimator would).
+Setpoints (SET_POSITION_TARGET_LOCAL_NED, MAV_FRAME_LOCAL_NED)
+-------------------------------------------------------------
+PX4 reads type_mask per axis: an ignored component is NaN and the controller uses what is
+finite on each axis (``mavlink_receiver.cpp`` ``handle_message_set_position_target_local_ned``;
+e.g. x/y position with z velocity). ArduCopter uses a whole vector or none: position is ignored
+only when all three position bits are set, same for velocity and acceleration
+(``GCS_Mavlink.cpp`` ``handle_set_position_target_local_ned``). Non-finite used fields drop
+the message. ArduCopter accepts targets in GUIDED only.
+
+Frames and telemetry
+--------------------
+LOCAL_POSITION_NED is relative to the estimator's origin (EKF origin), which is not the
+scene's origin: by default the vehicle's position at boot, rotated by ``estimator_yaw_rad``
+(a vision-only estimator's heading is arbitrary), as PX4/EKF2 and ArduPilot/EKF3 set their
+origin where the estimate starts. With a global origin (outdoor), GLOBAL_POSITION_INT and
+HOME_POSITION carry lat/lon (PX4 ``lib/geo`` azimuthal-equidistant projection, earth radius
+6371 km). Streams at the autopilot's default rates until SET_MESSAGE_INTERVAL
+(:data:`DEFAULT_RATES_HZ`): HEARTBEAT, SYS_STATUS (sensor and pre-arm health, battery),
+EXTENDED_SYS_STATE (landed state), LOCAL_POSITION_NED, ATTITUDE_QUATERNION (PX4) / ATTITUDE
+(ArduPilot), GLOBAL_POSITION_INT and HOME_POSITION (with a global origin; HOME_POSITION
+also without, lat/lon 0, once home is set at arming), SYSTEM_TIME, BATTERY_STATUS; STATUSTEXT on
+events; AUTOPILOT_VERSION on request.
+
+Dynamics: :class:`PointMassModel` (default) or the embedded world's
+:class:`~onfly.mavlink.sim_world.WorldVehicleModel` (``model=``, exact collisions; a crash
+disarms). State is ENU in the scene frame internally; NED/FRD and the estimator frame appear
+only at the MAVLink boundary.
+
+Fault injection for tests: :meth:`set_link_cut`, :meth:`set_odometry_frozen`,
+:meth:`set_position_valid`, :meth:`pilot_takeover`.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import struct
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
@@ -69,29 +135,112 @@ __all__ = [
     "SimVehicleConfig",
     "PointMassModel",
     "SimMavlinkVehicle",
+    "PX4_PARAMS",
+    "ARDUPILOT_PARAMS",
+    "DEFAULT_RATES_HZ",
+    "PROFILES",
+    "EARTH_RADIUS_M",
 ]
 
 _FORCE_DISARM_MAGIC = 21196
+EARTH_RADIUS_M = 6371000.0  # PX4 lib/geo CONSTANTS_RADIUS_OF_EARTH
 
 log = logging.getLogger(__name__)
 _M = mavlink2
+_R32 = _M.MAV_PARAM_TYPE_REAL32
+_I32 = _M.MAV_PARAM_TYPE_INT32
+_I16 = _M.MAV_PARAM_TYPE_INT16
+_I8 = _M.MAV_PARAM_TYPE_INT8
+
+#: PX4 parameters the vehicle serves: name -> (default, MAV_PARAM_TYPE). Defaults from the
+#: PX4 parameter reference (docs.px4.io advanced_config/parameter_reference).
+PX4_PARAMS = {
+    "COM_OF_LOSS_T": (1.0, _R32),
+    "COM_OBL_RC_ACT": (0, _I32),
+    "COM_DISARM_PRFLT": (10.0, _R32),
+    "COM_DISARM_LAND": (2.0, _R32),
+    "LNDMC_TRIG_TIME": (1.0, _R32),
+    "MIS_TAKEOFF_ALT": (2.5, _R32),
+    "MPC_TKO_SPEED": (1.5, _R32),
+    "MPC_LAND_SPEED": (0.7, _R32),
+}
+#: ArduCopter parameters: name -> (default, MAV_PARAM_TYPE); units as ArduPilot's (cm/s, s).
+ARDUPILOT_PARAMS = {
+    "GUID_TIMEOUT": (3.0, _R32),
+    "DISARM_DELAY": (10, _I16),
+    "LAND_SPEED": (50, _I16),
+    "WPNAV_SPEED_UP": (250.0, _R32),
+    "FS_GCS_ENABLE": (0, _I8),
+}
+
+_ID = {
+    "SYS_STATUS": _M.MAVLINK_MSG_ID_SYS_STATUS,
+    "EXTENDED_SYS_STATE": _M.MAVLINK_MSG_ID_EXTENDED_SYS_STATE,
+    "LOCAL_POSITION_NED": _M.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
+    "ATTITUDE": _M.MAVLINK_MSG_ID_ATTITUDE,
+    "ATTITUDE_QUATERNION": _M.MAVLINK_MSG_ID_ATTITUDE_QUATERNION,
+    "GLOBAL_POSITION_INT": _M.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
+    "HOME_POSITION": _M.MAVLINK_MSG_ID_HOME_POSITION,
+    "SYSTEM_TIME": _M.MAVLINK_MSG_ID_SYSTEM_TIME,
+    "BATTERY_STATUS": _M.MAVLINK_MSG_ID_BATTERY_STATUS,
+    "AUTOPILOT_VERSION": _M.MAVLINK_MSG_ID_AUTOPILOT_VERSION,
+}
+
+#: Default stream rates (Hz) until SET_MESSAGE_INTERVAL. PX4: ``mavlink_main.cpp``
+#: ``configure_streams_to_default`` onboard mode (the companion port); ArduPilot: the SRn_*
+#: stream-group defaults (EXT_STAT 2, EXTRA1 4, POSITION 2, EXTRA3 2 Hz). ``telemetry_rate_hz``
+#: of the config overrides the position and attitude rates.
+DEFAULT_RATES_HZ = {
+    "px4": {"SYS_STATUS": 5.0, "EXTENDED_SYS_STATE": 5.0, "LOCAL_POSITION_NED": 30.0, "ATTITUDE_QUATERNION": 50.0,
+            "GLOBAL_POSITION_INT": 50.0, "HOME_POSITION": 0.5, "SYSTEM_TIME": 1.0, "BATTERY_STATUS": 0.5},
+    "ardupilot": {"SYS_STATUS": 2.0, "EXTENDED_SYS_STATE": 2.0, "LOCAL_POSITION_NED": 2.0, "ATTITUDE": 4.0,
+                  "GLOBAL_POSITION_INT": 2.0, "HOME_POSITION": 0.0, "SYSTEM_TIME": 2.0, "BATTERY_STATUS": 2.0},
+}
+
+#: The two settings: a GPS-less indoor vehicle (vision position, no global origin, offboard
+#: loss -> Hold, since Position mode needs an RC link it does not have) and an outdoor one
+#: (GPS: a global origin, offboard loss -> PX4's default Position, falling back to Hold
+#: without RC).
+PROFILES = {
+    "indoor": {"global_origin": None, "rc_connected": False, "px4_params": (("COM_OBL_RC_ACT", 5),)},
+    "outdoor": {"global_origin": (47.397742, 8.545594, 488.0), "rc_connected": False, "px4_params": ()},
+}
+
+
+def _flight_sw_version(major: int, minor: int, patch: int) -> int:
+    return (major << 24) | (minor << 16) | (patch << 8) | 0xFF  # FIRMWARE_VERSION_TYPE_OFFICIAL
+
 
 @dataclass(frozen=True)
 class SimVehicleConfig:
-    """Rules, rates and limits of the simulated vehicle (seconds, metres, radians, ENU)."""
+    """Rules, rates and limits of the simulated vehicle (seconds, metres, radians, ENU).
+
+    Attributes
+    ----------
+    autopilot : ``"px4"`` or ``"ardupilot"``
+    profile : ``"indoor"`` (no global origin) or ``"outdoor"`` (:data:`PROFILES`)
+    telemetry_rate_hz : LOCAL_POSITION_NED and attitude rate, or None for the autopilot default
+    offboard_loss_timeout_s : initial COM_OF_LOSS_T (PX4)
+    guided_timeout_s : initial GUID_TIMEOUT (ArduCopter)
+    params : ``((name, value), ...)`` overrides of the autopilot's parameters
+    estimator_origin_m : scene ENU position of the estimator's origin, or None for the boot
+        position (where the estimate started)
+    estimator_yaw_rad : ENU yaw (rad) of the estimator frame's east axis in the scene
+        (0: aligned with the scene; a vision-only estimator starts with an arbitrary heading)
+    global_origin : ``(lat_deg, lon_deg, alt_amsl_m)`` of the scene origin, or None (GPS-less);
+        default from the profile
+    rc_connected : an RC link is present (PX4 manual-control modes as loss actions)
+    """
 
     autopilot: str = "px4"
+    profile: str = "indoor"
     system_id: int = 1
     component_id: int = _M.MAV_COMP_ID_AUTOPILOT1
     physics_rate_hz: float = 100.0
-    telemetry_rate_hz: float = 50.0
+    telemetry_rate_hz: float | None = 50.0
     heartbeat_period_s: float = 1.0
-    offboard_prestream_s: float = 1.0
-    offboard_min_rate_hz: float = 2.0
     offboard_loss_timeout_s: float = 1.0
     guided_timeout_s: float = 3.0
-    takeoff_speed_mps: float = 1.5
-    land_speed_mps: float = 0.7
     v_max_mps: float = 5.0
     a_max_mps2: float = 5.0
     yaw_rate_max_radps: float = 1.5
@@ -101,42 +250,94 @@ class SimVehicleConfig:
     initial_position_m: tuple = (0.0, 0.0, 0.0)
     initial_yaw_rad: float = 0.0
     boot_time_ms: int = 0
+    params: tuple = ()
+    estimator_origin_m: tuple | None = None
+    estimator_yaw_rad: float = 0.0
+    global_origin: tuple | None | str = "profile"
+    rc_connected: bool | None = None
+    battery_capacity_s: float = 1200.0
 
     def __post_init__(self) -> None:
         if self.autopilot not in ("px4", "ardupilot"):
             raise ValueError(f"autopilot must be 'px4' or 'ardupilot', got {self.autopilot!r}")
+        if self.profile not in PROFILES:
+            raise ValueError(f"profile must be one of {sorted(PROFILES)}, got {self.profile!r}")
         if not 1 <= int(self.system_id) <= 255:
             raise ValueError(f"system_id must be in [1, 255], got {self.system_id}")
         positive = (
-            "physics_rate_hz", "telemetry_rate_hz", "heartbeat_period_s", "offboard_prestream_s",
-            "offboard_min_rate_hz", "offboard_loss_timeout_s", "guided_timeout_s", "takeoff_speed_mps",
-            "land_speed_mps", "v_max_mps", "a_max_mps2", "yaw_rate_max_radps", "k_pos", "k_vel", "k_yaw",
+            "physics_rate_hz", "heartbeat_period_s", "offboard_loss_timeout_s", "guided_timeout_s",
+            "v_max_mps", "a_max_mps2", "yaw_rate_max_radps", "k_pos", "k_vel", "k_yaw", "battery_capacity_s",
         )
         for name in positive:
             val = getattr(self, name)
             if not (isinstance(val, (int, float)) and math.isfinite(val) and val > 0):
                 raise ValueError(f"{name} must be positive, got {val!r}")
+        if self.telemetry_rate_hz is not None and not (math.isfinite(self.telemetry_rate_hz) and self.telemetry_rate_hz > 0):
+            raise ValueError(f"telemetry_rate_hz must be positive or None, got {self.telemetry_rate_hz!r}")
         p = tuple(float(x) for x in self.initial_position_m)
         if len(p) != 3 or not all(math.isfinite(x) for x in p) or p[2] < 0:
             raise ValueError(f"initial_position_m must be 3 finite numbers with z >= 0, got {self.initial_position_m!r}")
         object.__setattr__(self, "initial_position_m", p)
         if not 0 <= int(self.boot_time_ms) < 2**32:
             raise ValueError(f"boot_time_ms must be a uint32, got {self.boot_time_ms}")
+        if self.estimator_origin_m is not None:
+            o = tuple(float(x) for x in self.estimator_origin_m)
+            if len(o) != 3 or not all(math.isfinite(x) for x in o):
+                raise ValueError(f"estimator_origin_m must be 3 finite numbers or None, got {self.estimator_origin_m!r}")
+            object.__setattr__(self, "estimator_origin_m", o)
+        if not math.isfinite(self.estimator_yaw_rad):
+            raise ValueError(f"estimator_yaw_rad must be finite, got {self.estimator_yaw_rad}")
+        prof = PROFILES[self.profile]
+        if isinstance(self.global_origin, str):
+            if self.global_origin != "profile":
+                raise ValueError(f"global_origin must be (lat, lon, alt), None or 'profile', got {self.global_origin!r}")
+            object.__setattr__(self, "global_origin", prof["global_origin"])
+        if self.global_origin is not None:
+            g = tuple(float(x) for x in self.global_origin)
+            if len(g) != 3 or not (-90 < g[0] < 90 and -180 <= g[1] <= 180 and math.isfinite(g[2])):
+                raise ValueError(f"global_origin must be (lat_deg, lon_deg, alt_amsl_m), got {self.global_origin!r}")
+            object.__setattr__(self, "global_origin", g)
+        if self.rc_connected is None:
+            object.__setattr__(self, "rc_connected", bool(prof["rc_connected"]))
+        table = PX4_PARAMS if self.autopilot == "px4" else ARDUPILOT_PARAMS
+        overrides = dict(prof["px4_params"]) if self.autopilot == "px4" else {}
+        for item in self.params:
+            if not (isinstance(item, (tuple, list)) and len(item) == 2):
+                raise ValueError(f"params must be (name, value) pairs, got {item!r}")
+            name, val = item
+            if name not in table:
+                raise ValueError(f"unknown {self.autopilot} parameter {name!r}; known: {', '.join(table)}")
+            if not (isinstance(val, (int, float)) and math.isfinite(val)):
+                raise ValueError(f"parameter {name} must be a finite number, got {val!r}")
+            overrides[name] = val
+        object.__setattr__(self, "params", tuple(sorted(overrides.items())))
+
+    def initial_params(self) -> dict:
+        """The parameter table with this config's values (name -> value)."""
+        if self.autopilot == "px4":
+            values = {k: v for k, (v, _) in PX4_PARAMS.items()}
+            values["COM_OF_LOSS_T"] = float(self.offboard_loss_timeout_s)
+        else:
+            values = {k: v for k, (v, _) in ARDUPILOT_PARAMS.items()}
+            values["GUID_TIMEOUT"] = float(self.guided_timeout_s)
+        values.update(dict(self.params))
+        return values
 
 
 @dataclass
 class _Target:
-    """What the controller tracks (ENU); None fields are ignored."""
+    """What the controller tracks (scene ENU); None fields are ignored."""
 
     p: np.ndarray | None = None
     v: np.ndarray | None = None
     a: np.ndarray | None = None
     yaw: float | None = None
     v_limit_mps: float | None = None
+    kind: str = "position"  # position | velocity | acceleration | full (for GUID_TIMEOUT)
 
 
 class PointMassModel:
-    """Point mass with a cascaded P/P controller (see the module docstring). ENU, SI units.
+    """Point mass with a cascaded P/P controller. ENU, SI units.
 
     Attributes
     ----------
@@ -154,16 +355,16 @@ class PointMassModel:
         self.a = np.zeros(3)
         self.yaw = float(config.initial_yaw_rad)
         self.yaw_rate = 0.0
+        self.ground_z_m = float(config.initial_position_m[2])
 
     @property
     def on_ground(self) -> bool:
-        return self.p[2] <= 1e-3 and self.v[2] <= 1e-3
+        return self.p[2] <= self.ground_z_m + 1e-3 and self.v[2] <= 1e-3
 
     def step(self, dt_s: float, target: _Target | None, armed: bool) -> None:
         c = self.c
         if not armed or target is None:
             if self.on_ground or not armed:
-                # Disarmed (or no target on the ground): motors off, sitting on the ground.
                 self.a = np.zeros(3) if self.on_ground else np.array([0.0, 0.0, -self.GRAVITY_MPS2])
                 self._integrate(dt_s)
                 self.yaw_rate = 0.0
@@ -197,9 +398,11 @@ class PointMassModel:
         if n > self.c.v_max_mps:
             self.v *= self.c.v_max_mps / n
         self.p = self.p + self.v * dt_s
-        if self.p[2] < 0.0:
-            self.p[2] = 0.0
+        if self.p[2] < self.ground_z_m:
+            self.p[2] = self.ground_z_m
             self.v[2] = max(self.v[2], 0.0)
+            if self.v[2] == 0.0:
+                self.v[:2] = 0.0  # friction: a copter resting on its legs does not slide
 
     def R_enu_flu(self) -> np.ndarray:
         """Body attitude (3, 3): thrust axis along ``a + g z``, heading ``yaw``."""
@@ -212,14 +415,18 @@ class PointMassModel:
         return np.column_stack([x_b, y_b, z_b])
 
 
+def _rot_z(yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
 class SimMavlinkVehicle:
     """The simulated autopilot serving one :class:`~onfly.mavlink.link.Link` from its own thread.
 
     ``clock`` is the real monotonic clock by default (the vehicle runs in wall time like real
-    hardware). ``model`` replaces the internal :class:`PointMassModel` (e.g. a
-    :class:`~onfly.mavlink.sim_world.WorldVehicleModel`; ``config.initial_position_m`` and the
-    config's limits and gains then do not apply: the model has its own). Read-only observers for
-    tests: :attr:`model`, :attr:`armed`, :attr:`custom_mode`, :attr:`events` (``(t_s, text)``),
+    hardware). ``model`` replaces the internal :class:`PointMassModel`. Read-only observers for
+    tests: :attr:`model`, :attr:`armed`, :attr:`custom_mode`, :attr:`mode_name`,
+    :attr:`landed_state`, :attr:`params`, :attr:`events` (``(t_s, text)``), :attr:`statustexts`,
     :attr:`setpoints_received`.
     """
 
@@ -233,7 +440,10 @@ class SimMavlinkVehicle:
         self.px4 = config.autopilot == "px4"
         self.armed = False
         self.custom_mode = px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["loiter"]) if self.px4 else ARDUCOPTER_MODE["stabilize"]
+        self.params = config.initial_params()
+        self._param_types = {k: t for k, (_, t) in (PX4_PARAMS if self.px4 else ARDUPILOT_PARAMS).items()}
         self.events: list[tuple[float, str]] = []
+        self.statustexts: list[tuple[float, str]] = []
         self.setpoints_received = 0
         self.setpoint_times: list[float] = []
         self.foreign_setpoints = 0
@@ -242,16 +452,31 @@ class SimMavlinkVehicle:
         self._thread: threading.Thread | None = None
         self._cut = threading.Event()
         self._frozen_pos = None
+        self._position_valid = True
         self._t_boot = clock()
         self._target: _Target | None = None
         self._setpoint: _Target | None = None
         self._last_sp_s: float | None = None
-        self._stream_since_s: float | None = None
-        self._takeoff_alt_m: float | None = None
-        self._took_off = False
+        self._takeoff_alt_m: float | None = None  # scene z the current take-off climbs to
         self._guided_timed_out = False
-        att_id = _M.MAVLINK_MSG_ID_ATTITUDE_QUATERNION if self.px4 else _M.MAVLINK_MSG_ID_ATTITUDE
-        self._rates_hz = {_M.MAVLINK_MSG_ID_LOCAL_POSITION_NED: config.telemetry_rate_hz, att_id: config.telemetry_rate_hz}
+        # estimator frame: origin and heading in the scene
+        origin = config.estimator_origin_m if config.estimator_origin_m is not None else tuple(self.model.p)
+        self._origin = np.array(origin, dtype=float)
+        self._R_scene_est = _rot_z(config.estimator_yaw_rad)
+        self._home: np.ndarray | None = None  # scene ENU, set at arming
+        self._flying_since_arm = False
+        self._armed_at: float | None = None
+        self._still_since: float | None = None
+        self.landed_state = _M.MAV_LANDED_STATE_ON_GROUND
+        self._landed_at: float | None = None
+        self._pending: list = []  # messages to send after the current ACK
+        self._rates_hz: dict[int, float] = {}
+        self._default_rates: dict[int, float] = {}
+        for name, rate in DEFAULT_RATES_HZ[config.autopilot].items():
+            if name in ("LOCAL_POSITION_NED", "ATTITUDE", "ATTITUDE_QUATERNION") and config.telemetry_rate_hz is not None:
+                rate = config.telemetry_rate_hz
+            self._default_rates[_ID[name]] = rate
+        self._rates_hz = dict(self._default_rates)
         self._next_send: dict[int, float] = {}
 
     # -- lifecycle --------------------------------------------------------------------------
@@ -278,20 +503,54 @@ class SimMavlinkVehicle:
     def __exit__(self, *exc) -> None:
         self.stop()
 
+    # -- frames -----------------------------------------------------------------------------
+    def local_from_scene(self, p_enu) -> np.ndarray:
+        """Scene ENU point(s) (..., 3) -> the estimator's local ENU frame."""
+        return (np.asarray(p_enu, dtype=float) - self._origin) @ self._R_scene_est
+
+    def scene_from_local(self, p_local) -> np.ndarray:
+        """The estimator's local ENU point(s) (..., 3) -> scene ENU."""
+        return np.asarray(p_local, dtype=float) @ self._R_scene_est.T + self._origin
+
+    @property
+    def T_local_scene(self) -> np.ndarray:
+        """(4, 4) transform taking scene ENU coordinates to the estimator's local ENU frame."""
+        T = np.eye(4)
+        T[:3, :3] = self._R_scene_est.T
+        T[:3, 3] = -self._R_scene_est.T @ self._origin
+        return T
+
+    def _global_from_scene(self, p_enu) -> tuple[float, float, float]:
+        lat0, lon0, alt0 = self.c.global_origin
+        e, n, u = (float(x) for x in p_enu)
+        lat = lat0 + math.degrees(n / EARTH_RADIUS_M)
+        lon = lon0 + math.degrees(e / (EARTH_RADIUS_M * math.cos(math.radians(lat0))))
+        return lat, lon, alt0 + u
+
+    def _scene_from_global(self, lat: float, lon: float, alt_amsl: float) -> np.ndarray:
+        lat0, lon0, alt0 = self.c.global_origin
+        n = math.radians(lat - lat0) * EARTH_RADIUS_M
+        e = math.radians(lon - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0))
+        return np.array([e, n, alt_amsl - alt0])
+
     # -- observers and faults ---------------------------------------------------------------
     @property
     def mode_name(self) -> str:
         with self._lock:
-            if self.px4:
-                main = px4_main_mode(self.custom_mode)
-                sub = (self.custom_mode >> 24) & 0xFF
-                name = next((k for k, v in PX4_MAIN.items() if v == main), str(main))
-                if main == PX4_MAIN["auto"]:
-                    name += "." + next((k for k, v in PX4_AUTO_SUB.items() if v == sub), str(sub))
-                return name
-            return next((k for k, v in ARDUCOPTER_MODE.items() if v == self.custom_mode), str(self.custom_mode))
+            return self._mode_name(self.custom_mode)
+
+    def _mode_name(self, custom_mode: int) -> str:
+        if self.px4:
+            main = px4_main_mode(custom_mode)
+            sub = (custom_mode >> 24) & 0xFF
+            name = next((k for k, v in PX4_MAIN.items() if v == main), str(main))
+            if main == PX4_MAIN["auto"]:
+                name += "." + next((k for k, v in PX4_AUTO_SUB.items() if v == sub), str(sub))
+            return name
+        return next((k for k, v in ARDUCOPTER_MODE.items() if v == custom_mode), str(custom_mode))
 
     def position_enu(self) -> np.ndarray:
+        """Scene ENU position (ground truth)."""
         with self._lock:
             return self.model.p.copy()
 
@@ -309,6 +568,13 @@ class SimMavlinkVehicle:
         with self._lock:
             self._frozen_pos = self._position_message() if frozen else None
         self._event(f"odometry {'frozen' if frozen else 'live'}")
+
+    def set_position_valid(self, valid: bool) -> None:
+        """The estimator has (True) or has lost (False) its position estimate (e.g. vision
+        dropped): LOCAL_POSITION_NED stops, arming and position modes are refused."""
+        with self._lock:
+            self._position_valid = bool(valid)
+        self._event(f"position estimate {'valid' if valid else 'lost'}")
 
     def pilot_takeover(self) -> None:
         """The RC pilot flips the mode switch: POSCTL (PX4) or LOITER (ArduPilot), holding here."""
@@ -362,11 +628,13 @@ class SimMavlinkVehicle:
                     continue
                 due = self._next_send.setdefault(msg_id, now)
                 if now >= due:
-                    self._send_telemetry(msg_id)
+                    msg = self._telemetry(msg_id, streaming=True)
+                    if msg is not None:
+                        self._send(msg)
                     self._next_send[msg_id] = max(due + 1.0 / rate, now)
 
     def _send(self, msg) -> None:
-        if self._cut.is_set():
+        if self._cut.is_set() or msg is None:
             return
         try:
             self.link.send(msg)
@@ -379,66 +647,178 @@ class SimMavlinkVehicle:
             self.events.append((t, text))
         log.info("sim vehicle t=%.3f: %s", t, text)
 
+    def _statustext(self, severity: int, text: str) -> None:
+        with self._lock:
+            self.statustexts.append((self.clock(), text))
+        self._send(self.link.mav.statustext_encode(severity, text.encode()[:50]))
+
     # -- physics and rules ------------------------------------------------------------------
     def _physics(self, dt: float, t: float) -> None:
         with self._lock:
             self._apply_rules(t)
             self.model.step(dt, self._target, self.armed)
             if self.armed and getattr(self.model, "crashed", False):
-                self.armed = False
                 hit = getattr(self.model, "collision", None)
-                self._event(f"crashed{'' if hit is None else f' into {hit.object_name!r}'}: disarmed")
-            if self._landing() and self.model.on_ground and self.armed:
-                self.armed = False
-                self._event("landed and disarmed")
+                self._disarm(f"crashed{'' if hit is None else f' into {hit.object_name!r}'}")
+            self._land_detector(t)
 
-    def _landing(self) -> bool:
+    def _disarm(self, why: str) -> None:
+        self.armed = False
+        self._armed_at = None
+        self._event(f"disarmed: {why}")
+        self._statustext(_M.MAV_SEVERITY_INFO, f"Disarmed: {why}"[:50])
+
+    def _land_detector(self, t: float) -> None:
+        """Landed state and auto-disarm (see the module docstring)."""
+        m = self.model
+        if not self.armed:
+            self.landed_state = _M.MAV_LANDED_STATE_ON_GROUND if m.on_ground else _M.MAV_LANDED_STATE_IN_AIR
+            self._still_since = None
+            return
+        still = m.on_ground and float(np.linalg.norm(m.v)) < 0.1
+        if not m.on_ground:
+            self._flying_since_arm = True
+            self._still_since = None
+            self._landed_at = None
+            if self._landing_mode() and m.v[2] < -0.05:
+                self.landed_state = _M.MAV_LANDED_STATE_LANDING
+            elif self._takeoff_alt_m is not None and m.v[2] > 0.05:
+                self.landed_state = _M.MAV_LANDED_STATE_TAKEOFF
+            else:
+                self.landed_state = _M.MAV_LANDED_STATE_IN_AIR
+        elif still:
+            if self._still_since is None:
+                self._still_since = t
+            trig = float(self.params.get("LNDMC_TRIG_TIME", 1.0))
+            if t - self._still_since >= trig and self.landed_state != _M.MAV_LANDED_STATE_ON_GROUND:
+                self.landed_state = _M.MAV_LANDED_STATE_ON_GROUND
+                self._landed_at = t
+                if self._flying_since_arm:
+                    self._event("landed")
+        if self.landed_state != _M.MAV_LANDED_STATE_ON_GROUND:
+            return
+        if not self._flying_since_arm:
+            limit = float(self.params["COM_DISARM_PRFLT"]) if self.px4 else float(self.params["DISARM_DELAY"])
+            since = self._armed_at if self._armed_at is not None else t
+            if limit > 0 and t - since >= limit:
+                self._disarm(f"no take-off within {limit:g} s of arming")
+            return
+        if self.px4:
+            limit = float(self.params["COM_DISARM_LAND"])
+        else:
+            limit = 0.0 if self.custom_mode == ARDUCOPTER_MODE["land"] else float(self.params["DISARM_DELAY"])
+        landed_at = self._landed_at if self._landed_at is not None else t
+        if limit >= 0 and t - landed_at >= limit:
+            self._disarm("landed")
+
+    def _landing_mode(self) -> bool:
         if self.px4:
             return self.custom_mode == px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["land"])
         return self.custom_mode == ARDUCOPTER_MODE["land"]
 
+    def _hold_here(self) -> _Target:
+        return _Target(p=self.model.p.copy(), yaw=self.model.yaw)
+
     def _apply_rules(self, t: float) -> None:
         since_sp = math.inf if self._last_sp_s is None else t - self._last_sp_s
         if self.px4:
-            if px4_main_mode(self.custom_mode) == PX4_MAIN["offboard"]:
-                if since_sp > self.c.offboard_loss_timeout_s:
-                    self._set_mode(px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["loiter"]), f"offboard lost ({since_sp:.2f} s without setpoints)")
+            main = px4_main_mode(self.custom_mode)
+            if main == PX4_MAIN["offboard"]:
+                loss_t = float(self.params["COM_OF_LOSS_T"])
+                if since_sp > loss_t:
+                    self._offboard_lost(since_sp)
                 else:
                     self._target = self._setpoint
+            elif self.custom_mode == px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["takeoff"]):
+                if self._takeoff_alt_m is not None and self.model.p[2] >= self._takeoff_alt_m - 0.1:
+                    alt, self._takeoff_alt_m = self._takeoff_alt_m, None
+                    self._set_mode(px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["loiter"]), "takeoff complete")
+                    self._target = _Target(p=np.array([*self.model.p[:2], alt]), yaw=self.model.yaw)
             return
-        if self.custom_mode == ARDUCOPTER_MODE["guided"] and self.armed:
-            if self._takeoff_alt_m is not None and not self._took_off:
-                if self.model.p[2] >= self._takeoff_alt_m - 0.1:
-                    self._took_off = True
-                    self._target = _Target(p=self.model.p.copy(), yaw=self.model.yaw)
-                    self._event("takeoff complete")
-            elif self._took_off and self._setpoint is not None:
-                if since_sp > self.c.guided_timeout_s:
-                    if not self._guided_timed_out:
-                        self._guided_timed_out = True
-                        self._target = _Target(p=self.model.p.copy(), yaw=self.model.yaw)
-                        self._event(f"guided timeout ({since_sp:.2f} s without setpoints): holding")
-                else:
-                    self._guided_timed_out = False
-                    self._target = self._setpoint
+        if self.custom_mode != ARDUCOPTER_MODE["guided"] or not self.armed:
+            return
+        if self._takeoff_alt_m is not None:
+            if self.model.p[2] >= self._takeoff_alt_m - 0.1:
+                alt, self._takeoff_alt_m = self._takeoff_alt_m, None
+                self._target = _Target(p=np.array([*self.model.p[:2], alt]), yaw=self.model.yaw)
+                self._event("takeoff complete")
+            return
+        sp = self._setpoint
+        if sp is None:
+            return
+        if self.landed_state == _M.MAV_LANDED_STATE_ON_GROUND:
+            self._target = None  # landed: ground handling until NAV_TAKEOFF (mode_guided.cpp run functions)
+            return
+        timeout = float(self.params["GUID_TIMEOUT"])
+        if sp.kind != "position" and since_sp > timeout:
+            if not self._guided_timed_out:
+                self._guided_timed_out = True
+                if sp.kind == "full":  # keep the position, drop the feed-forwards
+                    self._target = _Target(p=sp.p, yaw=sp.yaw)
+                else:  # velocity / acceleration: stop
+                    self._target = _Target(v=np.zeros(3), yaw=self.model.yaw, kind="velocity")
+                self._event(f"guided timeout ({since_sp:.2f} s without a {sp.kind} target)")
+        else:
+            self._guided_timed_out = False
+            self._target = sp
+
+    def _offboard_lost(self, since_sp: float) -> None:
+        action = int(self.params["COM_OBL_RC_ACT"])
+        names = {0: "Position", 1: "Altitude", 2: "Manual", 3: "Return", 4: "Land", 5: "Hold", 6: "Terminate", 7: "Disarm"}
+        why = f"offboard lost ({since_sp:.2f} s without setpoints): {names.get(action, action)}"
+        self._statustext(_M.MAV_SEVERITY_WARNING, "Failsafe: no offboard")
+        if action == 7 or action == 6:
+            if self.model.on_ground:
+                self._disarm(why)
+            else:
+                self._disarm(why + " in the air")
+            self._set_mode(px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["loiter"]), why)
+            return
+        wanted = {0: "posctl", 1: "altctl", 2: "stabilized", 3: "rtl", 4: "land", 5: "loiter"}.get(action, "loiter")
+        for mode in (wanted, "loiter", "land", "descend"):
+            if self._px4_mode_available(mode):
+                break
+        cm = {
+            "posctl": px4_custom_mode(PX4_MAIN["posctl"]),
+            "altctl": px4_custom_mode(PX4_MAIN["altctl"]),
+            "stabilized": px4_custom_mode(PX4_MAIN["stabilized"]),
+            "rtl": px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["rtl"]),
+            "land": px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["land"]),
+            "loiter": px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["loiter"]),
+            "descend": px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["land"]),  # descend shows as land here
+        }[mode]
+        self._set_mode(cm, why + ("" if mode == wanted else f" -> fallback {mode}"))
+
+    def _px4_mode_available(self, mode: str) -> bool:
+        if mode in ("posctl", "altctl", "stabilized") and not self.c.rc_connected:
+            return False
+        if mode in ("posctl", "loiter", "land") and not self._position_valid:
+            return False
+        if mode == "rtl" and (self.c.global_origin is None or self._home is None or not self._position_valid):
+            return False
+        return True
 
     def _set_mode(self, custom_mode: int, why: str) -> None:
         with self._lock:
+            old = self.custom_mode
             self.custom_mode = int(custom_mode)
-            hold = _Target(p=self.model.p.copy(), yaw=self.model.yaw)
-            if self._landing():
-                hold = _Target(v=np.array([0.0, 0.0, -self.c.land_speed_mps]), yaw=self.model.yaw)
-            if self.px4 and px4_main_mode(custom_mode) == PX4_MAIN["offboard"]:
-                self._target = self._setpoint if self._setpoint is not None else hold
-            else:
-                self._target = hold
-            self._event(f"mode {self.mode_name}: {why}")
-
-    def _stream_ok(self, t: float) -> bool:
-        gap = 1.0 / self.c.offboard_min_rate_hz
-        if self._last_sp_s is None or t - self._last_sp_s > gap or self._stream_since_s is None:
-            return False
-        return t - self._stream_since_s >= self.c.offboard_prestream_s
+            hold = self._hold_here()
+            if self._landing_mode():
+                speed = float(self.params["MPC_LAND_SPEED"]) if self.px4 else float(self.params["LAND_SPEED"]) / 100.0
+                hold = _Target(v=np.array([0.0, 0.0, -speed]), yaw=self.model.yaw, kind="velocity")
+            elif self.px4 and px4_main_mode(custom_mode) == PX4_MAIN["offboard"]:
+                hold = self._setpoint if self._setpoint is not None else hold
+            elif self.px4 and self.custom_mode == px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["takeoff"]) and self._takeoff_alt_m is not None:
+                p = self.model.p.copy()
+                p[2] = self._takeoff_alt_m
+                hold = _Target(p=p, yaw=self.model.yaw, v_limit_mps=float(self.params["MPC_TKO_SPEED"]))
+            if not self.px4 and custom_mode != ARDUCOPTER_MODE["guided"]:
+                self._setpoint = None
+                self._takeoff_alt_m = None
+            self._target = hold
+            if old != self.custom_mode:
+                self._event(f"mode {self.mode_name}: {why}")
+                self._statustext(_M.MAV_SEVERITY_INFO, f"Mode {self.mode_name}")
 
     # -- message handling -------------------------------------------------------------------
     def _for_me(self, target_system: int, target_component: int) -> bool:
@@ -448,10 +828,60 @@ class SimMavlinkVehicle:
         mtype = msg.get_type()
         if mtype == "SET_POSITION_TARGET_LOCAL_NED":
             self._on_setpoint(msg)
-        elif mtype == "COMMAND_LONG":
+        elif mtype in ("COMMAND_LONG", "COMMAND_INT"):
+            if not self._for_me(msg.target_system, msg.target_component):
+                return
+            with self._lock:
+                self._pending = []
+                result = self._on_command(msg, mtype == "COMMAND_INT")
+                pending, self._pending = self._pending, []
+            self._send(self.link.mav.command_ack_encode(msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
+            for m in pending:
+                self._send(m)
+        elif mtype == "SET_MODE":
+            if msg.target_system in (0, self.c.system_id):
+                with self._lock:
+                    result = self._cmd_set_mode(float(msg.base_mode), float(msg.custom_mode), 0.0, legacy=True)
+                self._send(self.link.mav.command_ack_encode(_M.MAVLINK_MSG_ID_SET_MODE, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
+        elif mtype == "PARAM_REQUEST_LIST":
             if self._for_me(msg.target_system, msg.target_component):
-                result = self._on_command(msg)
-                self._send(self.link.mav.command_ack_encode(msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
+                for i, name in enumerate(self._param_types):
+                    self._send(self._param_value(name, i))
+        elif mtype == "PARAM_REQUEST_READ":
+            if self._for_me(msg.target_system, msg.target_component):
+                names = list(self._param_types)
+                name = msg.param_id if msg.param_index < 0 else (names[msg.param_index] if msg.param_index < len(names) else None)
+                if name in self._param_types:
+                    self._send(self._param_value(name))
+        elif mtype == "PARAM_SET":
+            if self._for_me(msg.target_system, msg.target_component) and msg.param_id in self._param_types:
+                value = self._decode_param(msg.param_value, self._param_types[msg.param_id])
+                if value is not None:
+                    with self._lock:
+                        self.params[msg.param_id] = value
+                    self._event(f"param {msg.param_id} = {value}")
+                self._send(self._param_value(msg.param_id))
+
+    # parameters: PX4 bytewise, ArduPilot C cast
+    def _param_value(self, name: str, index: int | None = None):
+        names = list(self._param_types)
+        ptype = self._param_types[name]
+        value = self.params[name]
+        if ptype == _R32:
+            wire = float(value)
+        elif self.px4:
+            wire = struct.unpack("<f", struct.pack("<i", int(value)))[0]
+        else:
+            wire = float(int(value))
+        idx = names.index(name) if index is None else index
+        return self.link.mav.param_value_encode(name.encode(), wire, ptype, len(names), idx)
+
+    def _decode_param(self, wire: float, ptype: int):
+        if ptype == _R32:
+            return float(wire) if math.isfinite(wire) else None
+        if self.px4:
+            return struct.unpack("<i", struct.pack("<f", wire))[0]
+        return int(round(wire)) if math.isfinite(wire) else None
 
     def _on_setpoint(self, msg) -> None:
         if not self._for_me(msg.target_system, msg.target_component):
@@ -460,110 +890,281 @@ class SimMavlinkVehicle:
         if msg.coordinate_frame != _M.MAV_FRAME_LOCAL_NED:
             return
         mask = int(msg.type_mask)
-        vals = np.array([msg.x, msg.y, msg.z, msg.vx, msg.vy, msg.vz, msg.afx, msg.afy, msg.afz, msg.yaw], dtype=float)
-        ned = vals[:9].reshape(3, 3)
-        use = [
-            not mask & (_M.POSITION_TARGET_TYPEMASK_X_IGNORE | _M.POSITION_TARGET_TYPEMASK_Y_IGNORE | _M.POSITION_TARGET_TYPEMASK_Z_IGNORE),
-            not mask & (_M.POSITION_TARGET_TYPEMASK_VX_IGNORE | _M.POSITION_TARGET_TYPEMASK_VY_IGNORE | _M.POSITION_TARGET_TYPEMASK_VZ_IGNORE),
-            not mask & (_M.POSITION_TARGET_TYPEMASK_AX_IGNORE | _M.POSITION_TARGET_TYPEMASK_AY_IGNORE | _M.POSITION_TARGET_TYPEMASK_AZ_IGNORE),
+        bits = [
+            (_M.POSITION_TARGET_TYPEMASK_X_IGNORE, _M.POSITION_TARGET_TYPEMASK_Y_IGNORE, _M.POSITION_TARGET_TYPEMASK_Z_IGNORE),
+            (_M.POSITION_TARGET_TYPEMASK_VX_IGNORE, _M.POSITION_TARGET_TYPEMASK_VY_IGNORE, _M.POSITION_TARGET_TYPEMASK_VZ_IGNORE),
+            (_M.POSITION_TARGET_TYPEMASK_AX_IGNORE, _M.POSITION_TARGET_TYPEMASK_AY_IGNORE, _M.POSITION_TARGET_TYPEMASK_AZ_IGNORE),
         ]
+        ned = np.array([[msg.x, msg.y, msg.z], [msg.vx, msg.vy, msg.vz], [msg.afx, msg.afy, msg.afz]], dtype=float)
+        # which NED components are used (rows: p, v, a; columns: N, E, D)
+        if self.px4:
+            used = np.array([[not mask & b for b in row] for row in bits])
+        else:  # ArduCopter: a vector is ignored only when all three of its bits are set
+            used = np.array([[not all(mask & b for b in row)] * 3 for row in bits])
         use_yaw = not mask & _M.POSITION_TARGET_TYPEMASK_YAW_IGNORE
-        if not any(use) or any(u and not np.all(np.isfinite(row)) for u, row in zip(use, ned)) or (use_yaw and not np.isfinite(vals[9])):
+        if not used.any() or not np.all(np.isfinite(ned[used])) or (use_yaw and not math.isfinite(msg.yaw)):
             return  # PX4 and ArduPilot drop setpoints they cannot use
-        enu = frames.enu_from_ned(np.nan_to_num(ned))
-        target = _Target(
-            p=enu[0] if use[0] else None,
-            v=enu[1] if use[1] else None,
-            a=enu[2] if use[2] else None,
-            yaw=float(frames.yaw_enu_from_ned(vals[9])) if use_yaw else None,
-        )
+        # NED column order (N, E, D) -> ENU (E, N, U) per row, with the estimator rotation
+        used_enu = used[:, [1, 0, 2]]
+        vals = frames.enu_from_ned(np.where(used, ned, 0.0))
+        rows = []
+        for k in range(3):
+            if not used_enu[k].any():
+                rows.append(None)
+                continue
+            # a partial x/y selection under a rotated estimator frame keeps both horizontal axes
+            r = vals[k]
+            rows.append(self.scene_from_local(r) if k == 0 else r @ self._R_scene_est.T)
+        yaw = None
+        if use_yaw:
+            yaw = wrap_angle(float(frames.yaw_enu_from_ned(msg.yaw)) + self.c.estimator_yaw_rad)
         t = self.clock()
         with self._lock:
-            gap = 1.0 / self.c.offboard_min_rate_hz
-            if self._last_sp_s is None or t - self._last_sp_s > gap:
-                self._stream_since_s = t
+            target = self._resolve(rows, used_enu, yaw)
             self._last_sp_s = t
             self.setpoints_received += 1
             self.setpoint_times.append(t)
-            if self.px4 or self._took_off:
+            if self.px4:
                 self._setpoint = target
+            elif self.custom_mode == ARDUCOPTER_MODE["guided"] and self.armed and self._takeoff_alt_m is None:
+                self._setpoint = target
+                self._guided_timed_out = False
 
-    def _on_command(self, msg) -> int:
+    def _resolve(self, rows, used_enu, yaw) -> _Target:
+        """A setpoint's used rows as a controller target; mixed per-axis PX4 setpoints become
+        one velocity command (position axes through the position gain)."""
+        p, v, a = rows
+        whole = [r is None or used_enu[k].all() for k, r in enumerate(rows)]
+        if all(whole):
+            kind = "position" if (p is not None and v is None and a is None) else (
+                "full" if p is not None else ("velocity" if v is not None else "acceleration"))
+            return _Target(p=p, v=v, a=a, yaw=yaw, kind=kind)
+        pos = self.model.p
+        v_cmd = np.zeros(3)
+        for i in range(3):
+            if p is not None and used_enu[0, i]:
+                v_cmd[i] = self.c.k_pos * (p[i] - pos[i]) + (v[i] if v is not None and used_enu[1, i] else 0.0)
+            elif v is not None and used_enu[1, i]:
+                v_cmd[i] = v[i]
+        return _Target(v=v_cmd, yaw=yaw, kind="velocity")
+
+    def _on_command(self, msg, is_int: bool) -> int:
         cmd = int(msg.command)
-        with self._lock:
-            if cmd == _M.MAV_CMD_COMPONENT_ARM_DISARM:
-                return self._cmd_arm(msg.param1 >= 0.5, int(round(msg.param2)) == _FORCE_DISARM_MAGIC)
-            if cmd == _M.MAV_CMD_DO_SET_MODE:
-                return self._cmd_set_mode(msg)
-            if cmd == _M.MAV_CMD_NAV_TAKEOFF:
-                return self._cmd_takeoff(msg.param7)
-            if cmd == _M.MAV_CMD_SET_MESSAGE_INTERVAL:
-                return self._cmd_interval(msg.param1, msg.param2)
+        p = [msg.param1, msg.param2, msg.param3, msg.param4]
+        if is_int:
+            x, y, z = int(msg.x), int(msg.y), float(msg.z)
+            frame = int(msg.frame)
+        else:
+            x, y, z = msg.param5, msg.param6, msg.param7
+            frame = _M.MAV_FRAME_GLOBAL
+        if cmd == _M.MAV_CMD_COMPONENT_ARM_DISARM:
+            force = math.isfinite(p[1]) and int(round(p[1])) == _FORCE_DISARM_MAGIC
+            if not math.isfinite(p[0]):
+                return _M.MAV_RESULT_DENIED
+            return self._cmd_arm(p[0] >= 0.5, force)
+        if cmd == _M.MAV_CMD_DO_SET_MODE:
+            return self._cmd_set_mode(p[0], p[1], p[2])
+        if cmd == _M.MAV_CMD_NAV_TAKEOFF:
+            return self._cmd_takeoff(float(z))
+        if cmd == _M.MAV_CMD_NAV_LAND:
+            return self._cmd_land()
+        if cmd == _M.MAV_CMD_DO_REPOSITION:
+            if not is_int:
+                return _M.MAV_RESULT_DENIED  # lat/lon need COMMAND_INT's integer fields
+            return self._cmd_reposition(p, x, y, z, frame)
+        if cmd == _M.MAV_CMD_SET_MESSAGE_INTERVAL:
+            return self._cmd_interval(p[0], p[1])
+        if cmd == _M.MAV_CMD_REQUEST_MESSAGE:
+            return self._cmd_request(p[0])
+        if cmd == _M.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
+            return self._cmd_request(_M.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
+        if cmd == _M.MAV_CMD_GET_HOME_POSITION:
+            return self._cmd_request(_M.MAVLINK_MSG_ID_HOME_POSITION)
         return _M.MAV_RESULT_UNSUPPORTED
+
+    def _prearm_failure(self) -> str | None:
+        """Why arming is refused now, or None."""
+        if not self._position_valid:
+            return "Need Position Estimate" if not self.px4 else "Preflight Fail: No valid position"
+        if self.px4:
+            main = px4_main_mode(self.custom_mode)
+            if self.custom_mode in (px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["land"]), px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["rtl"])):
+                return f"Arming denied: {self.mode_name} mode prevents arming"
+            if main == PX4_MAIN["offboard"] and not self._recent_setpoint():
+                return "Arming denied: no offboard signal"
+            return None
+        if self.custom_mode in (ARDUCOPTER_MODE["land"], ARDUCOPTER_MODE["rtl"], ARDUCOPTER_MODE["brake"], ARDUCOPTER_MODE["auto"]):
+            return f"Arm: Mode not armable ({self.mode_name.upper()})"
+        return None
 
     def _cmd_arm(self, arm: bool, force: bool) -> int:
         if arm:
-            if not self.armed:
-                self.armed = True
-                self._event("armed")
+            if self.armed:
+                return _M.MAV_RESULT_ACCEPTED
+            why = None if force else self._prearm_failure()
+            if why is not None:
+                self._event(f"arming refused: {why}")
+                self._statustext(_M.MAV_SEVERITY_CRITICAL, why)
+                return _M.MAV_RESULT_FAILED
+            self.armed = True
+            self._armed_at = self.clock()
+            self._flying_since_arm = not self.model.on_ground
+            self._home = self.model.p.copy()
+            self._event("armed")
+            self._statustext(_M.MAV_SEVERITY_INFO, "Armed")
+            takeoff = self.px4 and self.custom_mode == px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["takeoff"])
+            if takeoff and self._takeoff_alt_m is not None:
+                self._target = _Target(p=np.array([*self.model.p[:2], self._takeoff_alt_m]), yaw=self.model.yaw,
+                                       v_limit_mps=float(self.params["MPC_TKO_SPEED"]))
+            elif not (self.px4 and px4_main_mode(self.custom_mode) == PX4_MAIN["offboard"]):
+                self._target = self._hold_here()
             return _M.MAV_RESULT_ACCEPTED
         if self.armed and not self.model.on_ground and not force:
             return _M.MAV_RESULT_DENIED
         if self.armed:
-            self.armed = False
-            self._event("disarmed")
+            self._disarm("commanded")
         return _M.MAV_RESULT_ACCEPTED
 
-    def _cmd_set_mode(self, msg) -> int:
-        if not int(msg.param1) & _M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED or not all(np.isfinite([msg.param2, msg.param3])):
+    def _recent_setpoint(self) -> bool:
+        loss_t = float(self.params["COM_OF_LOSS_T"]) if self.px4 else float(self.params["GUID_TIMEOUT"])
+        return self._last_sp_s is not None and self.clock() - self._last_sp_s <= loss_t
+
+    def _cmd_set_mode(self, base_mode: float, mode: float, sub: float, legacy: bool = False) -> int:
+        if not (math.isfinite(base_mode) and math.isfinite(mode)) or not int(base_mode) & _M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
             return _M.MAV_RESULT_DENIED
         if self.px4:
-            main, sub = int(msg.param2), int(msg.param3)
-            if main not in PX4_MAIN.values():
+            if legacy:  # SET_MODE carries the whole custom_mode
+                main, sub_i = px4_main_mode(int(mode)), (int(mode) >> 24) & 0xFF
+            else:
+                main, sub_i = int(mode), int(sub) if math.isfinite(sub) else 0
+            if main not in PX4_MAIN.values() or (main == PX4_MAIN["auto"] and sub_i not in PX4_AUTO_SUB.values()):
                 return _M.MAV_RESULT_DENIED
-            if main == PX4_MAIN["offboard"] and not self._stream_ok(self.clock()):
-                self._event("offboard refused: no setpoint stream")
+            if main == PX4_MAIN["offboard"] and not self._recent_setpoint():
+                self._event("offboard refused: no recent setpoint")
+                self._statustext(_M.MAV_SEVERITY_CRITICAL, "Switching to Offboard is currently not available")
                 return _M.MAV_RESULT_TEMPORARILY_REJECTED
-            if main == PX4_MAIN["auto"] and sub not in PX4_AUTO_SUB.values():
-                return _M.MAV_RESULT_DENIED
-            self._set_mode(px4_custom_mode(main, sub if main == PX4_MAIN["auto"] else 0), "commanded")
+            needs_position = main in (PX4_MAIN["posctl"], PX4_MAIN["offboard"]) or (
+                main == PX4_MAIN["auto"] and sub_i in (PX4_AUTO_SUB["loiter"], PX4_AUTO_SUB["land"], PX4_AUTO_SUB["takeoff"], PX4_AUTO_SUB["mission"]))
+            if needs_position and not self._position_valid:
+                self._statustext(_M.MAV_SEVERITY_CRITICAL, "Mode not available: no position estimate")
+                return _M.MAV_RESULT_TEMPORARILY_REJECTED
+            if main == PX4_MAIN["auto"] and sub_i == PX4_AUTO_SUB["rtl"] and not self._px4_mode_available("rtl"):
+                return _M.MAV_RESULT_TEMPORARILY_REJECTED
+            if main in (PX4_MAIN["manual"], PX4_MAIN["altctl"], PX4_MAIN["stabilized"], PX4_MAIN["acro"], PX4_MAIN["posctl"]) and not self.c.rc_connected:
+                self._statustext(_M.MAV_SEVERITY_CRITICAL, "Mode not available: no manual control")
+                return _M.MAV_RESULT_TEMPORARILY_REJECTED
+            self._set_mode(px4_custom_mode(main, sub_i if main == PX4_MAIN["auto"] else 0), "commanded")
             return _M.MAV_RESULT_ACCEPTED
-        mode = int(msg.param2)
-        if mode not in ARDUCOPTER_MODE.values():
+        number = int(mode)
+        if number not in ARDUCOPTER_MODE.values():
             return _M.MAV_RESULT_DENIED
-        self._set_mode(mode, "commanded")
+        if number in (ARDUCOPTER_MODE["guided"], ARDUCOPTER_MODE["loiter"], ARDUCOPTER_MODE["rtl"], ARDUCOPTER_MODE["auto"], ARDUCOPTER_MODE["brake"]) and not self._position_valid:
+            self._statustext(_M.MAV_SEVERITY_CRITICAL, "Flight mode change failed: requires position")
+            return _M.MAV_RESULT_FAILED
+        self._set_mode(number, "commanded")
         return _M.MAV_RESULT_ACCEPTED
 
-    def _cmd_takeoff(self, alt_m: float) -> int:
+    def _cmd_takeoff(self, alt: float) -> int:
+        m = self.model
         if self.px4:
-            return _M.MAV_RESULT_UNSUPPORTED
-        if not (np.isfinite(alt_m) and 0.2 <= alt_m <= 100.0):
+            # Commander: a user-intended switch to AUTO.TAKEOFF, accepted whenever the mode can
+            # run (armed or not; a disarmed vehicle climbs once armed), else TEMPORARILY_REJECTED
+            if not self._position_valid:
+                return _M.MAV_RESULT_TEMPORARILY_REJECTED
+            home_z = (self._home if self._home is not None else m.p)[2]
+            if math.isfinite(alt):
+                if self.c.global_origin is None:
+                    return _M.MAV_RESULT_DENIED  # an AMSL altitude needs a global origin
+                target_z = alt - self.c.global_origin[2]
+            else:
+                target_z = home_z + float(self.params["MIS_TAKEOFF_ALT"])
+            if target_z <= m.p[2] + 0.1:
+                return _M.MAV_RESULT_DENIED
+            self._takeoff_alt_m = float(target_z)
+            self._set_mode(px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["takeoff"]), f"takeoff to {target_z:.2f} m")
+            return _M.MAV_RESULT_ACCEPTED
+        if not (math.isfinite(alt) and 0.2 <= alt <= 100.0):
             return _M.MAV_RESULT_DENIED
-        if self.custom_mode != ARDUCOPTER_MODE["guided"] or not self.armed or not self.model.on_ground:
+        if self.custom_mode != ARDUCOPTER_MODE["guided"] or not self.armed or not m.on_ground:
             return _M.MAV_RESULT_FAILED
-        self._takeoff_alt_m = float(alt_m)
-        self._took_off = False
-        p = self.model.p.copy()
-        p[2] = float(alt_m)
-        self._target = _Target(p=p, yaw=self.model.yaw, v_limit_mps=self.c.takeoff_speed_mps)
-        self._event(f"takeoff to {alt_m:.2f} m")
+        home_z = (self._home if self._home is not None else m.p)[2]
+        self._takeoff_alt_m = float(home_z + alt)
+        self._setpoint = None
+        p = m.p.copy()
+        p[2] = self._takeoff_alt_m
+        self._target = _Target(p=p, yaw=m.yaw, v_limit_mps=float(self.params["WPNAV_SPEED_UP"]) / 100.0)
+        self._event(f"takeoff to {alt:.2f} m above home")
+        return _M.MAV_RESULT_ACCEPTED
+
+    def _cmd_land(self) -> int:
+        if not self.armed:
+            return _M.MAV_RESULT_TEMPORARILY_REJECTED if self.px4 else _M.MAV_RESULT_FAILED
+        if self.px4:
+            if not self._position_valid:
+                return _M.MAV_RESULT_TEMPORARILY_REJECTED
+            self._set_mode(px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["land"]), "NAV_LAND")
+        else:
+            self._set_mode(ARDUCOPTER_MODE["land"], "NAV_LAND")
+        return _M.MAV_RESULT_ACCEPTED
+
+    def _cmd_reposition(self, p, x: int, y: int, z: float, frame: int) -> int:
+        if self.c.global_origin is None or not self._position_valid:
+            return _M.MAV_RESULT_FAILED
+        if not self.armed:
+            return _M.MAV_RESULT_TEMPORARILY_REJECTED if self.px4 else _M.MAV_RESULT_FAILED
+        home_amsl = self._global_from_scene(self._home if self._home is not None else self.model.p)[2]
+        if frame in (_M.MAV_FRAME_GLOBAL, _M.MAV_FRAME_GLOBAL_INT):
+            alt = z
+        elif frame in (_M.MAV_FRAME_GLOBAL_RELATIVE_ALT, _M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT):
+            alt = home_amsl + z
+        else:
+            return _M.MAV_RESULT_DENIED
+        cur = self.model.p
+        if x == 0 and y == 0:  # lat/lon 0 means "keep" (MAVLink DO_REPOSITION)
+            target = cur.copy()
+        else:
+            target = self._scene_from_global(x * 1e-7, y * 1e-7, alt if math.isfinite(alt) else 0.0)
+        if not math.isfinite(alt):
+            target[2] = cur[2]
+        yaw = wrap_angle(math.pi / 2 - math.radians(p[3])) if math.isfinite(p[3]) else None
+        speed = float(p[0]) if math.isfinite(p[0]) and p[0] > 0 else None
+        change_mode = math.isfinite(p[1]) and int(p[1]) & _M.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE
+        if self.px4:
+            if change_mode:
+                self._set_mode(px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["loiter"]), "reposition")
+            elif self.custom_mode != px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["loiter"]):
+                return _M.MAV_RESULT_TEMPORARILY_REJECTED
+        else:
+            if self.custom_mode != ARDUCOPTER_MODE["guided"]:
+                if not change_mode:
+                    return _M.MAV_RESULT_FAILED
+                self._set_mode(ARDUCOPTER_MODE["guided"], "reposition")
+            self._setpoint = _Target(p=target, yaw=yaw, v_limit_mps=speed)
+        self._target = _Target(p=target, yaw=yaw, v_limit_mps=speed)
+        self._event(f"reposition to scene ({target[0]:.2f}, {target[1]:.2f}, {target[2]:.2f})")
         return _M.MAV_RESULT_ACCEPTED
 
     def _cmd_interval(self, msg_id: float, interval_us: float) -> int:
-        if not np.isfinite(msg_id) or int(msg_id) not in (
-            _M.MAVLINK_MSG_ID_LOCAL_POSITION_NED, _M.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, _M.MAVLINK_MSG_ID_ATTITUDE
-        ):
+        if not (math.isfinite(msg_id) and math.isfinite(interval_us)) or int(msg_id) not in self._default_rates:
             return _M.MAV_RESULT_DENIED
-        if not np.isfinite(interval_us):
-            return _M.MAV_RESULT_DENIED
+        mid = int(msg_id)
         if interval_us < 0:
             rate = 0.0
         elif interval_us == 0:
-            rate = self.c.telemetry_rate_hz
+            rate = self._default_rates[mid]
         else:
             rate = min(1e6 / interval_us, self.c.physics_rate_hz)
-        self._rates_hz[int(msg_id)] = rate
-        self._next_send.pop(int(msg_id), None)
+        self._rates_hz[mid] = rate
+        self._next_send.pop(mid, None)
+        return _M.MAV_RESULT_ACCEPTED
+
+    def _cmd_request(self, msg_id: float) -> int:
+        if not math.isfinite(msg_id):
+            return _M.MAV_RESULT_DENIED
+        msg = self._telemetry(int(msg_id), streaming=False)
+        if msg is None:
+            return _M.MAV_RESULT_DENIED
+        self._pending.append(msg)
         return _M.MAV_RESULT_ACCEPTED
 
     # -- telemetry --------------------------------------------------------------------------
@@ -576,24 +1177,92 @@ class SimMavlinkVehicle:
 
     def _position_message(self):
         with self._lock:
-            p_ned, v_ned = frames.ned_from_enu(np.stack([self.model.p, self.model.v]))
+            p_loc = self.local_from_scene(self.model.p)
+            v_loc = self.model.v @ self._R_scene_est
+            p_ned, v_ned = frames.ned_from_enu(np.stack([p_loc, v_loc]))
         return self.link.mav.local_position_ned_encode(self.time_boot_ms(), *p_ned, *v_ned)
 
-    def _send_telemetry(self, msg_id: int) -> None:
-        if msg_id == _M.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
-            with self._lock:
-                frozen = self._frozen_pos
-            self._send(frozen if frozen is not None else self._position_message())
-            return
+    def _telemetry(self, msg_id: int, streaming: bool):
+        """One telemetry message, or None when it cannot be produced now."""
         with self._lock:
-            R = self.model.R_enu_flu()
-            rates_frd = frames.frd_from_flu(np.array([0.0, 0.0, self.model.yaw_rate]))
-        if msg_id == _M.MAVLINK_MSG_ID_ATTITUDE_QUATERNION:
-            q = frames.quat_ned_frd_from_matrix_enu_flu(R)
-            self._send(self.link.mav.attitude_quaternion_encode(self.time_boot_ms(), *q, *rates_frd))
-        elif msg_id == _M.MAVLINK_MSG_ID_ATTITUDE:
-            R_ned_frd = frames.R_ENU_NED @ R @ frames.R_FLU_FRD
-            roll = math.atan2(R_ned_frd[2, 1], R_ned_frd[2, 2])
-            pitch = math.asin(float(np.clip(-R_ned_frd[2, 0], -1.0, 1.0)))
-            yaw = math.atan2(R_ned_frd[1, 0], R_ned_frd[0, 0])
-            self._send(self.link.mav.attitude_encode(self.time_boot_ms(), roll, pitch, yaw, *rates_frd))
+            m = self.model
+            mav = self.link.mav
+            if msg_id == _M.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
+                if self._frozen_pos is not None:
+                    return self._frozen_pos
+                return self._position_message() if self._position_valid else None
+            if msg_id in (_M.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, _M.MAVLINK_MSG_ID_ATTITUDE):
+                R = self._R_scene_est.T @ m.R_enu_flu()
+                rates_frd = frames.frd_from_flu(np.array([0.0, 0.0, m.yaw_rate]))
+                if msg_id == _M.MAVLINK_MSG_ID_ATTITUDE_QUATERNION:
+                    q = frames.quat_ned_frd_from_matrix_enu_flu(R)
+                    return mav.attitude_quaternion_encode(self.time_boot_ms(), *q, *rates_frd)
+                R_ned_frd = frames.R_ENU_NED @ R @ frames.R_FLU_FRD
+                roll = math.atan2(R_ned_frd[2, 1], R_ned_frd[2, 2])
+                pitch = math.asin(float(np.clip(-R_ned_frd[2, 0], -1.0, 1.0)))
+                yaw = math.atan2(R_ned_frd[1, 0], R_ned_frd[0, 0])
+                return mav.attitude_encode(self.time_boot_ms(), roll, pitch, yaw, *rates_frd)
+            if msg_id == _M.MAVLINK_MSG_ID_SYS_STATUS:
+                S = _M
+                sensors = S.MAV_SYS_STATUS_SENSOR_3D_GYRO | S.MAV_SYS_STATUS_SENSOR_3D_ACCEL | S.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
+                sensors |= S.MAV_SYS_STATUS_SENSOR_GPS if self.c.global_origin is not None else S.MAV_SYS_STATUS_SENSOR_VISION_POSITION
+                sensors |= S.MAV_SYS_STATUS_SENSOR_3D_MAG if self.c.global_origin is not None else 0
+                present = sensors | S.MAV_SYS_STATUS_PREARM_CHECK
+                health = sensors if self._position_valid else sensors & ~(S.MAV_SYS_STATUS_SENSOR_GPS | S.MAV_SYS_STATUS_SENSOR_VISION_POSITION)
+                if self._prearm_failure() is None:
+                    health |= S.MAV_SYS_STATUS_PREARM_CHECK
+                frac = self._battery_fraction()
+                return mav.sys_status_encode(present, present, health, 250, int(self._battery_voltage_v(frac) * 1000),
+                                             1500 if self.armed else 50, int(round(frac * 100)), 0, 0, 0, 0, 0, 0)
+            if msg_id == _M.MAVLINK_MSG_ID_BATTERY_STATUS:
+                frac = self._battery_fraction()
+                cell_mv = int(self._battery_voltage_v(frac) / 4 * 1000)
+                return mav.battery_status_encode(0, _M.MAV_BATTERY_FUNCTION_ALL, _M.MAV_BATTERY_TYPE_LIPO, 2500,
+                                                 [cell_mv] * 4 + [65535] * 6, 1500 if self.armed else 50, -1, -1, int(round(frac * 100)))
+            if msg_id == _M.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
+                return mav.extended_sys_state_encode(_M.MAV_VTOL_STATE_UNDEFINED, self.landed_state)
+            if msg_id == _M.MAVLINK_MSG_ID_SYSTEM_TIME:
+                return mav.system_time_encode(int(time.time() * 1e6), self.time_boot_ms())
+            if msg_id == _M.MAVLINK_MSG_ID_GLOBAL_POSITION_INT:
+                if self.c.global_origin is None or not self._position_valid:
+                    return None
+                lat, lon, alt = self._global_from_scene(m.p)
+                home = self._home if self._home is not None else self._origin
+                v_ned = frames.ned_from_enu(m.v)
+                hdg = int(round(math.degrees(frames.yaw_ned_from_enu(m.yaw)) * 100)) % 36000
+                return mav.global_position_int_encode(self.time_boot_ms(), int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)),
+                                                      int(round((m.p[2] - home[2]) * 1000)), *(int(round(x * 100)) for x in v_ned), hdg)
+            if msg_id == _M.MAVLINK_MSG_ID_HOME_POSITION:
+                if self._home is None:
+                    return None
+                lat = lon = alt = 0.0
+                if self.c.global_origin is not None:
+                    lat, lon, alt = self._global_from_scene(self._home)
+                h_ned = frames.ned_from_enu(self.local_from_scene(self._home))
+                return mav.home_position_encode(int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)), *h_ned,
+                                                [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, int(time.time() * 1e6))
+            if msg_id == _M.MAVLINK_MSG_ID_AUTOPILOT_VERSION and not streaming:
+                C = _M
+                caps = (C.MAV_PROTOCOL_CAPABILITY_COMMAND_INT | C.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+                        | C.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED | C.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT)
+                caps |= C.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE if self.px4 else C.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST
+                version = _flight_sw_version(1, 15, 0) if self.px4 else _flight_sw_version(4, 5, 0)
+                return mav.autopilot_version_encode(caps, version, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, 0x5EED0000 + self.c.system_id)
+            return None
+
+    def _battery_fraction(self) -> float:
+        """Remaining charge: a linear drain over ``battery_capacity_s`` of wall time (a model,
+        not a battery: it only gives the battery streams honest units)."""
+        used = (self.clock() - self._t_boot) / self.c.battery_capacity_s
+        return float(np.clip(1.0 - used, 0.0, 1.0))
+
+    @staticmethod
+    def _battery_voltage_v(frac: float) -> float:
+        return 4 * (3.5 + 0.7 * frac)  # 4S LiPo, 3.5-4.2 V per cell
+
+    def observation_in_local(self, obs):
+        """``obs`` (posed in the scene) re-posed in the estimator's local frame, as the frames of a
+        camera stamped by the vehicle's estimator are (what a companion receives)."""
+        import dataclasses
+
+        return dataclasses.replace(obs, T_world_cam=self.T_local_scene @ obs.T_world_cam)

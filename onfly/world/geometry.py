@@ -14,7 +14,7 @@ import numpy as np
 import open3d as o3d
 
 from onfly.world.primitives import mesh_arrays, shape_mesh
-from onfly.world.scene import TEXTURE_PATTERNS, Scene
+from onfly.world.scene import MATERIALS, TEXTURE_PATTERNS, Scene
 
 __all__ = ["SceneGeometry", "TEXTURE_NONE"]
 
@@ -37,6 +37,7 @@ class SceneGeometry:
     tri_color : float32 (m, 3), RGB in [0, 1]
     tri_texture : int8 (m,), 0 none, else 1 + index in TEXTURE_PATTERNS
     tri_tex_params : float32 (m, 6): period_m, contrast, axis (3), seed
+    tri_material : uint8 (m,), index in ``onfly.world.scene.MATERIALS`` (0 = opaque)
     tri_normal : float32 (m, 3), unit face normals (right-hand rule on the vertex order)
     tri_v0 : float32 (m, 3), first vertex of each triangle, metres
     raycasting : open3d.t.geometry.RaycastingScene
@@ -46,7 +47,7 @@ class SceneGeometry:
         self.scene = scene
         label_ids = scene.label_ids
         V_all, F_all = [], []
-        inst, lab, col, tex, tex_p = [], [], [], [], []
+        inst, lab, col, tex, tex_p, mat = [], [], [], [], [], []
         offset = 0
         for obj in scene.objects:
             code = TEXTURE_NONE
@@ -66,6 +67,7 @@ class SceneGeometry:
                 col.append(np.tile(np.asarray(color, np.float32) / 255.0, (m, 1)))
                 tex.append(np.full(m, code, np.int8))
                 tex_p.append(np.tile(params, (m, 1)))
+                mat.append(np.full(m, MATERIALS.index(obj.part_material(part)), np.uint8))
         self.vertices = np.vstack(V_all).astype(np.float32)
         self.triangles = np.vstack(F_all).astype(np.uint32)
         self.tri_instance = np.concatenate(inst)
@@ -73,6 +75,7 @@ class SceneGeometry:
         self.tri_color = np.vstack(col).astype(np.float32)
         self.tri_texture = np.concatenate(tex)
         self.tri_tex_params = np.vstack(tex_p).astype(np.float32)
+        self.tri_material = np.concatenate(mat)
         v0, v1, v2 = (self.vertices[self.triangles[:, k]] for k in range(3))
         n = np.cross(v1 - v0, v2 - v0)
         norm = np.linalg.norm(n, axis=1, keepdims=True)

@@ -17,6 +17,12 @@ quadratic growth of stereo / structured-light RMS error), independent per-pixel 
 probability ``dropout_prob``, and readings outside ``[min_range_m, max_range_m]`` set to 0
 (no reading). Each frame draws from ``default_rng([seed, noise_key])`` so a frame's noise
 depends only on the seed and the caller's frame key, never on render order.
+
+Depth sensor of a realism profile (``RenderConfig.sensor``, a
+:class:`onfly.world.realism.DepthModel`, None by default): the RealSense D435 model (quadratic
+noise, flying pixels at edges, minimum and maximum range, no readings on glass / mirror / dark
+materials), drawn from ``default_rng([sensor_seed, STREAM_DEPTH, noise_key])``. The VLM
+annotation keeps the exact depth (what the image shows), the depth image is the sensor's.
 """
 
 from __future__ import annotations
@@ -27,6 +33,7 @@ import numpy as np
 import open3d as o3d
 
 from onfly.world.geometry import SceneGeometry
+from onfly.world.realism import STREAM_DEPTH, DepthModel
 from planning.camera import PinholeCamera
 from planning.frames import check_transform, invert_transform
 from vlm.types import FrameAnnotation, VisibleObject
@@ -80,11 +87,15 @@ class RenderConfig:
     depth_noise : DepthNoise model (off by default)
     textures : evaluate texture patterns (False: flat shaded colours only, about a quarter less
         time per frame in textured scenes; depth and ids are unaffected)
+    sensor : DepthModel of a realism profile, or None (exact depth)
+    sensor_seed : seed of the sensor's draws (the episode seed)
     """
 
     threads: int = 1
     depth_noise: DepthNoise = DepthNoise()
     textures: bool = True
+    sensor: DepthModel | None = None
+    sensor_seed: int = 0
 
     def __post_init__(self) -> None:
         if int(self.threads) < 0:
@@ -100,6 +111,8 @@ class RenderResult:
     instance_ids : int32 (H, W), 0 = background (sky)
     semantic_ids : int32 (H, W), ``scene.label_ids`` values, 0 = background
     T_world_cam : (4, 4), camera optical frame -> world ENU
+    exact_depth_m : float32 (H, W), the exact z-depth when a sensor model changed ``depth_m``
+        (what the VLM annotation uses), else None
     """
 
     rgb: np.ndarray
@@ -107,6 +120,7 @@ class RenderResult:
     instance_ids: np.ndarray
     semantic_ids: np.ndarray
     T_world_cam: np.ndarray
+    exact_depth_m: np.ndarray | None = None
 
 
 #: Value noise: one random brightness level per cubic cell, from a fixed table of 32^3 cells
@@ -148,6 +162,7 @@ class Renderer:
         self._tri_instance = np.append(geometry.tri_instance, 0).astype(np.int32)
         self._tri_label = np.append(geometry.tri_label, 0).astype(np.int32)
         self._tri_texture = np.append(geometry.tri_texture, 0).astype(np.int8)
+        self._tri_material = np.append(geometry.tri_material, 0).astype(np.uint8)
         prm = geometry.tri_tex_params
         self._tex_inv_period = np.where(prm[:, 0] > 0, 1.0 / np.where(prm[:, 0] > 0, prm[:, 0], 1.0), 0.0).astype(np.float32)
         self._tex_contrast = np.append(prm[:, 1], 0.0).astype(np.float32)  # sky row: no texture
@@ -213,9 +228,16 @@ class Renderer:
         rgb = np.take(lut, index, axis=0)
 
         depth = depth.reshape(H, W)
+        exact = None
+        sensor = self.config.sensor
+        if sensor is not None:
+            exact = depth
+            material = np.take(self._tri_material, tri).reshape(H, W)
+            rng = np.random.default_rng([int(self.config.sensor_seed), STREAM_DEPTH, int(noise_key)])
+            depth = sensor.apply(depth, material, rng)
         if self.config.depth_noise.enabled:
             depth = self.config.depth_noise.apply(depth, noise_key)
-        return RenderResult(rgb.reshape(H, W, 3), depth, inst.reshape(H, W), sem.reshape(H, W), T)
+        return RenderResult(rgb.reshape(H, W, 3), depth, inst.reshape(H, W), sem.reshape(H, W), T, exact)
 
     def _colour_table(self, camera_m: np.ndarray) -> np.ndarray:
         """uint8 RGB of every triangle at every texture level seen from ``camera_m`` (3,):
@@ -262,4 +284,5 @@ class Renderer:
         ids = result.instance_ids
         present = np.flatnonzero(np.bincount(ids.ravel()))
         objects = {int(i): self._objects[int(i)] for i in present if i != 0}
-        return FrameAnnotation(instance_ids=ids, depth_m=result.depth_m, objects=objects, semantic_ids=result.semantic_ids)
+        depth = result.depth_m if result.exact_depth_m is None else result.exact_depth_m
+        return FrameAnnotation(instance_ids=ids, depth_m=depth, objects=objects, semantic_ids=result.semantic_ids)

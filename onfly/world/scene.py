@@ -48,11 +48,19 @@ __all__ = [
     "FORMAT_VERSION",
     "TEXTURE_PATTERNS",
     "SHAPE_TYPES",
+    "MATERIALS",
+    "DEFAULT_MATERIAL",
 ]
 
 #: Version written as ``format = "onfly-scene/1"`` at the top of each file.
 FORMAT_VERSION = "onfly-scene/1"
 TEXTURE_PATTERNS = ("stripes", "checker", "noise")
+#: Surface materials a depth sensor cares about (effects per realism profile in docs/realism.md):
+#: ``opaque`` (the default: a normal matte surface), ``glass`` (transparent: doors, windows),
+#: ``mirror`` (specular: mirror-like facades, polished metal), ``dark`` (low infrared albedo:
+#: black machines, tyres, rubber). Geometry and collisions never depend on the material.
+MATERIALS = ("opaque", "glass", "mirror", "dark")
+DEFAULT_MATERIAL = "opaque"
 _AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
 #: Largest instance id (ids are written to 16-bit images).
 MAX_INSTANCE_ID = 65535
@@ -231,10 +239,12 @@ Shape = Union[Box, Cylinder, Sphere, Plane, ExtrudedPolygon, Stairs, Ramp, MeshF
 
 @dataclass(frozen=True, eq=False)
 class Part:
-    """One shape of an object; ``color`` (3,) uint8 overrides the object's colour if set."""
+    """One shape of an object; ``color`` (3,) uint8 overrides the object's colour if set, and
+    ``material`` (one of :data:`MATERIALS`) the object's material."""
 
     shape: Shape
     color: np.ndarray | None = None
+    material: str | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -249,6 +259,7 @@ class SceneObject:
     target : True if tasks may name it as a goal (ground, walls, roofs are not targets)
     texture : optional Texture
     parts : one or more Part
+    material : one of :data:`MATERIALS` (default ``"opaque"``); a part may override it
     """
 
     name: str
@@ -259,11 +270,17 @@ class SceneObject:
     aliases: tuple[str, ...] = ()
     target: bool = True
     texture: Texture | None = None
+    material: str = DEFAULT_MATERIAL
+
+    def part_material(self, part: Part) -> str:
+        """The material of one of this object's parts (its own, else the object's)."""
+        return self.material if part.material is None else part.material
 
 
 @dataclass(frozen=True, eq=False)
 class Scene:
-    """A loaded scene. ``path`` is the file it came from (None if built in code)."""
+    """A loaded scene. ``path`` is the file it came from (None if built in code); ``indoor``
+    is True for scenes under a roof (no wind gusts in the realistic profile)."""
 
     name: str
     description: str
@@ -273,6 +290,7 @@ class Scene:
     light: Light
     sky_color: np.ndarray
     path: Path | None = None
+    indoor: bool = False
 
     @property
     def label_ids(self) -> dict[str, int]:
@@ -421,14 +439,14 @@ def _yaw(ctx: _Ctx, table: dict) -> float:
 
 
 _SHAPE_KEYS = {
-    "box": ("type", "color", "center_m", "size_m", "yaw_deg"),
-    "cylinder": ("type", "color", "base_m", "radius_m", "height_m", "segments"),
-    "sphere": ("type", "color", "center_m", "radius_m", "rings"),
-    "plane": ("type", "color", "center_m", "size_m", "yaw_deg"),
-    "extruded_polygon": ("type", "color", "points_m", "z_min_m", "height_m"),
-    "stairs": ("type", "color", "start_m", "yaw_deg", "width_m", "step_count", "rise_m", "run_m"),
-    "ramp": ("type", "color", "start_m", "yaw_deg", "length_m", "width_m", "rise_m"),
-    "mesh": ("type", "color", "path", "position_m", "yaw_deg", "scale"),
+    "box": ("type", "color", "material", "center_m", "size_m", "yaw_deg"),
+    "cylinder": ("type", "color", "material", "base_m", "radius_m", "height_m", "segments"),
+    "sphere": ("type", "color", "material", "center_m", "radius_m", "rings"),
+    "plane": ("type", "color", "material", "center_m", "size_m", "yaw_deg"),
+    "extruded_polygon": ("type", "color", "material", "points_m", "z_min_m", "height_m"),
+    "stairs": ("type", "color", "material", "start_m", "yaw_deg", "width_m", "step_count", "rise_m", "run_m"),
+    "ramp": ("type", "color", "material", "start_m", "yaw_deg", "length_m", "width_m", "rise_m"),
+    "mesh": ("type", "color", "material", "path", "position_m", "yaw_deg", "scale"),
 }
 
 
@@ -494,7 +512,7 @@ def _parse_shape(ctx: _Ctx, t: dict, base_dir: Path) -> Shape:
 
 
 _SHAPE_TYPES_SET = frozenset(SHAPE_TYPES)
-_OBJECT_KEYS = ("name", "label", "instance_id", "color", "aliases", "target", "texture", "parts")
+_OBJECT_KEYS = ("name", "label", "instance_id", "color", "aliases", "target", "texture", "material", "parts")
 _TEXTURE_KEYS = ("pattern", "period_m", "contrast", "axis", "seed")
 
 
@@ -515,6 +533,15 @@ def _parse_texture(ctx: _Ctx, t: dict) -> Texture:
     )
 
 
+def _material(ctx: _Ctx, table: dict, default: Any) -> str | None:
+    v = _get(ctx, table, "material", default)
+    if v is None:
+        return None
+    if not isinstance(v, str) or v not in MATERIALS:
+        raise ctx.err("material", f"unknown material {v!r} (known: {', '.join(MATERIALS)})")
+    return v
+
+
 def _parse_object(ctx: _Ctx, t: dict, base_dir: Path) -> SceneObject:
     _check_keys(ctx, t, _OBJECT_KEYS)
     name = _str(ctx, t, "name")
@@ -530,6 +557,7 @@ def _parse_object(ctx: _Ctx, t: dict, base_dir: Path) -> SceneObject:
     if not isinstance(aliases, list) or not all(isinstance(a, str) for a in aliases):
         raise ctx.err("aliases", f"expected a list of strings, got {aliases!r}")
     target = _bool(ctx, t, "target", True)
+    material = _material(ctx, t, DEFAULT_MATERIAL)
     texture = None
     if "texture" in t:
         texture = _parse_texture(ctx.sub("texture"), _table(ctx, t, "texture"))
@@ -542,11 +570,11 @@ def _parse_object(ctx: _Ctx, t: dict, base_dir: Path) -> SceneObject:
         if not isinstance(p, dict):
             raise ctx.err(f"parts[{i}]", f"expected a table, got {_type_name(p)}")
         shape = _parse_shape(pctx, p, base_dir)
-        parts.append(Part(shape, _color(pctx, p, "color", None)))
-    return SceneObject(name, label, iid, color, tuple(parts), tuple(aliases), target, texture)
+        parts.append(Part(shape, _color(pctx, p, "color", None), _material(pctx, p, None)))
+    return SceneObject(name, label, iid, color, tuple(parts), tuple(aliases), target, texture, material)
 
 
-_TOP_KEYS = ("format", "name", "description", "bounds", "start", "light", "sky_color", "objects")
+_TOP_KEYS = ("format", "name", "description", "indoor", "bounds", "start", "light", "sky_color", "objects")
 
 
 def parse_scene(data: dict, path: str | Path = "<memory>", base_dir: Path | None = None) -> Scene:
@@ -571,6 +599,7 @@ def parse_scene(data: dict, path: str | Path = "<memory>", base_dir: Path | None
         raise ctx.err("format", f"unsupported format {fmt!r} (this reader knows {FORMAT_VERSION!r})")
     name = _str(ctx, data, "name")
     description = _str(ctx, data, "description", "")
+    indoor = _bool(ctx, data, "indoor", False)
 
     bt = _table(ctx, data, "bounds")
     _check_keys(ctx, bt, ("min_m", "max_m"), "bounds")
@@ -616,7 +645,7 @@ def parse_scene(data: dict, path: str | Path = "<memory>", base_dir: Path | None
         names[obj.name] = i
         ids[obj.instance_id] = obj.name
         objects.append(obj)
-    return Scene(name, description, bounds, start, tuple(objects), light, sky, path)
+    return Scene(name, description, bounds, start, tuple(objects), light, sky, path, indoor)
 
 
 def load_scene(path: str | Path) -> Scene:

@@ -18,6 +18,15 @@ Speed projection never raises the acceleration norm: projecting ``v + a h`` onto
 ``|v| <= v_max`` that already holds ``v`` is non-expansive, so the projected acceleration is
 no longer than the clipped one. A state that starts above ``v_max`` (not reachable from a
 valid initial state) is braked at ``a_max``.
+
+Realistic tracking (optional, from a realism profile; the law above is untouched without it):
+with a :class:`onfly.world.realism.ControllerModel` the vehicle runs PX4's cascaded position
+controller on the *estimated* position (``p + estimate_offset_m``, the odometry's drift),
+``v_sp = v_ref + K_pos (p_ref - p_est)``, ``a_sp = a_ref + K_vel e + K_int integral(e)`` with
+``e = v_sp - v``, clipped to the tilt limit, and its acceleration follows ``a_sp`` through a first-order lag; a
+:class:`onfly.world.realism.GustProcess` adds the gust acceleration. Neither the speed limit
+nor ``a_max`` bounds the result (they are the planner's limits, not physics). Without a plan
+the controller holds the estimated position where the plan ended.
 """
 
 from __future__ import annotations
@@ -27,6 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from onfly.world.realism import ControllerModel, GustProcess
 from planning.frames import wrap_angle
 from planning.trajectory import Trajectory, VehicleState
 
@@ -84,8 +94,20 @@ class SimVehicle:
     :meth:`step` to advance time.
     """
 
-    def __init__(self, initial: VehicleState, config: VehicleConfig | None = None) -> None:
+    def __init__(
+        self,
+        initial: VehicleState,
+        config: VehicleConfig | None = None,
+        *,
+        controller: ControllerModel | None = None,
+        gusts: GustProcess | None = None,
+    ) -> None:
         self.config = config if config is not None else VehicleConfig()
+        self.controller = controller
+        self.gusts = gusts
+        #: estimate - truth of the position the controller reads (3,), metres; set by the world
+        self.estimate_offset_m = np.zeros(3)
+        self._hold: np.ndarray | None = None
         speed = float(np.linalg.norm(initial.v))
         if speed > self.config.v_max_mps + 1e-9:
             raise VehicleError(f"initial speed {speed:.3f} m/s exceeds v_max_mps {self.config.v_max_mps}")
@@ -95,6 +117,8 @@ class SimVehicle:
         self._yaw = float(initial.yaw)
         self._yaw_rate = 0.0
         self._a = np.zeros(3)
+        self._a_thrust = np.zeros(3)
+        self._vel_integral = np.zeros(3)
         self._traj: Trajectory | None = None
 
     @property
@@ -111,6 +135,7 @@ class SimVehicle:
         if trajectory is not None and not isinstance(trajectory, Trajectory):
             raise VehicleError(f"expected a planning.trajectory.Trajectory, got {type(trajectory).__name__}")
         self._traj = trajectory
+        self._hold = None
 
     def _reference(self, h: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
         """Reference position, velocity and yaw at the start of the step; feed-forward
@@ -122,13 +147,46 @@ class SimVehicle:
         _, _, a_r, _, yaw_rate_r = self._traj.sample(self._t + 0.5 * h)
         return p_r, v_r, a_r, yaw_r, yaw_rate_r
 
+    def _substep_realistic(self, h: float) -> None:
+        c = self.config
+        ctl = self.controller
+        p_est = self._p + self.estimate_offset_m
+        if self._traj is None:
+            if self._hold is None:
+                self._hold = p_est.copy()
+            p_r, v_r, a_r, yaw_r, yaw_rate_r = self._hold, np.zeros(3), np.zeros(3), self._yaw, 0.0
+        else:
+            p_r, v_r, a_r, yaw_r, yaw_rate_r = self._reference(h)
+        v_sp = v_r + ctl.k_pos * (p_r - p_est)
+        e_v = v_sp - self._v
+        self._vel_integral = self._vel_integral + e_v * h
+        a_sp = _clip_norm(a_r + ctl.k_vel * e_v + ctl.k_int * self._vel_integral, ctl.accel_limit_mps2)
+        lag = 1.0 - math.exp(-h / ctl.tau_s) if ctl.tau_s > 0 else 1.0
+        self._a_thrust = self._a_thrust + lag * (a_sp - self._a_thrust)
+        a = self._a_thrust
+        if self.gusts is not None:
+            self.gusts.step(h)
+            a = a + self.gusts.acceleration()
+        self._p = self._p + self._v * h + 0.5 * a * h * h
+        self._v = self._v + a * h
+        self._a = a
+        rate = yaw_rate_r + c.k_yaw_per_s * wrap_angle(yaw_r - self._yaw)
+        rate = float(np.clip(rate, -c.yaw_rate_max_radps, c.yaw_rate_max_radps))
+        self._yaw = wrap_angle(self._yaw + rate * h)
+        self._yaw_rate = rate
+        self._t += h
+
     def _substep(self, h: float) -> None:
+        if self.controller is not None:
+            self._substep_realistic(h)
+            return
         c = self.config
         p_r, v_r, a_r, yaw_r, yaw_rate_r = self._reference(h)
         if self._traj is None:
             a = -c.kd_per_s * self._v
         else:
-            a = a_r + c.kp_per_s2 * (p_r - self._p) + c.kd_per_s * (v_r - self._v)
+            # the position the autopilot reads: truth + the odometry's drift (0 when ideal)
+            a = a_r + c.kp_per_s2 * (p_r - (self._p + self.estimate_offset_m)) + c.kd_per_s * (v_r - self._v)
         a = _clip_norm(a, c.a_max_mps2)
         v_next = self._v + a * h
         if np.linalg.norm(v_next) > c.v_max_mps:

@@ -4,11 +4,19 @@
 own module. One :meth:`World.step` advances the vehicle and the clock by the same ``dt_s``,
 checks the swept path for collisions and returns the VLM calls that completed. The episode
 ends at the first collision: the vehicle stops there and further steps raise.
+
+A realism profile (:mod:`onfly.world.realism`, ``realism=`` and the episode ``seed``) adds a
+depth sensor model, odometry drift and noise, PX4-like tracking with gusts, and frame drops
+and latency. Truth and estimate are kept apart: :attr:`World.state`, the collision check, the
+out-of-bounds check and the rendered view use the true pose; what a pilot reads
+(:attr:`World.estimate`, the ``T_world_cam`` of each :class:`Observation`) is the odometry's
+estimate. Under ``ideal`` the estimate *is* the truth and every frame arrives at once, so the
+world behaves exactly as before profiles existed.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -17,11 +25,12 @@ from onfly.observation import Observation
 from onfly.world.clock import LatencyModel, PendingCall, SimClock
 from onfly.world.collision import Collision, CollisionChecker
 from onfly.world.geometry import SceneGeometry
+from onfly.world.realism import GustProcess, OdometryDrift, RealismProfile, realism_profile
 from onfly.world.render import RenderConfig, Renderer, RenderResult
 from onfly.world.scene import Scene, load_scene, resolve_scene
 from onfly.world.vehicle import SimVehicle, VehicleConfig
 from planning.camera import PinholeCamera
-from planning.frames import T_BODY_CAM, body_transform, cam_transform_from_body
+from planning.frames import T_BODY_CAM, body_transform, cam_transform_from_body, wrap_angle
 from planning.trajectory import Trajectory, VehicleState
 
 __all__ = ["World", "WorldStep", "EpisodeEndedError"]
@@ -57,6 +66,8 @@ class World:
     render_config, vehicle_config, latency : configs of the parts
     initial_state : default: the scene's start pose at rest at t = 0
     T_body_cam : camera mount, default forward and level
+    realism : RealismProfile or its name (default ``"ideal"``)
+    seed : int, seeds every draw of the realism models (the episode seed)
     """
 
     def __init__(
@@ -69,15 +80,29 @@ class World:
         latency: LatencyModel | None = None,
         initial_state: VehicleState | None = None,
         T_body_cam: np.ndarray = T_BODY_CAM,
+        realism: RealismProfile | str | None = None,
+        seed: int = 0,
     ) -> None:
         self.scene = scene
+        self.realism = realism_profile(realism)
+        self.seed = int(seed)
         self.geometry = SceneGeometry(scene)
+        if self.realism.depth is not None:
+            render_config = replace(render_config if render_config is not None else RenderConfig(),
+                                    sensor=self.realism.depth, sensor_seed=self.seed)
         self.renderer = Renderer(self.geometry, camera, render_config)
         vehicle_config = vehicle_config if vehicle_config is not None else VehicleConfig()
         self.collision = CollisionChecker(self.geometry, vehicle_config.body_radius_m)
         if initial_state is None:
             initial_state = VehicleState(0.0, scene.start.position_m, np.zeros(3), scene.start.yaw_rad)
-        self.vehicle = SimVehicle(initial_state, vehicle_config)
+        gusts = None
+        if self.realism.wind is not None and not scene.indoor:
+            gusts = GustProcess(self.realism.wind, self.seed)
+        self.vehicle = SimVehicle(initial_state, vehicle_config, controller=self.realism.controller, gusts=gusts)
+        self.odometry = None if self.realism.odometry is None else OdometryDrift(self.realism.odometry, self.seed, initial_state.p)
+        self._step_index = 0
+        self._frames: list[tuple[float, Observation]] = []
+        self.frames_dropped = 0
         self.clock = SimClock(initial_state.t_s, latency)
         self.T_body_cam = np.asarray(T_body_cam, dtype=float)
         self._renderers: dict[PinholeCamera, Renderer] = {}
@@ -95,7 +120,18 @@ class World:
 
     @property
     def state(self) -> VehicleState:
+        """The true vehicle state (collisions, metrics, bounds)."""
         return self.vehicle.state
+
+    @property
+    def estimate(self) -> VehicleState:
+        """The vehicle state a pilot reads: the truth plus the odometry's drift and noise (the
+        noise is drawn once per control step, so repeated reads agree). Ideal: the truth."""
+        s = self.vehicle.state
+        if self.odometry is None:
+            return s
+        dp, dyaw = self.odometry.noise(self._step_index)
+        return VehicleState(s.t_s, s.p + self.odometry.offset_m + dp, s.v, wrap_angle(s.yaw + dyaw), s.yaw_rate, s.a)
 
     @property
     def collided(self) -> Collision | None:
@@ -110,7 +146,12 @@ class World:
         """Advance vehicle and clock by ``dt_s`` seconds; check the swept path."""
         if self._collision is not None:
             raise EpisodeEndedError(f"episode ended by a collision with {self._collision.object_name!r} at t = {self._collision.t_s:.2f} s")
+        if self.odometry is not None:
+            self.vehicle.estimate_offset_m = self.odometry.offset_m
         times, pos = self.vehicle.step(dt_s)
+        if self.odometry is not None:
+            self.odometry.advance(pos)
+        self._step_index += 1
         completed = tuple(self.clock.advance(dt_s))
         hit = self.collision.first_collision(pos, times)
         if hit is not None:
@@ -149,13 +190,40 @@ class World:
         index = self._frame_index
         renderer = self.renderer_for(camera)
         r = self.render(renderer.camera)
+        T_world_cam = r.T_world_cam if self.odometry is None else self.T_world_cam(self.estimate)
         return Observation(
             t_s=self.clock.now_s,
             rgb=r.rgb,
             depth_m=r.depth_m,
-            T_world_cam=r.T_world_cam,
+            T_world_cam=T_world_cam,
             camera=renderer.camera,
             frame_id=f"{self.scene.name}/{index:06d}",
             T_body_cam=self.T_body_cam,
             annotation=renderer.annotate(r),
         )
+
+    # -- frame delivery (drops and latency of a realism profile) ---------------------------------
+
+    def capture(self, camera: PinholeCamera | None = None) -> None:
+        """Capture a camera frame now; it reaches :meth:`receive` after the profile's latency,
+        or never if dropped (ideal: at once, always). The frame keeps its capture time and the
+        estimated camera pose at capture."""
+        frames = self.realism.frames
+        if frames is None:
+            self._frames.append((self.clock.now_s, self.observe(camera)))
+            return
+        dropped, latency_s = frames.draw(self.seed, self._frame_index)
+        if dropped:
+            self._frame_index += 1  # the frame's key is spent: later frames keep their draws
+            self.frames_dropped += 1
+            return
+        self._frames.append((self.clock.now_s + latency_s, self.observe(camera)))
+
+    def receive(self) -> Observation | None:
+        """The newest captured frame delivered by now (older ready ones are superseded), or None."""
+        now = self.clock.now_s + 1e-9
+        ready = [f for f in self._frames if f[0] <= now]
+        if not ready:
+            return None
+        self._frames = [f for f in self._frames if f[0] > now]
+        return ready[-1][1]

@@ -1,0 +1,230 @@
+"""Real MAVLink clients against the simulated vehicle: MAVSDK-Python (the C++ MAVSDK library
+behind ctypes; the wheel carries it, nothing is downloaded) for the PX4 personality, and
+pymavlink scripts written the way MAVProxy drives ArduCopter (SET_MODE, arm, NAV_TAKEOFF,
+``guided`` as COMMAND_INT DO_REPOSITION, parameter fetch/set, LAND).
+
+Each test checks the vehicle's outcome (mode, armed state, position reached, landed state) on
+both sides: what the client reports and the vehicle's ground truth."""
+
+import math
+import socket
+import time
+
+import numpy as np
+import pytest
+from pymavlink import mavutil
+
+from onfly.mavlink.link import MavlinkLink
+from onfly.mavlink.sim_vehicle import EARTH_RADIUS_M, SimMavlinkVehicle, SimVehicleConfig
+
+
+from mavsdk import ComponentType, Configuration, Mavsdk  # noqa: E402
+from mavsdk.plugins.action.action import Action, ActionError  # noqa: E402
+from mavsdk.plugins.offboard.offboard import Offboard, PositionNedYaw, VelocityNedYaw  # noqa: E402
+from mavsdk.plugins.param.param import Param  # noqa: E402
+from mavsdk.plugins.telemetry.telemetry import FlightMode, LandedState, Telemetry  # noqa: E402
+
+M = mavutil.mavlink
+pytestmark = pytest.mark.timeout(90)
+
+
+def free_udp_port() -> int:
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    return port
+
+
+def wait_until(pred, timeout_s, what):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if pred():
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+class MavsdkRig:
+    """A sim vehicle sending to a MAVSDK instance listening on a free loopback port."""
+
+    def __init__(self, **cfg):
+        port = free_udp_port()
+        self.vehicle = SimMavlinkVehicle(MavlinkLink(f"udpout:127.0.0.1:{port}", 1, 1), SimVehicleConfig(**cfg)).start()
+        self.mavsdk = Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION))
+        self.mavsdk.add_any_connection(f"udpin://127.0.0.1:{port}")
+        system = self.mavsdk.first_autopilot(10.0)
+        assert system is not None, "MAVSDK found no autopilot"
+        self.system = system
+        self.action, self.telemetry = Action(system), Telemetry(system)
+
+    def close(self):
+        self.vehicle.stop()
+        self.mavsdk.destroy()
+
+
+@pytest.fixture
+def px4_outdoor():
+    rig = MavsdkRig(autopilot="px4", profile="outdoor")
+    yield rig
+    rig.close()
+
+
+@pytest.fixture
+def px4_indoor():
+    rig = MavsdkRig(autopilot="px4", profile="indoor", estimator_origin_m=(3.0, -2.0, 0.0), initial_position_m=(3.0, -2.0, 0.0))
+    yield rig
+    rig.close()
+
+
+def test_mavsdk_px4_arm_takeoff_goto_land_with_telemetry_units(px4_outdoor):
+    rig = px4_outdoor
+    act, tel, v = rig.action, rig.telemetry, rig.vehicle
+    wait_until(lambda: tel.health().is_armable, 5.0, "health.is_armable")
+    pos0 = tel.position()
+    assert pos0.latitude_deg == pytest.approx(47.397742, abs=1e-6) and pos0.absolute_altitude_m == pytest.approx(488.0, abs=0.01)
+    batt = tel.battery()
+    assert 14.0 < batt.voltage_v < 16.9 and 0 < batt.remaining_percent <= 100.0  # volts and percent, not mV / fraction
+    assert tel.landed_state() == LandedState.ON_GROUND and not tel.in_air()
+    assert Param(rig.system).get_param_float("MIS_TAKEOFF_ALT") == pytest.approx(2.5)
+    act.set_takeoff_altitude(3.0)  # PARAM_SET of MIS_TAKEOFF_ALT
+    assert v.params["MIS_TAKEOFF_ALT"] == pytest.approx(3.0)
+
+    act.arm()  # MAVSDK sends NaN in the unused parameters
+    assert v.armed
+    wait_until(tel.armed, 2.0, "client sees armed (HEARTBEAT)")
+    act.takeoff()  # NAV_TAKEOFF with param7 NaN -> MIS_TAKEOFF_ALT above home
+    wait_until(lambda: v.mode_name == "auto.loiter" and tel.in_air(), 15.0, "take-off complete")
+    assert v.position_enu()[2] == pytest.approx(3.0, abs=0.15)
+    wait_until(lambda: tel.position().relative_altitude_m > 2.8, 3.0, "relative altitude in metres")
+    home = tel.home()
+    assert home.latitude_deg == pytest.approx(47.397742, abs=1e-6) and home.relative_altitude_m == pytest.approx(0.0, abs=0.05)
+    wait_until(lambda: tel.flight_mode() == FlightMode.HOLD, 2.0, "client sees HOLD")
+
+    # goto 6 m north, 4 m east (COMMAND_INT DO_REPOSITION, AMSL altitude)
+    p = tel.position()
+    dlat = math.degrees(6.0 / EARTH_RADIUS_M)
+    dlon = math.degrees(4.0 / (EARTH_RADIUS_M * math.cos(math.radians(p.latitude_deg))))
+    act.goto_location(p.latitude_deg + dlat, p.longitude_deg + dlon, p.absolute_altitude_m, 0.0)
+    wait_until(lambda: np.linalg.norm(v.position_enu()[:2] - [4.0, 6.0]) < 0.2, 15.0, "goto target reached")
+
+    act.land()
+    wait_until(lambda: not v.armed, 20.0, "landed and disarmed (COM_DISARM_LAND)")
+    assert v.position_enu()[2] == pytest.approx(0.0, abs=0.02)
+    wait_until(lambda: tel.landed_state() == LandedState.ON_GROUND and not tel.armed(), 3.0, "client sees landed, disarmed")
+    assert any("Disarmed" in text for _, text in v.statustexts)
+
+
+def test_mavsdk_px4_offboard_after_one_setpoint_position_and_velocity(px4_indoor):
+    rig = px4_indoor
+    act, tel, v = rig.action, rig.telemetry, rig.vehicle
+    wait_until(lambda: tel.health().is_armable, 5.0, "health.is_armable")
+    # indoor: no GPS, so no global position; local position is the estimator's (origin at boot)
+    assert not tel.health().is_global_position_ok
+    off = Offboard(rig.system)
+    act.arm()
+    off.set_position_ned(PositionNedYaw(0.0, 0.0, -1.5, 0.0))  # one setpoint, then start at once
+    off.start()
+    wait_until(lambda: v.mode_name == "offboard", 2.0, "OFFBOARD")
+    wait_until(lambda: abs(v.position_enu()[2] - 1.5) < 0.1, 10.0, "1.5 m up")
+    off.set_position_ned(PositionNedYaw(2.0, 1.0, -1.5, 90.0))  # 2 m north, 1 m east of the estimator origin
+    wait_until(lambda: np.linalg.norm(v.position_enu() - [3.0 + 1.0, -2.0 + 2.0, 1.5]) < 0.15, 10.0, "position setpoint")
+    pv = tel.position_velocity_ned()
+    assert pv.position.north_m == pytest.approx(2.0, abs=0.2) and pv.position.east_m == pytest.approx(1.0, abs=0.2)
+    off.set_velocity_ned(VelocityNedYaw(0.0, -0.5, 0.0, 90.0))  # west at 0.5 m/s
+    time.sleep(1.5)
+    assert v.velocity_enu()[0] == pytest.approx(-0.5, abs=0.1) 
+    assert tel.position_velocity_ned().velocity.east_m_s == pytest.approx(-0.5, abs=0.1)  # m/s from LOCAL_POSITION_NED
+    off.stop()  # stops the stream: COM_OBL_RC_ACT of the indoor setting (Hold) after COM_OF_LOSS_T
+    wait_until(lambda: v.mode_name == "auto.loiter", 3.0, "offboard-loss action Hold")
+    assert v.armed
+
+
+def test_mavsdk_px4_refusals_are_answered():
+    rig = MavsdkRig(autopilot="px4", profile="indoor")
+    try:
+        act, v = rig.action, rig.vehicle
+        time.sleep(0.5)
+        v.set_position_valid(False)
+        with pytest.raises(ActionError):
+            act.arm()  # pre-arm: no position estimate -> FAILED, with a STATUSTEXT
+        assert not v.armed and any("position" in t for _, t in v.statustexts)
+        v.set_position_valid(True)
+        with pytest.raises(ActionError):
+            act.goto_location(47.0, 8.0, 500.0, 0.0)  # indoor: no global origin -> FAILED, not silence
+    finally:
+        rig.close()
+
+
+# -- pymavlink in MAVProxy's style against the ArduPilot personality --------------------------
+class MavproxyStyle:
+    """What MAVProxy sends for `mode`, `arm throttle`, `takeoff`, `guided`, `param fetch/set`."""
+
+    def __init__(self, port):
+        self.m = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=255, source_component=190)
+        self.m.wait_heartbeat(timeout=5)
+
+    def ack(self, command, timeout_s=5.0):  # generous: the machine runs many jobs
+        msg = self.m.recv_match(type="COMMAND_ACK", blocking=True, timeout=timeout_s, condition=f"COMMAND_ACK.command=={command}")
+        assert msg is not None, f"no COMMAND_ACK for {command}"
+        return msg.result
+
+    def mode(self, name):
+        self.m.mav.set_mode_send(self.m.target_system, M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, self.m.mode_mapping()[name])
+        return self.ack(M.MAVLINK_MSG_ID_SET_MODE)
+
+    def long(self, cmd, *params):
+        p = list(params) + [0.0] * (7 - len(params))
+        self.m.mav.command_long_send(self.m.target_system, self.m.target_component, cmd, 0, *p)
+        return self.ack(cmd)
+
+    def latest(self, mtype, pred, timeout_s=3.0):
+        """Read ``mtype`` messages (older buffered ones first) until one satisfies ``pred``."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            msg = self.m.recv_match(type=mtype, blocking=True, timeout=0.5)
+            if msg is not None and pred(msg):
+                return msg
+        raise AssertionError(f"no {mtype} satisfying the condition within {timeout_s} s")
+
+
+def test_pymavlink_mavproxy_style_ardupilot_guided_flight():
+    port = free_udp_port()
+    v = SimMavlinkVehicle(MavlinkLink(f"udpout:127.0.0.1:{port}", 1, 1), SimVehicleConfig(autopilot="ardupilot", profile="outdoor")).start()
+    try:
+        mp = MavproxyStyle(port)
+        # param fetch: the whole table, C-cast integers
+        mp.m.mav.param_request_list_send(1, 1)
+        params = {}
+        deadline = time.monotonic() + 3
+        while time.monotonic() < deadline and len(params) < 5:
+            pv = mp.m.recv_match(type="PARAM_VALUE", blocking=True, timeout=1)
+            if pv is not None:
+                params[pv.param_id] = pv.param_value
+        assert params["GUID_TIMEOUT"] == pytest.approx(3.0) and params["DISARM_DELAY"] == 10.0 and len(params) == pv.param_count
+        mp.m.mav.param_set_send(1, 1, b"GUID_TIMEOUT", 2.0, M.MAV_PARAM_TYPE_REAL32)
+        echo = mp.m.recv_match(type="PARAM_VALUE", blocking=True, timeout=2, condition="PARAM_VALUE.param_id=='GUID_TIMEOUT'")
+        assert echo.param_value == pytest.approx(2.0) and v.params["GUID_TIMEOUT"] == pytest.approx(2.0)
+
+        assert mp.mode("GUIDED") == M.MAV_RESULT_ACCEPTED
+        assert mp.long(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+        assert mp.long(M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 2.0) == M.MAV_RESULT_ACCEPTED
+        wait_until(lambda: v.position_enu()[2] > 1.9, 10.0, "take-off to 2 m")
+        # `guided LAT LON ALT`: COMMAND_INT DO_REPOSITION, relative altitude
+        gp = mp.m.recv_match(type="GLOBAL_POSITION_INT", blocking=True, timeout=3)
+        lat = gp.lat + int(round(math.degrees(5.0 / EARTH_RADIUS_M) * 1e7))
+        mp.m.mav.command_int_send(1, 1, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, M.MAV_CMD_DO_REPOSITION, 0, 0,
+                                  -1, M.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, math.nan, lat, gp.lon, 3.0)
+        assert mp.ack(M.MAV_CMD_DO_REPOSITION) == M.MAV_RESULT_ACCEPTED
+        wait_until(lambda: np.linalg.norm(v.position_enu() - [0.0, 5.0, 3.0]) < 0.15, 15.0, "guided target")
+        time.sleep(2.5)  # past GUID_TIMEOUT: a position target is held, not dropped
+        assert np.linalg.norm(v.position_enu() - [0.0, 5.0, 3.0]) < 0.15 and v.mode_name == "guided"
+        # `mode LAND`: ArduCopter disarms as soon as the land detector says landed
+        assert mp.mode("LAND") == M.MAV_RESULT_ACCEPTED
+        wait_until(lambda: not v.armed, 15.0, "landed and disarmed")
+        mp.latest("EXTENDED_SYS_STATE", lambda m: m.landed_state == M.MAV_LANDED_STATE_ON_GROUND)
+        mp.latest("HEARTBEAT", lambda m: m.custom_mode == 9 and not m.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED)
+        # a fresh arm in LAND is refused (mode does not allow arming)
+        assert mp.long(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_FAILED
+    finally:
+        v.stop()
