@@ -22,8 +22,9 @@ Measured in the same run:
 
 Three maps run on the same frames and are printed side by side: ``before`` (the old defaults:
 unknown space free, no body sphere, no clearing by pixels without a reading, a 10 x 10 x 4 m
-window), ``window only`` (the same in the new window) and ``after`` (``EsdfConfig()``: unknown is an obstacle, bounded no-reading clearing,
-a body sphere, a 16 x 16 x 5 m window covering D_max). Also reported: the largest *optimistic*
+window), ``window only`` (the same in the new window) and ``after`` (``EsdfConfig()``: unknown
+is an obstacle, bounded no-reading clearing, a body sphere, a 16 x 16 x 5 m window covering
+D_max). Also reported: the largest *optimistic*
 error (the field above the truth, the unsafe direction), the share of seen-free sample points
 the map reads free, and the share of the last camera's view cone (0.5-7 m) the map knows.
 
