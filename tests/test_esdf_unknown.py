@@ -302,3 +302,36 @@ def test_window_covers_the_verifier_range():
     old = EsdfMap(dataclasses.replace(DEFAULT, size_m=(10.0, 10.0, 4.0)))
     old.integrate(wall_depth(p, 6.85), CAMERA, pose(p))
     assert old.query(np.array([[6.4, 0.0, HEIGHT_M]]))[0][0] < 0.0  # outside: read as an obstacle
+
+
+# -- a glass door rendered from a committed scene (the realistic world profile) ---------------------
+def test_glass_door_rendered_from_a_scene_is_not_a_passage():
+    """urban_block's glass door and glass tower give no depth readings under the realistic
+    profile; the VLM could point through the door into the lobby behind it (free in the truth).
+    The default map keeps the door and the lobby unknown, and the planner stops in front."""
+    import math
+
+    from onfly.world import World
+
+    start = VehicleState(0.0, np.array([-4.0, -24.0, 1.4]), np.zeros(3), math.pi)  # facing west
+    world = World.from_scene("urban_block", realism="realistic", seed=5, initial_state=start)
+    obs = world.observe()
+    door = obs.annotation.instance_ids == world.scene.object_by_name("glass door").instance_id
+    assert door.sum() > 1000 and np.all(obs.depth_m[door] == 0.0)
+    door_x = -4.0 - float(np.median(obs.annotation.depth_m[door]))  # about -7.9 m
+    lobby = np.array([[x, -24.0, 1.4] for x in (-9.5, -10.5)])
+    assert np.all(world.collision.clearance(lobby) > 1.0)  # free space behind the door
+    goal = lobby[1]
+    planner = Planner(PlannerConfig())
+    d_safe = planner.config.d_safe_m
+    new = EsdfMap(DEFAULT)
+    new.integrate(obs.depth_m, obs.camera, obs.T_world_cam, center_world=obs.position)
+    behind = np.array([[x, y, 1.4] for x in (door_x - 0.3, -9.5, -10.5) for y in (-24.5, -24.0, -23.5)])
+    assert not new.known(behind).any() and np.all(new.query(behind)[0] <= 0.0)
+    plan = planner.step(start, goal, new)
+    assert plan.trajectory.p[:, 0].min() > door_x + d_safe - 0.1 and plan.goal_used[0] > door_x
+    # the old optimistic map: the door is open space and the plan heads through it
+    old = EsdfMap(EsdfConfig(unknown_policy="free", no_reading_clear_m=0.0, body_clear_radius_m=0.0, size_m=(10.0, 10.0, 4.0)))
+    old.integrate(obs.depth_m, obs.camera, obs.T_world_cam, center_world=obs.position)
+    assert np.all(old.query(behind)[0] == old.config.max_distance_m)
+    assert Planner(PlannerConfig()).step(start, goal, old).goal_used[0] < door_x
