@@ -41,6 +41,18 @@ Reported per strategy:
   ``modelled_cached_token_fraction_<s>`` (its token model: 4 characters per text token, one
   token per 28 x 28 pixels of image) and ``modelled_latency_ratio_sliding_over_hybrid``.
 
+* **across subtask advances** (``advance_*``; issue 21): one backend shared by both agents, as
+  in the pilot. The hybrid memory's calls of each episode's window are replayed with the
+  subtask changing every ``advance_every`` calls (default 4) (``ADVANCE_SUBTASKS``), once with the real
+  monitoring prompt (``v2``: subtask after the keyframes) and once with the same texts in the
+  v1 order (subtask first, ``v1_order``). Before each monitoring call a decision call on the
+  latest frame (:func:`vlm.prompts.build_decision_prompt`, its own ``cache_key``) and the
+  verifier's ``features()`` read the same frame. Reported per order:
+  ``advance_cached_fraction_<o>`` and ``advance_ms_median_<o>`` (the calls right after an
+  advance), ``steady_cached_fraction_<o>`` / ``steady_ms_median_<o>`` (the other warm calls),
+  and ``vision_runs_per_frame_max`` / ``_mean`` (vision-encoder runs per frame counted by the
+  backend over every frame any reader saw; one pass per frame is 1.0 / 1.0).
+
 Diagnostics explain the cache numbers: ``prompt_tokens_mean_<s>``, ``image_tokens_per_image``,
 ``uncached_tokens_mean_<s>`` (the changing tail) and ``new_images_mean_<s>`` (images after the
 first difference from the previous call's list); with the references,
@@ -85,6 +97,14 @@ VISION_CACHED = "_vision_cached"
 TARGET_CACHED_FRACTION_HYBRID = 0.8
 TARGET_LATENCY_RATIO = 1.5
 SUBTASK = "fly past the pillars and stop next to the red van"
+#: The advance experiment: a new subtask every ``advance_every`` monitoring calls, in this order.
+ADVANCE_SUBTASKS = (
+    "fly past the pillars",
+    "turn left at the tall grey pillar",
+    "fly along the row of red pillars",
+    "stop next to the red van",
+)
+ADVANCE_ORDERS = ("v2", "v1_order")
 
 
 class BenchConfigError(ValueError):
@@ -112,6 +132,7 @@ class BenchMemoryConfig:
     slots : S, keyframes between o_1 and o_t
     max_new_tokens : greedy tokens per monitoring call (the answer is one word)
     threads : torch intra-op threads
+    advance_every : monitoring calls per subtask in the advance experiment
     """
 
     episodes: int = 3
@@ -132,9 +153,10 @@ class BenchMemoryConfig:
     slots: int = 4
     max_new_tokens: int = 4
     threads: int = 1
+    advance_every: int = 4
 
     def __post_init__(self) -> None:
-        for name in ("episodes", "calls", "image_tokens", "slots", "max_new_tokens", "threads"):
+        for name in ("episodes", "calls", "image_tokens", "slots", "max_new_tokens", "threads", "advance_every"):
             if getattr(self, name) < 1:
                 raise BenchConfigError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.calls < 2:
@@ -559,6 +581,77 @@ def run_model_calls(specs: Sequence[StreamSpec], windows: dict[str, list[MemoryC
     return out
 
 
+# -- subtask advances ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class AdvanceCall:
+    """One monitoring call of the advance experiment (see the module docstring)."""
+
+    order: str
+    episode: int
+    call: int
+    subtask: str
+    advance: bool
+    cold: bool
+    prompt_tokens: int
+    cached_tokens: int
+    ms: float
+
+
+def _v1_order(messages):
+    """The same texts in the monitor/v1 layout: the subtask line first in the user message."""
+    from vlm.types import ChatMessage
+
+    system, user = messages
+    lines = user.content.split("\n")
+    k = next(i for i, line in enumerate(lines) if line.startswith("Current subtask: "))
+    head = lines.pop(k)
+    return [system, ChatMessage("user", "\n".join([head, *lines]))]
+
+
+def run_advance_calls(window: Sequence[MemoryCall], backend, order: str, cfg: BenchMemoryConfig) -> list[AdvanceCall]:
+    """Replay ``window`` (hybrid calls) on ``backend`` with a subtask advance every
+    ``cfg.advance_every`` calls; before each monitoring call the decision agent and the verifier
+    read the latest frame from the same backend."""
+    from vlm.prompts import build_decision_prompt
+
+    backend.reset_cache()
+    out: list[AdvanceCall] = []
+    for i, call in enumerate(window):
+        subtask = ADVANCE_SUBTASKS[(i // cfg.advance_every) % len(ADVANCE_SUBTASKS)]
+        images = call.images
+        latest = images[-1]
+        d_msgs, d_imgs = build_decision_prompt(subtask, latest, None)
+        backend.complete(d_msgs, d_imgs, max_new_tokens=cfg.max_new_tokens, cache_key="decision")
+        backend.features(latest)
+        messages, imgs = build_monitor_prompt(subtask, images[0], list(images[1:-1]), latest)
+        if order == "v1_order":
+            messages = _v1_order(messages)
+        t0 = time.perf_counter()
+        resp = backend.complete(messages, imgs, max_new_tokens=cfg.max_new_tokens, cache_key="monitor")
+        ms = (time.perf_counter() - t0) * 1e3
+        out.append(AdvanceCall(order, call.episode, call.call, subtask, advance=(i > 0 and i % cfg.advance_every == 0),
+                               cold=(i == 0), prompt_tokens=resp.usage.prompt_tokens,
+                               cached_tokens=resp.usage.cached_tokens, ms=ms))
+    return out
+
+
+def _advance_metrics(calls: Sequence[AdvanceCall], runs_per_frame: Sequence[int]) -> dict:
+    out: dict = {}
+    for order in ADVANCE_ORDERS:
+        for kind, pick in (("advance", lambda c: c.advance), ("steady", lambda c: not c.advance)):
+            sel = [c for c in calls if c.order == order and not c.cold and pick(c)]
+            prompt = sum(c.prompt_tokens for c in sel)
+            out[f"{kind}_cached_fraction_{order}"] = sum(c.cached_tokens for c in sel) / prompt if prompt else float("nan")
+            out[f"{kind}_ms_median_{order}"] = _median([c.ms for c in sel])
+            out[f"{kind}_calls_{order}"] = len(sel)
+    out["vision_runs_per_frame_max"] = int(max(runs_per_frame)) if runs_per_frame else 0
+    out["vision_runs_per_frame_mean"] = float(np.mean(runs_per_frame)) if runs_per_frame else float("nan")
+    out["vision_runs_frames"] = len(runs_per_frame)
+    return out
+
+
 # -- the benchmark -----------------------------------------------------------------------------------
 
 
@@ -571,6 +664,7 @@ class BenchResult:
     memory_calls: dict[str, list[MemoryCall]]
     model_calls: list[ModelCall]
     streams: tuple[str, ...]
+    advance_calls: tuple = ()
 
     def to_json(self) -> dict:
         return {**self.metrics, "config": self.config}
@@ -688,6 +782,10 @@ def run_benchmark(cfg: BenchMemoryConfig, *, model_path: str | Path | None = Non
                 image_max_pixels=cfg.image_tokens * merge_px**2, image_min_pixels=4 * merge_px**2,
             ))
         sims = {name: SimulatedVlm("nominal", seed=cfg.seed) for name in streams}
+        shared = {order: TransformersBackend(TransformersBackendConfig(
+            str(model_dir), num_threads=cfg.threads, image_max_pixels=cfg.image_tokens * merge_px**2,
+            image_min_pixels=4 * merge_px**2)) for order in ADVANCE_ORDERS}
+        advance: list[AdvanceCall] = []
         model_desc.update(model_type=backends["hybrid"].model_type, parameters=_parameter_count(model_dir))
 
         mem: dict[str, list[MemoryCall]] = {s: [] for s in MEMORY_STRATEGIES}
@@ -710,10 +808,16 @@ def run_benchmark(cfg: BenchMemoryConfig, *, model_path: str | Path | None = Non
             model.extend(run_model_calls(specs, windows, backends, sims, cfg))
             say(f"episode {e}: {n_calls} monitoring calls, model calls {n_calls - cfg.calls}..{n_calls - 1} "
                 f"of {len(streams)} streams in {time.perf_counter() - t0:.1f} s")
-        for b in backends.values():
+            t0 = time.perf_counter()
+            for order in ADVANCE_ORDERS:
+                advance.extend(run_advance_calls(windows["hybrid"], shared[order], order, cfg))
+            say(f"episode {e}: subtask-advance replay ({len(ADVANCE_ORDERS)} orders) in {time.perf_counter() - t0:.1f} s")
+        runs_per_frame = [n for b in shared.values() for n in b.vision_encoder_runs.values()]
+        for b in [*backends.values(), *shared.values()]:
             b.close()
 
     metrics = _metrics(mem, model, streams)
+    metrics.update(_advance_metrics(advance, runs_per_frame))
     metrics["image_tokens_per_image"] = image_tokens
     config = {
         **dataclasses.asdict(cfg),
@@ -729,7 +833,9 @@ def run_benchmark(cfg: BenchMemoryConfig, *, model_path: str | Path | None = Non
         "python": platform.python_version(),
         "machine": platform.machine(),
     }
-    return BenchResult(metrics=metrics, config=config, memory_calls=mem, model_calls=model, streams=tuple(streams))
+    config["advance"] = {"every_calls": cfg.advance_every, "subtasks": list(ADVANCE_SUBTASKS), "orders": list(ADVANCE_ORDERS)}
+    return BenchResult(metrics=metrics, config=config, memory_calls=mem, model_calls=model, streams=tuple(streams),
+                       advance_calls=tuple(advance))
 
 
 def format_table(result: BenchResult) -> str:
@@ -775,6 +881,14 @@ def format_table(result: BenchResult) -> str:
                          f"{m['fit_ms_per_uncached_token']:.4f} ms x uncached tokens")
     lines.append(f"MODELLED latency ratio sliding/hybrid {m['modelled_latency_ratio_sliding_over_hybrid']:.2f}  "
                  "(simulated VLM latency model, not measured)")
+    lines.append("")
+    lines.append(f"subtask advance every {result.config['advance']['every_calls']} calls, one backend shared with the decision agent and the verifier:")
+    lines.append(f"  {'order':<10}{'advance cached':>16}{'advance ms':>12}{'steady cached':>15}{'steady ms':>11}")
+    for order in ADVANCE_ORDERS:
+        lines.append(f"  {order:<10}{m[f'advance_cached_fraction_{order}']:>16.3f}{m[f'advance_ms_median_{order}']:>12.1f}"
+                     f"{m[f'steady_cached_fraction_{order}']:>15.3f}{m[f'steady_ms_median_{order}']:>11.1f}")
+    lines.append(f"  vision-encoder runs per frame: max {m['vision_runs_per_frame_max']}, "
+                 f"mean {m['vision_runs_per_frame_mean']:.2f} over {m['vision_runs_frames']} frame(s) x orders")
     return "\n".join(lines)
 
 

@@ -16,6 +16,14 @@ Gaussian noise whose std follows the simulated VLM's error model (``vlm.sim``, p
   ``unsafe_rate_after_own_rule`` uses the verifier's own reference (its guarantee: 0);
   the ``path_`` variants measure the straight segment camera -> goal instead of the goal point;
 * ``region_kept_rate``: fraction of accepted goals whose refined pixel lies on the target's label;
+* per feature source, in one run on the same candidates (``per_source``): ``ground_truth``
+  (one random unit vector per box, the perfect segmentation), ``degraded`` (the simulated ViT
+  features of :func:`vlm.sim.features.degraded_features`: blurred boundaries, colour/texture
+  similarity, look-alike labels shared by several boxes), ``none`` (geometric-only: the target's
+  surface). For each: ``unsafe_rate`` (goal closer than r to a true-rule obstacle),
+  ``off_target_rate`` (accepted goals whose refined pixel is not on the target box, over all
+  candidates), ``moved_off_target_rate`` (the pixel was on the target and refinement moved it
+  off), ``accept_rate``;
 * a reference in the same run: an exhaustive exact verifier (brute-force ray clearance against
   every obstacle point, scipy labelling) on a subset, for timing and for how much farther the
   fast path's conservative dilation moves the pixel.
@@ -90,6 +98,30 @@ def make_scene(rng: np.random.Generator, camera: PinholeCamera, min_target_px: i
             return depth, labels, targets
 
 
+#: Look-alike vocabulary and palette of the boxes (several boxes share a label and a colour).
+_BOX_LABELS = ("crate", "crate", "van", "bin")
+_PALETTE = ((180, 40, 40), (60, 60, 170), (200, 180, 60), (120, 120, 120))
+
+
+def degraded_scene_features(labels: np.ndarray, depth: np.ndarray, patch: int, dim: int, seed: int, frame: str):
+    """:func:`vlm.sim.features.degraded_features` of a bench scene: boxes get a look-alike label
+    and a colour from small shared sets (seeded), ground and wall their own."""
+    from vlm.sim.features import degraded_features
+    from vlm.types import FrameAnnotation, VisibleObject
+
+    rng = np.random.default_rng([seed, 7])
+    n = int(labels.max()) + 1
+    names = ["ground", "wall"] + [str(rng.choice(_BOX_LABELS)) for _ in range(2, n)]
+    colours = [(110, 100, 90), (170, 160, 150)] + [_PALETTE[int(rng.integers(len(_PALETTE)))] for _ in range(2, n)]
+    ids = np.where(labels >= 0, labels + 1, 0).astype(np.int32)
+    objects = {k + 1: VisibleObject(k + 1, f"{names[k]} {k}", names[k]) for k in range(n)}
+    rgb = np.full(labels.shape + (3,), (135, 190, 235), np.uint8)  # sky
+    for k in range(n):
+        rgb[labels == k] = colours[k]
+    ann = FrameAnnotation(ids, depth, objects)
+    return degraded_features(ann, rgb, frame, seed=seed, dim=dim, patch_px=patch).grid
+
+
 def label_features(labels: np.ndarray, patch: int, dim: int, rng: np.random.Generator) -> np.ndarray:
     vec = rng.normal(size=(int(labels.max()) + 2, dim))
     vec /= np.linalg.norm(vec, axis=1, keepdims=True)
@@ -136,10 +168,42 @@ def naive_goal_cam(camera: PinholeCamera, depth: np.ndarray, uv, d_max_m: float)
 # -- the exhaustive reference --------------------------------------------------------------------
 
 
+def _rule_points(cam, depth, config: VerifierConfig, surface: np.ndarray, d_m: float) -> tuple[np.ndarray, bool]:
+    """Obstacle points of the documented rule referenced to depth ``d_m``: readings closer than
+    T(d_m), except the target's surface at or beyond d_ref - margin when the near field reaches
+    it. Returns (points (n, 3), whether anything was exempted)."""
+    d_ref = min(d_m, config.d_max_m)
+    T = config.obstacle_threshold_m(d_ref)
+    z = depth.astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        obst = np.isfinite(z) & (z > 0) & (z < T)
+        exempted = False
+        if config.obstacle_depth_m > d_ref - config.foreground_margin_m:
+            ex = surface & (z >= d_ref - config.foreground_margin_m) & obst
+            exempted = bool(ex.any())
+            obst &= ~ex
+    return cam.rays()[obst] * z[obst][:, None], exempted
+
+
+def _clear_z(P_all: np.ndarray, direction: np.ndarray, limit_z: float, r: float) -> float:
+    """Z-depth where the unit ray ``direction`` first comes within r of a point (brute force)."""
+    a = P_all @ direction
+    q2 = np.einsum("ij,ij->i", P_all, P_all) - a * a
+    hit = q2 < r * r
+    entry = float(np.min(a[hit] - np.sqrt(r * r - q2[hit]))) if hit.any() else math.inf
+    return min(limit_z, max(entry, 0.0) * direction[2])
+
+
 def reference_refine(cand: CandidateGoal, config: VerifierConfig):
     """Exact answer of step 1 by brute force: the nearest pixel of the semantic component (ROI,
-    pixel-level cosine mask, scipy 4-connected labelling) whose ray clears every obstacle point
-    of the image by r. Returns (pixel (u, v) or None, seconds). Only for d <= D_max with features."""
+    pixel-level cosine mask, scipy 4-connected labelling) whose ray clears by r every obstacle
+    point of the image under the rule referenced to the target *and* under the rule at its own
+    depth (:mod:`planning.verifier_config`), and, when the near field reaches its surface,
+    whose clear part of the ray is at least ``min_range_m``. Returns (pixel (u, v) or None,
+    seconds). Only for d <= D_max with features; the target's surface comes from
+    :func:`planning.verifier.surface_region` over the whole image."""
+    from planning.verifier import surface_region
+
     t0 = time.perf_counter()
     cam, depth = cand.camera, cand.depth_m
     u, v = cand.pixel_uv
@@ -158,33 +222,65 @@ def reference_refine(cand: CandidateGoal, config: VerifierConfig):
     comp = lab == lab[row - r0, col - c0]
     roi_depth = depth[r0:r1, c0:c1]
     comp &= np.isfinite(roi_depth) & (roi_depth > 0)
-    P = obstacle_points(cam, depth, threshold_for(config, depth, (u, v)))
+    surface = surface_region(depth, row, col, config.surface_jump_ratio, config.foreground_margin_m)
+    d = float(depth[row, col])
+    r = config.clearance_radius_m
+    P, _ = _rule_points(cam, depth, config, surface, d)
+    z_all = depth.astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        readings = np.isfinite(z_all) & (z_all > 0) & (z_all < config.d_max_m + r + 1e-6)
+    P_all = cam.rays()[readings] * z_all[readings][:, None]
+    own_cache: dict[float, tuple[np.ndarray, bool, float]] = {}
+
+    def own_ok(q_uv, direction) -> bool:
+        dq = float(depth[int(q_uv[1]), int(q_uv[0])])
+        if dq not in own_cache:
+            P_q, ex = _rule_points(cam, depth, config, surface, dq)
+            own_cache[dq] = (near_roi(P_q), ex, config.obstacle_threshold_m(min(dq, config.d_max_m)))
+        P_q, ex, T_q = own_cache[dq]
+        near_reaches = config.obstacle_depth_m > min(dq, config.d_max_m) - config.foreground_margin_m
+        is_obstacle = dq < T_q and not (near_reaches and surface[int(q_uv[1]), int(q_uv[0])])
+        if is_obstacle or not _ray_ok(P_q, direction[None, :], r)[0]:
+            return False
+        return not (ex and _clear_z(P_all, direction, min(dq, config.d_max_m), r) < config.min_range_m)
+
+    # Exact, loss-free prefilter: a point farther (in angle) from the ROI's central ray than the
+    # ROI's angular radius plus its own asin(r / |Y|) cannot come within r of any ROI ray.
+    rr_roi, cc_roi = np.mgrid[r0:r1, c0:c1]
+    roi_dirs = np.stack([(cc_roi.ravel() - cam.cx) / cam.fx, (rr_roi.ravel() - cam.cy) / cam.fy, np.ones(rr_roi.size)], axis=1)
+    roi_dirs /= np.linalg.norm(roi_dirs, axis=1, keepdims=True)
+    centre = roi_dirs.mean(axis=0)
+    centre /= np.linalg.norm(centre)
+    roi_ang = float(np.max(np.arccos(np.clip(roi_dirs @ centre, -1, 1))))
+
+    def near_roi(points: np.ndarray) -> np.ndarray:
+        if not len(points):
+            return points
+        rng_p = np.linalg.norm(points, axis=1)
+        ang = np.arccos(np.clip(points @ centre / rng_p, -1, 1))
+        return points[ang - roi_ang <= np.arcsin(np.clip(r / rng_p, 0, 1)) + 1e-9]
+
+    P, P_all = near_roi(P), near_roi(P_all)
     rr, cc = np.nonzero(comp)
     order = np.argsort((cc + c0 - u) ** 2 + (rr + r0 - v) ** 2, kind="stable")
     cand_uv = np.stack([cc[order] + c0, rr[order] + r0], axis=1).astype(float)
-    if len(P) == 0:
-        return (u, v), time.perf_counter() - t0
-    # Exact, loss-free prefilter: a point farther (in angle) from the ROI's central ray than the
-    # ROI's angular radius plus its own asin(r / |Y|) cannot come within r of any ROI ray.
-    dirs = np.stack([(cand_uv[:, 0] - cam.cx) / cam.fx, (cand_uv[:, 1] - cam.cy) / cam.fy, np.ones(len(cand_uv))], axis=1)
-    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    centre = dirs.mean(axis=0)
-    centre /= np.linalg.norm(centre)
-    roi_ang = float(np.max(np.arccos(np.clip(dirs @ centre, -1, 1))))
-    rng_P = np.linalg.norm(P, axis=1)
-    ang_P = np.arccos(np.clip(P @ centre / rng_P, -1, 1))
-    beta_P = np.arcsin(np.clip(config.clearance_radius_m / rng_P, 0, 1))
-    P = P[ang_P - roi_ang <= beta_P + 1e-9]
-    # Test the target pixel itself first (it "stays put" when feasible).
+    # Candidates must not be obstacles under the target's rule either.
+    T_p = config.obstacle_threshold_m(min(d, config.d_max_m))
+    zc = depth[cand_uv[:, 1].astype(int), cand_uv[:, 0].astype(int)]
+    exempt_c = surface[cand_uv[:, 1].astype(int), cand_uv[:, 0].astype(int)] & (zc >= min(d, config.d_max_m) - config.foreground_margin_m)
+    keep = ~((zc < T_p) & ~(exempt_c & (config.obstacle_depth_m > min(d, config.d_max_m) - config.foreground_margin_m)))
+    cand_uv = cand_uv[keep]
     d0 = cam.back_project(np.array([u, v]), 1.0)
     d0 /= np.linalg.norm(d0)
-    if _ray_ok(P, d0[None, :], config.clearance_radius_m)[0]:
+    if _ray_ok(P, d0[None, :], r)[0] and own_ok((col, row), d0):
         return (u, v), time.perf_counter() - t0
+    dirs = np.stack([(cand_uv[:, 0] - cam.cx) / cam.fx, (cand_uv[:, 1] - cam.cy) / cam.fy, np.ones(len(cand_uv))], axis=1)
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     for s in range(0, len(dirs), 64):
-        ok = _ray_ok(P, dirs[s : s + 64], config.clearance_radius_m)
-        if ok.any():
-            k = s + int(np.argmax(ok))
-            return (float(cand_uv[k, 0]), float(cand_uv[k, 1])), time.perf_counter() - t0
+        ok = _ray_ok(P, dirs[s : s + 64], r)
+        for k in np.flatnonzero(ok):
+            if own_ok(cand_uv[s + k], dirs[s + k]):
+                return (float(cand_uv[s + k, 0]), float(cand_uv[s + k, 1])), time.perf_counter() - t0
     return None, time.perf_counter() - t0
 
 
@@ -200,6 +296,9 @@ def _ray_ok(P: np.ndarray, dirs: np.ndarray, r: float) -> np.ndarray:
 # -- main ----------------------------------------------------------------------------------------
 
 
+SOURCES = ("ground_truth", "degraded", "none")
+
+
 def run(args) -> dict:
     rng = np.random.default_rng(args.seed)
     cam = PinholeCamera.from_fov(args.width, args.height, 90.0, 60.0)
@@ -212,9 +311,15 @@ def run(args) -> dict:
     error_model = get_preset(args.error_model)
     counts = Counter()
     shifts, ref_rows = [], []
+    per_source = {name: Counter() for name in SOURCES}
     for _scene in range(args.scenes):
         depth, labels, targets = make_scene(rng, cam, args.min_target_px)
         feats = label_features(labels, args.patch, args.feature_dim, rng)
+        source_feats = {
+            "ground_truth": feats,
+            "degraded": degraded_scene_features(labels, depth, args.patch, args.feature_dim, args.seed, f"scene{_scene}"),
+            "none": None,
+        }
         T = cam_transform_from_body(body_transform(rng.uniform(-20, 20, 3), rng.uniform(-math.pi, math.pi)))
         T_cam_world = invert_transform(T)
         for _ in range(args.candidates):
@@ -239,6 +344,22 @@ def run(args) -> dict:
             times_us.append((time.perf_counter() - t0) * 1e6)
 
             P_true = obstacle_points(cam, depth, threshold_for(config, depth, (col_t, row_t)))
+            on_target_px = labels[int(math.floor(uv[1] + 0.5)), int(math.floor(uv[0] + 0.5))] == target
+            for name, f_src in source_feats.items():
+                c = per_source[name]
+                r_src = res if name == "ground_truth" else ver.verify(CandidateGoal(uv, depth, f_src, float(args.patch), T, cam))
+                c["n"] += 1
+                if not r_src.accepted:
+                    c["rejected"] += 1
+                    continue
+                c["accepted"] += 1
+                X_src = transform_points(T_cam_world, r_src.goal_world)
+                c["unsafe"] += point_clearance(P_true, X_src) < r
+                c["path_unsafe"] += segment_clearance(P_true, X_src) < r
+                u_s, v_s = r_src.record.refined_uv
+                kept_src = labels[int(math.floor(v_s + 0.5)), int(math.floor(u_s + 0.5))] == target
+                c["off_target"] += not kept_src
+                c["moved_off_target"] += bool(on_target_px and not kept_src)
             X_naive = naive_goal_cam(cam, depth, uv, config.d_max_m)
             counts["n"] += 1
             counts["unsafe_before"] += point_clearance(P_true, X_naive) < r
@@ -284,6 +405,17 @@ def run(args) -> dict:
 
     n = counts["n"]
     acc = max(counts["accepted"], 1)
+    sources_out = {
+        name: {
+            "candidates": c["n"],
+            "accept_rate": c["accepted"] / max(c["n"], 1),
+            "unsafe_rate": c["unsafe"] / max(c["n"], 1),
+            "path_unsafe_rate": c["path_unsafe"] / max(c["n"], 1),
+            "off_target_rate": c["off_target"] / max(c["n"], 1),
+            "moved_off_target_rate": c["moved_off_target"] / max(c["n"], 1),
+        }
+        for name, c in per_source.items()
+    }
     ref = np.array(ref_rows) if ref_rows else np.zeros((0, 4))
     finite = ref[np.isfinite(ref[:, 3])] if len(ref) else ref
     out = {
@@ -322,6 +454,7 @@ def run(args) -> dict:
         "accept_rate": counts["accepted"] / n,
         "moved_rate": counts["moved"] / n,
         "shift_px_median_when_moved": statistics.median(shifts) if shifts else 0.0,
+        "per_source": sources_out,
         "notes": {k[5:]: v for k, v in sorted(counts.items()) if k.startswith("note:")},
         "rejections": {k[9:]: v for k, v in sorted(counts.items()) if k.startswith("rejected:")},
         "reference": {
@@ -394,6 +527,11 @@ def print_table(out: dict) -> None:
     for name, value, target in rows:
         print(f"  {name:<{width}}  {value:>12}  {target}")
     print(f"  refinement notes: {out['notes']}")
+    print("  per feature source (same candidates; rates over all candidates):")
+    print(f"    {'source':<13} {'accept':>8} {'unsafe':>8} {'path_unsafe':>12} {'off_target':>11} {'moved_off':>10}")
+    for name, m in out["per_source"].items():
+        print(f"    {name:<13} {m['accept_rate']:>8.4f} {m['unsafe_rate']:>8.4f} {m['path_unsafe_rate']:>12.4f} "
+              f"{m['off_target_rate']:>11.4f} {m['moved_off_target_rate']:>10.4f}")
     print(f"  rejections: {out['rejections']}")
 
 

@@ -1,4 +1,4 @@
-"""Generate the ten committed scenes of the embedded world (onfly/data/scenes/*.toml).
+"""Generate the committed scenes of the embedded world (onfly/data/scenes/*.toml).
 
 The TOML files are committed; this script is how they were made and how to remake them:
 
@@ -627,6 +627,338 @@ def terrace(rng) -> SceneBuilder:
     return b
 
 
+# -- the harder scenes (issue 16): rooms joined by doorways, dead-end corners, narrow passages,
+# low beams and ceilings, clutter and look-alikes -------------------------------------------
+#
+# Real sizes: interior walls 0.12 m, exterior walls 0.25-0.3 m, ceilings 2.6-2.8 m, door
+# heights 2.1 m with a lintel above. Openings a drone passes are 1.6-2.0 m (double doors, open
+# archways: a 0.25 m body with the planner's 0.45 m clearance cannot pass a 0.9 m door leaf);
+# furniture at catalogue sizes (beds 1.6 x 2.0 m, sofas 2.2 x 0.9 m, desks 1.4 x 0.7 x 0.74 m,
+# cars 4.2 x 1.8 m). Walls, ceilings, beams and unnamed clutter are ``target = false``.
+
+
+def wall_run(axis, at, a0, a1, h, t, gaps=(), lintel=2.1):
+    """Boxes of one straight wall with door openings.
+
+    ``axis`` 'x': the wall runs along x at y = ``at`` from x = ``a0`` to ``a1`` ('y' likewise).
+    ``gaps``: (g0, g1) openings along the wall; a lintel fills each from ``lintel`` up to ``h``.
+    """
+    spans, cur = [], a0
+    for g0, g1 in sorted(gaps):
+        if g0 > cur:
+            spans.append((cur, g0))
+        cur = g1
+    if cur < a1:
+        spans.append((cur, a1))
+
+    def seg(s0, s1, z0, z1):
+        mid, length = (s0 + s1) / 2, s1 - s0
+        if axis == "x":
+            return box((mid, at, (z0 + z1) / 2), (length, t, z1 - z0))
+        return box((at, mid, (z0 + z1) / 2), (t, length, z1 - z0))
+
+    out = [seg(s0, s1, 0.0, h) for s0, s1 in spans]
+    out += [seg(g0, g1, lintel, h) for g0, g1 in gaps if lintel < h]
+    return out
+
+
+def room_shell(b, name, x1, y1, h, runs, wall_color="#E6E1D8", floor_color="#A07850", ceiling_color="#EEEDEA", t_ext=0.25,
+               floor_texture=None):
+    """Exterior walls of the rectangle 0..x1 x 0..y1 (``runs`` adds interior runs), a floor and a ceiling."""
+    parts = [
+        box((x1 / 2, 0.0, h / 2), (x1 + t_ext, t_ext, h)),
+        box((x1 / 2, y1, h / 2), (x1 + t_ext, t_ext, h)),
+        box((0.0, y1 / 2, h / 2), (t_ext, y1 + t_ext, h)),
+        box((x1, y1 / 2, h / 2), (t_ext, y1 + t_ext, h)),
+    ]
+    for r in runs:
+        parts += r
+    b.add(name, "wall", wall_color, parts, target=False)
+    b.add("floor", "floor", floor_color, [plane((x1 / 2, y1 / 2, 0.0), (x1 + 1, y1 + 1))], target=False,
+          texture=floor_texture or {"pattern": "noise", "period_m": 0.5, "contrast": 0.15, "seed": 1})
+    b.add("ceiling", "ceiling", ceiling_color, [box((x1 / 2, y1 / 2, h + 0.1), (x1 + 1, y1 + 1, 0.2))], target=False)
+
+
+def table(center, size, color=None, legs=True):
+    """A table: top slab 0.04 m and four 0.05 m legs; ``size`` (x, y, height)."""
+    x, y = center
+    sx, sy, h = size
+    parts = [box((x, y, h - 0.02), (sx, sy, 0.04), color=color)]
+    if legs:
+        for dx in (-1, 1):
+            for dy in (-1, 1):
+                parts.append(box((x + dx * (sx / 2 - 0.06), y + dy * (sy / 2 - 0.06), (h - 0.04) / 2), (0.05, 0.05, h - 0.04), color=color))
+    return parts
+
+
+def chair(x, y, facing_deg, color=None, seat=0.46, back=0.9):
+    """A chair 0.45 x 0.45 m, seat at ``seat`` m, backrest up to ``back`` m, facing ``facing_deg``."""
+    bx, by = _local(x, y, facing_deg, -0.2, 0.0)
+    return [box((x, y, seat / 2), (0.45, 0.45, seat), facing_deg, color=color),
+            box((bx, by, (seat + back) / 2), (0.05, 0.45, back - seat), facing_deg, color=color)]
+
+
+def floor_lamp(x, y, shade="#F3E5C0"):
+    return [cyl((x, y, 0.0), 0.15, 0.03, 10), cyl((x, y, 0.03), 0.02, 1.45, 6), cyl((x, y, 1.45), 0.2, 0.3, 10, color=shade)]
+
+
+def potted_plant(x, y, h=1.3, pot="#9C5B3B"):
+    return [cyl((x, y, 0.0), 0.2, 0.4, 10, color=pot), sph((x, y, 0.4 + (h - 0.4) / 2), (h - 0.4) / 2 + 0.05, 5)]
+
+
+def apartment(rng) -> SceneBuilder:
+    """A 15 x 12 m flat under a 2.6 m ceiling: living/dining room, kitchen, a 2 m hallway, two
+    bedrooms, a bathroom, a laundry and a study behind it, joined by 1.6-1.8 m openings."""
+    h = 2.6
+    b = SceneBuilder("apartment", "Flat with living room, kitchen, hallway, two bedrooms, bathroom, laundry and study joined by doorways under a 2.6 m ceiling.",
+                     (0.2, 0.2, 0.1), (14.8, 11.8, 2.55), (1.4, 2.8, 1.5), 0.0, light=(0.3, 0.2, 0.93), ambient=0.5, indoor=True)
+    ti = 0.12
+    runs = [
+        wall_run("y", 8.0, 0.0, 6.5, h, ti, [(0.9, 2.7)]),            # living | kitchen (+ closet)
+        wall_run("x", 4.5, 8.0, 15.0, h, ti),                          # kitchen | closet, laundry
+        wall_run("x", 6.5, 0.0, 12.0, h, ti, [(3.9, 5.7)]),            # living, closet | hallway
+        wall_run("y", 12.0, 4.5, 8.5, h, ti, [(6.6, 8.4)]),            # closet, hallway | laundry
+        wall_run("x", 8.5, 0.0, 15.0, h, ti, [(1.7, 3.3), (5.9, 7.5), (9.5, 11.1), (12.9, 14.7)]),  # hallway | bedrooms, bath, study
+        wall_run("y", 5.0, 8.5, 12.0, h, ti),                          # bedroom | bedroom 2
+        wall_run("y", 9.0, 8.5, 12.0, h, ti),                          # bedroom 2 | bathroom
+        wall_run("y", 12.0, 8.5, 12.0, h, ti),                         # bathroom | study
+    ]
+    room_shell(b, "apartment walls", 15.0, 12.0, h, runs, floor_texture={"pattern": "stripes", "period_m": 0.18, "contrast": 0.12, "axis": "x"})
+    b.add("ceiling beam", "beam", "#CFC8BB", [box((4.0, 3.25, 2.45), (0.2, 6.5, 0.3))], target=False)
+    b.add("closet block", "wall", "#E6E1D8", [box((10.0, 5.5, h / 2), (3.88, 1.88, h))], target=False)
+    # living and dining room (x 0..8, y 0..6.5)
+    b.add("grey sofa", "sofa", "#7F8489", [box((2.6, 4.3, 0.22), (2.2, 0.8, 0.44)), box((2.6, 4.75, 0.45), (2.2, 0.2, 0.9)),
+                                            box((1.55, 4.35, 0.31), (0.2, 0.9, 0.62)), box((3.65, 4.35, 0.31), (0.2, 0.9, 0.62))],
+          ["sofa", "couch", "grey couch"])
+    b.add("coffee table", "table", "#8B6A45", table((2.6, 2.2), (1.0, 0.5, 0.42)), ["low table"])
+    b.add("TV", "tv", "#1E1E22", [box((2.6, 0.4, 0.25), (1.8, 0.45, 0.5), color="#5B4636"), box((2.6, 0.3, 0.95), (1.4, 0.06, 0.8))],
+          ["television", "TV stand"])
+    b.add("living room bookshelf", "shelf", "#6B4E33", [box((5.2, 2.1, 0.95), (0.4, 2.4, 1.9))], ["bookshelf", "room divider", "bookcase"],
+          texture={"pattern": "stripes", "period_m": 0.38, "contrast": 0.35, "axis": "z"})
+    b.add("dining table", "table", "#B08A5A", table((6.2, 4.6), (1.6, 0.9, 0.75)), ["kitchen table", "wooden table"])
+    b.add("dining chairs", "chair", "#5D4037", chair(5.8, 3.7, 90) + chair(6.6, 3.7, 90) + chair(5.8, 5.5, -90) + chair(6.6, 5.5, -90),
+          target=False)
+    b.add("living room floor lamp", "lamp", "#3A3A3A", floor_lamp(0.5, 6.0), ["floor lamp", "standing lamp"])
+    b.add("potted plant in the living room", "plant", "#3E8E41", potted_plant(7.35, 5.9), ["plant in the living room"])
+    b.add("blue armchair", "armchair", "#35598F", [box((6.8, 1.0, 0.22), (0.8, 0.8, 0.44)), box((6.8, 0.65, 0.45), (0.8, 0.15, 0.9))],
+          ["armchair", "blue chair"])
+    b.add("living room window", "window", GLASS, [box((4.6, 0.14, 1.4), (1.6, 0.04, 1.3))], ["window"], material="glass")
+    # kitchen (x 8..15, y 0..4.5)
+    b.add("kitchen counter", "counter", "#D9D4CC", [box((12.0, 0.425, 0.45), (6.0, 0.6, 0.9)), box((12.0, 0.3, 1.85), (6.0, 0.35, 0.7), color="#C9C2B6")],
+          ["worktop"], target=False)
+    b.add("kitchen sink", "sink", "#B8C2CC", [box((11.0, 0.45, 0.92), (0.8, 0.5, 0.06))], ["sink"])
+    b.add("stove", "stove", "#2A2A2E", [box((13.6, 0.45, 0.92), (0.6, 0.55, 0.05))], ["cooker", "hob"])
+    b.add("microwave", "microwave", "#E0E0E0", [box((9.8, 0.45, 1.05), (0.5, 0.38, 0.3))], ["microwave oven"])
+    b.add("fridge", "fridge", "#F2F2F2", [box((14.45, 3.95, 0.925), (0.75, 0.7, 1.85))], ["refrigerator", "white fridge"])
+    b.add("kitchen island", "island", "#9E8B73", [box((11.5, 2.6, 0.46), (2.2, 0.9, 0.92))], ["island", "breakfast bar"])
+    b.add("bar stools", "stool", "#404040", [cyl((x, 3.4, 0.0), 0.18, 0.75, 8) for x in (10.9, 11.5, 12.1)], target=False)
+    b.add("trash bin", "bin", "#4A4A4A", [cyl((8.45, 4.1, 0.0), 0.18, 0.6, 8)], ["grey bin", "rubbish bin"])
+    b.add("recycling bin", "bin", "#2F6DB5", [cyl((8.95, 4.1, 0.0), 0.18, 0.6, 8)], ["blue bin"])
+    b.add("kitchen wall clock", "clock", "#F5F5F5", [box((8.075, 3.3, 1.9), (0.03, 0.32, 0.32))], ["wall clock", "clock"])
+    # hallway (x 0..12, y 6.5..8.5)
+    b.add("front door", "door", "#6D4C41", [box((0.185, 7.5, 1.05), (0.12, 1.0, 2.1))], ["entrance door", "apartment door"])
+    b.add("shoe cabinet", "cabinet", "#E8E2D6", [box((1.1, 6.76, 0.5), (1.2, 0.4, 1.0))], ["shoe rack"])
+    b.add("coat rack", "coat rack", "#5D4037", [cyl((0.55, 8.1, 0.0), 0.02, 1.8, 6), cyl((0.55, 8.1, 0.0), 0.2, 0.03, 8)], ["coat stand"])
+    b.add("storage cabinet", "cabinet", "#D7CCC8", [box((9.9, 6.71, 1.0), (1.8, 0.3, 2.0))], ["tall cabinet", "hallway cupboard"])
+    b.add("painting of sunflowers", "painting", "#E0B22E", [box((2.4, 6.575, 1.55), (0.9, 0.03, 0.6))], ["yellow painting", "sunflower painting"])
+    b.add("painting of a sailboat", "painting", "#3A6EA5", [box((4.6, 8.425, 1.55), (0.9, 0.03, 0.6))], ["blue painting", "sailboat painting"])
+    # bedroom (x 0..5, y 8.5..12)
+    b.add("double bed", "bed", "#E8E4DA", [box((2.7, 10.875, 0.275), (1.6, 2.0, 0.55)), box((2.7, 11.82, 0.55), (1.6, 0.08, 1.1), color="#6D4C41")],
+          ["bed", "big bed"])
+    b.add("wardrobe", "wardrobe", "#BCAAA4", [box((0.425, 10.0, 1.05), (0.6, 2.0, 2.1))], ["closet", "wardrobe closet"])
+    b.add("nightstands", "nightstand", "#6D4C41", [box((1.45, 11.6, 0.275), (0.45, 0.4, 0.55)), box((3.95, 11.6, 0.275), (0.45, 0.4, 0.55))], target=False)
+    b.add("bedside lamp near the wardrobe", "lamp", "#F0D58C", [cyl((1.45, 11.6, 0.55), 0.12, 0.35, 10)], ["left bedside lamp"])
+    b.add("bedside lamp near the window", "lamp", "#F0D58C", [cyl((3.95, 11.6, 0.55), 0.12, 0.35, 10)], ["right bedside lamp"])
+    b.add("bedroom window", "window", GLASS, [box((4.2, 11.86, 1.5), (1.0, 0.04, 1.2))], [], material="glass")
+    b.add("potted plant in the bedroom", "plant", "#2E7D32", potted_plant(4.5, 10.4, 1.1), ["plant in the bedroom"])
+    # second bedroom (x 5..9, y 8.5..12)
+    b.add("single bed", "bed", "#5C8FD6", [box((8.45, 10.6, 0.25), (0.9, 2.0, 0.5))], ["small bed", "blue bed", "kid's bed"])
+    b.add("toy chest", "chest", "#E57373", [box((5.6, 11.55, 0.225), (0.8, 0.4, 0.45))], ["toy box", "red chest"])
+    b.add("small desk", "desk", "#F5F0E6", table((5.36, 9.8), (0.6, 1.2, 0.72)), ["white desk", "kid's desk"])
+    b.add("desk lamp", "lamp", "#43A047", [cyl((5.3, 10.2, 0.72), 0.08, 0.4, 8)], ["green lamp"])
+    # bathroom (x 9..12, y 8.5..12)
+    b.add("bathtub", "bathtub", "#FAFAFA", [box((9.91, 11.49, 0.3), (1.7, 0.75, 0.6))], ["bath", "tub"])
+    b.add("toilet", "toilet", "#FFFFFF", [box((11.6, 10.2, 0.2), (0.65, 0.4, 0.4)), box((11.85, 10.2, 0.6), (0.18, 0.4, 0.4))], ["WC"])
+    b.add("bathroom sink", "sink", "#ECEFF1", [box((9.29, 9.5, 0.425), (0.45, 0.6, 0.85))], ["washbasin", "vanity"])
+    b.add("bathroom mirror", "mirror", "#C9D6DF", [box((9.075, 9.5, 1.6), (0.03, 0.6, 0.8))], ["mirror"])
+    # laundry (x 12..15, y 4.5..8.5)
+    b.add("washing machine", "washing machine", "#F4F4F4", [box((14.5, 4.86, 0.425), (0.6, 0.6, 0.85)), cyl((14.5, 4.54, 0.3), 0.18, 0.03, 12, color=GLASS)],
+          ["washer"])
+    b.add("tumble dryer", "dryer", "#F0F0F0", [box((13.8, 4.86, 0.425), (0.6, 0.6, 0.85))], ["dryer", "clothes dryer"])
+    b.add("laundry basket", "basket", "#D7B98E", [cyl((12.55, 5.0, 0.0), 0.25, 0.5, 10)], ["basket"])
+    b.add("ironing board", "ironing board", "#90A4AE", [box((14.6, 6.2, 0.9), (0.35, 1.3, 0.04)), box((14.6, 6.2, 0.45), (0.05, 0.9, 0.86), color=DARK)],
+          [])
+    # study (x 12..15, y 8.5..12)
+    b.add("study desk", "desk", "#8D6E63", table((14.52, 10.6), (0.7, 1.6, 0.75)), ["desk", "computer desk"])
+    b.add("computer monitor", "monitor", "#202124", [box((14.65, 10.6, 0.97), (0.05, 0.6, 0.38))], ["monitor", "screen"])
+    b.add("office chair", "chair", "#263238", chair(13.75, 10.6, 0.0, seat=0.5, back=1.05), ["desk chair"])
+    b.add("study bookshelf", "shelf", "#8D6E63", [box((12.24, 10.5, 1.0), (0.35, 2.0, 2.0))], ["bookshelf in the study", "bookcase in the study"],
+          texture={"pattern": "stripes", "period_m": 0.4, "contrast": 0.35, "axis": "z"})
+    b.add("floor lamp in the study", "lamp", "#3A3A3A", floor_lamp(12.7, 11.6), ["study lamp"])
+    return b
+
+
+def desk_cluster(cx, cy, chair_color="#37474F", top="#E8E4DC"):
+    """Four desks (1.4 x 0.7 x 0.74 m) facing in pairs, a 1.25 m screen between them, monitors,
+    chairs and two linear pendant lights hung at 2.0 m."""
+    parts = [box((cx, cy, 0.72), (2.8, 1.4, 0.04), color=top)]
+    parts += [box((cx + dx, cy, 0.35), (0.03, 1.4, 0.7), color="#9E9E9E") for dx in (-1.38, 0.0, 1.38)]
+    parts.append(box((cx, cy, 0.995), (2.8, 0.04, 0.51), color="#7A8C99"))
+    for dx in (-0.7, 0.7):
+        for dy in (-1, 1):
+            parts.append(box((cx + dx, cy + dy * 0.18, 0.92), (0.55, 0.04, 0.36), color=DARK))
+            parts += chair(cx + dx, cy + dy * 1.0, -90 * dy, color=chair_color, seat=0.5, back=1.0)
+    for dy in (-0.35, 0.35):
+        parts.append(box((cx, cy + dy, 2.04), (2.6, 0.15, 0.08), color="#ECEFF1"))
+    parts.append(box((cx, cy, 2.37), (0.03, 0.03, 0.58), color="#9E9E9E"))
+    return parts
+
+
+def office_floor(rng) -> SceneBuilder:
+    """A 26 x 17 m office floor under a 2.7 m ceiling: open plan with six desk clusters and 1.7 m
+    aisles, two meeting rooms, a 2 m corridor (dropped ceiling and a duct over part of it), a
+    kitchenette, a copy room, a storage room and a server room, joined by 1.6-2.0 m doorways."""
+    h = 2.7
+    b = SceneBuilder("office_floor", "Office floor: open plan with desk clusters, meeting rooms, a corridor with a low duct, kitchenette, copy room, storage and server room.",
+                     (0.3, 0.3, 0.1), (25.7, 16.7, 2.65), (1.5, 5.0, 1.5), 0.0, light=(0.25, 0.3, 0.92), ambient=0.5, indoor=True)
+    ti = 0.12
+    runs = [
+        wall_run("y", 17.0, 0.0, 10.5, h, ti, [(2.0, 3.8)]),
+        wall_run("x", 6.0, 17.0, 26.0, h, ti),
+        wall_run("x", 10.5, 0.0, 26.0, h, ti, [(1.5, 3.5), (12.9, 14.7), (19.9, 21.7)]),
+        wall_run("x", 12.5, 0.0, 26.0, h, ti, [(4.0, 5.8), (8.1, 9.7), (13.9, 15.5), (23.4, 25.1)]),
+        wall_run("y", 7.0, 12.5, 17.0, h, ti),
+        wall_run("y", 11.0, 12.5, 17.0, h, ti),
+        wall_run("y", 17.0, 12.5, 17.0, h, ti),
+    ]
+    room_shell(b, "office walls", 26.0, 17.0, h, runs, wall_color="#E4E6E8", floor_color="#6E7580", ceiling_color="#F0F0EE", t_ext=0.3,
+               floor_texture={"pattern": "checker", "period_m": 0.5, "contrast": 0.08})
+    b.add("concrete beam", "beam", "#C8C8C4", [box((6.75, 5.25, 2.45), (0.3, 10.5, 0.5))], target=False)
+    b.add("dropped ceiling", "ceiling", "#E0E0DC", [box((21.5, 11.5, 2.55), (9.0, 1.88, 0.3))], target=False)
+    b.add("ventilation duct", "duct", "#B0B6BB", [box((11.0, 11.95, 2.25), (10.0, 0.45, 0.3))], ["duct", "air duct"], target=False)
+    # open plan (x 0..17, y 0..10.5)
+    for i, (cx, cy) in enumerate((cx, cy) for cy in (2.2, 7.2) for cx in (4.5, 9.0, 13.5)):
+        b.add(f"desk cluster {i + 1}", "desk", "#E8E4DC", desk_cluster(cx, cy), target=False)
+    b.add("glass entrance door", "door", GLASS, [box((0.21, 5.0, 1.05), (0.12, 2.0, 2.1))], ["entrance", "front door", "glass door"], material="glass")
+    b.add("reception desk", "desk", "#5D4037", [box((1.4, 1.3, 0.55), (2.0, 0.7, 1.1))], ["front desk", "reception"])
+    b.add("coat stand", "coat rack", "#4E342E", [cyl((0.7, 9.8, 0.0), 0.02, 1.8, 6), cyl((0.7, 9.8, 0.0), 0.22, 0.03, 8)], ["coat rack"])
+    b.add("mobile whiteboard", "whiteboard", "#FAFAFA", [box((8.2, 5.2, 1.3), (0.05, 1.3, 1.0)), box((8.2, 5.2, 0.4), (0.5, 1.2, 0.8), color="#9E9E9E")],
+          ["whiteboard on wheels", "rolling whiteboard"])
+    b.add("tall potted plant", "plant", "#2E7D32", potted_plant(16.1, 9.6, 1.8), ["big plant", "tall plant"])
+    b.add("grey filing cabinets", "cabinet", "#8A9299", [box((16.72, 6.0, 0.65), (0.44, 2.0, 1.3))], ["filing cabinets", "file cabinets"])
+    # large meeting room (x 17..26, y 0..6)
+    b.add("conference table", "table", "#6D4C41", table((21.8, 3.0), (4.0, 1.4, 0.75)), ["meeting table", "big table"])
+    cparts = []
+    for dx in (-1.3, 0.0, 1.3):
+        cparts += chair(21.8 + dx, 1.85, 90, color="#263238") + chair(21.8 + dx, 4.15, -90, color="#263238")
+    b.add("conference chairs", "chair", "#263238", cparts, target=False)
+    b.add("TV screen", "tv", "#111214", [box((25.8, 3.0, 1.45), (0.06, 1.8, 1.0))], ["screen", "TV", "display"])
+    b.add("whiteboard in the large meeting room", "whiteboard", "#FAFAFA", [box((20.2, 5.92, 1.5), (2.4, 0.03, 1.2))],
+          ["large meeting room whiteboard"])
+    b.add("potted plant in the meeting room", "plant", "#388E3C", potted_plant(25.3, 0.75, 1.2), ["meeting room plant"])
+    # small meeting room (x 17..26, y 6..10.5)
+    b.add("round table", "table", "#BCAAA4", [cyl((22.0, 8.2, 0.0), 0.06, 0.72, 8), cyl((22.0, 8.2, 0.72), 0.6, 0.04, 16)], ["small round table"])
+    b.add("round table chairs", "chair", "#00796B", chair(21.0, 8.2, 0.0) + chair(23.0, 8.2, 180) + chair(22.0, 7.2, 90), target=False)
+    b.add("whiteboard in the small meeting room", "whiteboard", "#FAFAFA", [box((25.82, 8.2, 1.5), (0.03, 2.0, 1.2))],
+          ["small meeting room whiteboard"])
+    # corridor (y 10.5..12.5)
+    b.add("fire extinguisher", "extinguisher", "#D32F2F", [cyl((16.4, 12.3, 0.3), 0.1, 0.55, 8)], ["red extinguisher", "extinguisher"])
+    b.add("notice board", "board", "#C9A46B", [box((6.45, 12.425, 1.5), (0.9, 0.03, 0.9))], ["bulletin board", "cork board"],
+          texture={"pattern": "noise", "period_m": 0.1, "contrast": 0.3, "seed": 6})
+    # kitchenette (x 0..7, y 12.5..17)
+    b.add("kitchenette counter", "counter", "#D9D4CC", [box((2.6, 16.55, 0.45), (4.9, 0.6, 0.9)), box((2.6, 16.67, 1.85), (4.9, 0.35, 0.7), color="#C9C2B6")],
+          target=False)
+    b.add("coffee machine", "coffee machine", "#212121", [box((2.0, 16.55, 1.125), (0.35, 0.4, 0.45))], ["espresso machine", "coffee maker"])
+    b.add("office microwave", "microwave", "#E0E0E0", [box((4.2, 16.55, 1.05), (0.5, 0.38, 0.3))], ["microwave"])
+    b.add("office fridge", "fridge", "#ECEFF1", [box((6.5, 16.4, 0.925), (0.7, 0.7, 1.85))], ["fridge", "refrigerator"])
+    b.add("kitchen table", "table", "#8D6E63", [cyl((3.0, 14.4, 0.0), 0.06, 0.75, 8), cyl((3.0, 14.4, 0.75), 0.5, 0.04, 14)], ["round kitchen table"])
+    b.add("kitchen chairs", "chair", "#FFB300", chair(2.1, 14.4, 0.0) + chair(3.9, 14.4, 180), target=False)
+    b.add("recycling bins", "bin", "#1565C0", [cyl((0.45, y, 0.0), 0.2, 0.8, 8) for y in (13.1, 13.6, 14.1)], ["bins", "recycling station"])
+    # copy room (x 7..11, y 12.5..17)
+    b.add("large printer", "printer", "#ECEFF1", [box((10.4, 16.35, 0.6), (0.9, 0.7, 1.2)), box((10.4, 16.35, 1.22), (0.6, 0.5, 0.04), color=DARK)],
+          ["big printer", "copier", "photocopier"])
+    b.add("small printer", "printer", "#ECEFF1", [box((7.6, 16.5, 0.375), (0.8, 0.5, 0.75), color="#8D6E63"), box((7.6, 16.5, 0.9), (0.45, 0.4, 0.3))],
+          ["desktop printer"])
+    b.add("paper shelf", "shelf", "#B0BEC5", [box((7.26, 14.2, 0.9), (0.4, 1.4, 1.8))], ["paper cabinet"])
+    # storage room (x 11..17, y 12.5..17)
+    b.add("metal shelving", "shelf", "#78909C", [box((14.0, 16.6, 1.1), (5.6, 0.5, 2.2))], ["metal shelves", "storage shelves"],
+          texture={"pattern": "stripes", "period_m": 0.45, "contrast": 0.4, "axis": "z"})
+    b.add("stack of cardboard boxes", "boxes", "#B08A5A", [box((12.3, 14.3, 0.6), (1.2, 1.0, 1.2)), box((12.2, 14.3, 1.4), (0.7, 0.6, 0.4))],
+          ["cardboard boxes", "boxes"])
+    b.add("step ladder", "ladder", "#FBC02D", [box((16.5, 13.4, 0.75), (0.5, 0.6, 1.5))], ["ladder", "yellow ladder"])
+    b.add("vacuum cleaner", "vacuum", "#D32F2F", [box((15.2, 15.4, 0.2), (0.35, 0.3, 0.4))], ["vacuum", "hoover"])
+    # server room (x 17..26, y 12.5..17)
+    b.add("server racks", "server rack", "#212121", [box((20.7, 13.8, 1.0), (5.4, 1.0, 2.0)), box((20.7, 16.2, 1.0), (5.4, 1.0, 2.0))],
+          ["server rack", "racks", "servers"], texture={"pattern": "stripes", "period_m": 0.6, "contrast": 0.3, "axis": "x"})
+    b.add("air conditioning unit", "air conditioner", "#CFD8DC", [box((25.45, 14.75, 0.95), (0.8, 1.5, 1.9))], ["AC unit", "cooling unit"])
+    b.add("UPS cabinet", "cabinet", "#455A64", [box((25.3, 16.45, 0.9), (0.9, 0.6, 1.8))], ["UPS", "battery cabinet"])
+    return b
+
+
+def parking_garage(rng) -> SceneBuilder:
+    """An underground car park, 32 x 24 m: a slab at 2.8 m with downstand beams to 2.3 m and a
+    duct to 2.0 m, a ring of 3.9 m aisles around a ramp core, nose-in bays along both long walls,
+    an elevator lobby and a bike cage as dead-end rooms with 1.8 m doorways."""
+    h = 2.8
+    b = SceneBuilder("parking_garage", "Underground car park: low ceiling with beams and a duct, a ring aisle around a ramp core, parked cars, an elevator lobby and a bike cage.",
+                     (0.3, 0.3, 0.1), (31.7, 23.7, 2.75), (3.0, 7.5, 1.5), 0.0, light=(0.2, 0.2, 0.96), ambient=0.55, indoor=True)
+    t = 0.2
+    runs = [
+        wall_run("y", 4.5, 9.0, 15.0, h, t, [(11.1, 12.9)]),
+        wall_run("x", 9.0, 0.0, 4.5, h, t),
+        wall_run("x", 15.0, 0.0, 4.5, h, t),
+    ]
+    room_shell(b, "garage walls", 32.0, 24.0, h, runs, wall_color="#BDBDB8", floor_color="#6B6B6B", ceiling_color="#A9A9A4", t_ext=0.3,
+               floor_texture={"pattern": "noise", "period_m": 0.6, "contrast": 0.2, "seed": 3})
+    b.add("ramp core", "wall", "#A7A7A2", [box((16.0, 12.0, h / 2), (12.0, 5.0, h))], target=False,
+          texture={"pattern": "stripes", "period_m": 0.9, "contrast": 0.15, "axis": "z"})
+    cols = [(x, y) for x in (6.25, 13.75, 21.25, 28.75) for y in (5.4, 18.6)] + [(7.25, 12.0), (24.0, 12.0)]
+    b.add("concrete columns", "column", "#9E9E99", [box((x, y, h / 2), (0.5, 0.5, h)) for x, y in cols], target=False)
+    beams = [box((16.0, y, 2.55), (32.0, 0.4, 0.5)) for y in (5.4, 18.6)] + [box((x, 12.0, 2.55), (0.4, 24.0, 0.5)) for x in (6.25, 13.75, 21.25, 28.75)]
+    b.add("ceiling beams", "beam", "#B3B3AE", beams, target=False)
+    b.add("ventilation duct", "duct", "#C0C4C8", [box((16.0, 16.0, 2.2), (28.0, 0.6, 0.4))], ["duct"], target=False)
+    b.add("bike cage fence", "fence", "#8E9497", wall_run("y", 26.0, 9.5, 14.5, 2.2, 0.05, [(11.0, 12.8)], lintel=2.2)
+          + [box((28.95, 9.5, 1.1), (5.9, 0.05, 2.2)), box((28.95, 14.5, 1.1), (5.9, 0.05, 2.2))], target=False)
+    # parked cars: nose-in along the south wall (yaw -90) and the north wall (yaw 90); 2.5 m bays
+    named_s = {7.5: ("red car", "#C62828", ["red sedan"]), 12.5: ("white car in the south row", "#F2F2F2", ["white car by the charger"]),
+               22.5: ("blue car", "#1E4FA0", ["blue sedan"])}
+    named_n = {5.0: ("white car in the north row", "#EFEFEF", ["white car near the lobby"]), 22.5: ("yellow car", "#F2C12E", ["yellow taxi", "taxi"])}
+    palette = ["#3C3F44", "#8A9097", "#5A6B7D", "#2B2B2E", "#7D2E2E", "#B7B9BC", "#44574A"]
+    for row, y, yaw, named, empty in (("south", 2.7, -90, named_s, (10.0, 25.0)), ("north", 21.3, 90, named_n, (12.5, 15.0))):
+        for k in range(12):
+            x = 2.5 + 2.5 * k
+            if x in empty:
+                continue
+            if x in named:
+                nm, col, al = named[x]
+                car(b, nm, col, x, y, yaw, al)
+            else:
+                car(b, f"parked car {row} {k + 1}", palette[int(rng.integers(len(palette)))], x, y, yaw, target=False)
+    van(b, "white van", "#F5F5F5", 15.0, 21.3, 90, ["van", "delivery van"])
+    b.add("charging station by the red car", "charger", "#2E7D32", [box((10.0, 0.27, 1.2), (0.35, 0.2, 0.7)), box((10.0, 0.25, 0.6), (0.12, 0.12, 0.5), color=DARK)],
+          ["EV charger by the red car", "charger by the red car"])
+    b.add("charging station by the blue car", "charger", "#2E7D32", [box((25.0, 0.27, 1.2), (0.35, 0.2, 0.7)), box((25.0, 0.25, 0.6), (0.12, 0.12, 0.5), color=DARK)],
+          ["EV charger by the blue car", "charger by the blue car"])
+    # elevator lobby (x 0..4.5, y 9..15)
+    b.add("elevator doors", "elevator", "#9EA7AD", [box((0.21, 12.0, 1.05), (0.12, 1.2, 2.1))], ["elevator", "lift"])
+    bench(b, "lobby bench", "#6D4C41", 2.3, 14.55, 0, ["bench"])
+    b.add("lobby trash can", "bin", "#424242", [cyl((3.95, 9.55, 0.0), 0.2, 0.75, 8)], ["trash can", "bin"])
+    # west side
+    b.add("green stairwell door", "door", "#2E7D32", [box((0.21, 6.8, 1.05), (0.12, 1.0, 2.1))], ["stairwell door", "stairs door", "green door"])
+    b.add("exit sign", "sign", "#2EAD4B", [box((0.2, 6.8, 2.3), (0.08, 0.5, 0.2))], ["green exit sign"])
+    b.add("pay station", "ticket machine", "#1565C0", [box((4.85, 10.2, 0.8), (0.5, 0.5, 1.6))], ["ticket machine", "parking pay machine"])
+    # east side
+    b.add("garage exit shutter", "door", "#7B8287", [box((31.79, 16.5, 1.3), (0.12, 3.0, 2.6))], ["exit shutter", "roller shutter", "garage door"],
+          texture={"pattern": "stripes", "period_m": 0.12, "contrast": 0.35, "axis": "z"})
+    b.add("bicycles", "bicycle", "#D84315", [box((30.6, y, 0.55), (1.7, 0.05, 0.8)) for y in (12.0, 12.8, 13.6)], ["bikes", "bicycle"])
+    b.add("red motorcycle", "motorcycle", "#B71C1C", [box((27.6, 10.25, 0.55), (2.0, 0.5, 0.9)), box((28.4, 10.25, 1.1), (0.15, 0.7, 0.1), color=DARK)],
+          ["motorcycle", "motorbike"])
+    b.add("fire hose cabinet", "cabinet", "#C62828", [box((16.0, 14.55, 1.3), (0.8, 0.1, 0.8))], ["fire hose", "red cabinet"])
+    b.add("level sign", "sign", "#FDD835", [box((16.0, 9.47, 1.9), (1.2, 0.04, 0.5))], ["P1 sign", "yellow sign"])
+    b.add("traffic cones", "cone", "#FF6F00", [cyl((x, 17.0, 0.0), 0.17, 0.5, 8) for x in (9.0, 9.6)], ["cones", "orange cones"])
+    return b
+
+
 SCENES = {
     "urban_block": urban_block,
     "factory_hall": factory_hall,
@@ -638,6 +970,10 @@ SCENES = {
     "warehouse": warehouse,
     "plaza": plaza,
     "terrace": terrace,
+    # the harder scenes of issue 16 (their tasks: onfly/data/tasks/hard/)
+    "apartment": apartment,
+    "office_floor": office_floor,
+    "parking_garage": parking_garage,
 }
 
 

@@ -12,10 +12,12 @@ it prints, per method and error model, SR / CR over all episodes and SR on each 
 failure classes of the out-of-view episodes. Records are counted as they are in the files
 (the latest record of each episode key).
 
-Run::
+The tasks are the config's selection (``[bench.tasks]``: files, ids, scenes, kinds, count), so
+``experiments/configs/hard.toml`` gives the harder set of ``onfly/data/tasks/hard/``. Run::
 
     .venv/bin/python experiments/task_visibility.py --config experiments/configs/paper_tables.toml \\
         [--runs runs/paper_final] [--json PATH]
+    .venv/bin/python experiments/task_visibility.py --config experiments/configs/hard.toml --runs runs/hard
 """
 
 from __future__ import annotations
@@ -31,24 +33,37 @@ import numpy as np
 
 from onfly.bench.checker import goal_target
 from onfly.bench.runner import EPISODES_FILE, BenchConfig, read_records
-from onfly.bench.tasks import Task, load_tasks
+from onfly.bench.tasks import Task, load_tasks, select_tasks
 from onfly.world.world import World
 from planning.camera import PinholeCamera
 from planning.trajectory import VehicleState
 
-__all__ = ["starts_in_view", "split_by_view", "main"]
+__all__ = ["starts_in_view", "split_by_view", "config_tasks", "main"]
 
 
 def starts_in_view(tasks: Iterable[Task], camera: PinholeCamera) -> dict[str, bool]:
-    """``{task id: goal object has a pixel in the first frame at the start pose}``."""
+    """``{task id: goal object has a pixel in the first frame at the start pose}``.
+
+    The first frame is the one an episode's world renders first (frame key 0, the world's
+    default render settings); the world of each scene is built once."""
     out: dict[str, bool] = {}
+    worlds: dict[str, World] = {}
     for t in tasks:
+        world = worlds.get(t.scene)
+        if world is None:
+            world = worlds[t.scene] = World.from_scene(t.scene, camera=camera)
         start = VehicleState(0.0, t.start.position_m.copy(), np.zeros(3), float(t.start.yaw_rad))
-        ann = World.from_scene(t.scene, camera=camera, initial_state=start).observe().annotation
+        r = world.renderer.render(world.T_world_cam(start), noise_key=0)
+        ann = world.renderer.annotate(r)
         present = set(np.unique(ann.instance_ids).tolist())
         name = goal_target(t)
         out[t.task_id] = any(o.name == name and iid in present for iid, o in ann.objects.items())
     return out
+
+
+def config_tasks(bench: BenchConfig) -> list[Task]:
+    """The tasks a benchmark config selects, as the runner selects them."""
+    return select_tasks(load_tasks(bench.task_files), ids=bench.task_ids, scenes=bench.scenes, kinds=bench.kinds, count=bench.count)
 
 
 def _latest(records: Iterable[dict]) -> list[dict]:
@@ -127,7 +142,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     w = bench.world_settings()
     camera = PinholeCamera.from_fov(int(w["width_px"]), int(w["height_px"]), float(w["hfov_deg"]), float(w["vfov_deg"]))
-    flags = starts_in_view(load_tasks(bench.task_files), camera)
+    flags = starts_in_view(config_tasks(bench), camera)
     n_in = sum(flags.values())
     print(f"{n_in} of {len(flags)} tasks start with their goal in view ({camera.width} x {camera.height} px)")
     print("out of view: " + ", ".join(sorted(t for t, v in flags.items() if not v)))

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from onfly.memory import FrameRecord, HybridMemory, SlidingWindowMemory, TimeSamplingMemory
+from onfly.memory import FrameRecord, HybridMemory, MemorySnapshot, SlidingWindowMemory, TimeSamplingMemory
 from onfly.observation import Observation
 from planning.frames import invert_transform, transform_points
 from planning.verifier import CandidateGoal, VerifiedGoal, Verifier, VerifierInputError
@@ -141,7 +141,12 @@ def pixel_yaw(uv, obs: Observation) -> float:
 
 @dataclass(frozen=True, eq=False)
 class MonitorOutcome:
-    """One monitoring-agent call: the status, or None when the call or the parse failed."""
+    """One monitoring-agent call: the status, or None when the call or the parse failed.
+
+    ``judged_*`` describe ``o_t``, the latest frame of the memory snapshot the call judged: a
+    CONTINUE makes *that* pose the normal point (not the pose when the answer lands, up to one
+    call later). None / NaN when the memory was empty.
+    """
 
     subtask: str
     response: VlmResponse
@@ -149,6 +154,10 @@ class MonitorOutcome:
     status: MonitorStatus | None
     memory_frame_ids: tuple[str, ...]
     reason: str = ""
+    judged_frame_id: str | None = None
+    judged_t_s: float = float("nan")
+    judged_position: np.ndarray | None = None
+    judged_yaw: float = float("nan")
 
     @property
     def latency_s(self) -> float:
@@ -260,14 +269,27 @@ class MonitoringAgent:
             obs.frame_id, obs.t_s, obs.position, obs.yaw, global_descriptor(feats, obs.rgb), payload=image
         )
 
-    def assess(self, subtask: str) -> MonitorOutcome:
-        """Run one monitoring call over ``M_t`` (blocking)."""
+    def snapshot(self) -> MemorySnapshot:
+        """Select ``M_t`` now and freeze it: call on the control thread when the monitoring call
+        starts, and hand the result to :meth:`assess` on the worker."""
+        return self.memory.snapshot()
+
+    def assess(self, subtask: str, snapshot: MemorySnapshot | None = None) -> MonitorOutcome:
+        """Run one monitoring call over ``M_t`` (blocking). ``snapshot`` from :meth:`snapshot`
+        (taken on the control thread); None takes one now."""
         self.calls += 1
-        records = self.memory.select()
-        ids = tuple(r.frame_id for r in records)
+        if snapshot is None:
+            snapshot = self.memory.snapshot()
+        records = snapshot.records
+        ids = snapshot.frame_ids
+        judged = snapshot.judged
+        where = {} if judged is None else dict(
+            judged_frame_id=judged.frame_id, judged_t_s=judged.t_s, judged_position=judged.position.copy(),
+            judged_yaw=judged.yaw,
+        )
         if len(records) < 2:
             resp = VlmResponse(CallStatus.ERROR, error="memory holds fewer than two frames")
-            return MonitorOutcome(subtask, resp, None, None, ids, reason="memory too short")
+            return MonitorOutcome(subtask, resp, None, None, ids, reason="memory too short", **where)
         images = [r.payload for r in records]
         messages, imgs = build_monitor_prompt(subtask, images[0], images[1:-1], images[-1])
         response = self.backend.complete(
@@ -279,9 +301,9 @@ class MonitoringAgent:
             cache_key=MONITOR_STREAM,
         )
         if response.status is not CallStatus.OK:
-            return MonitorOutcome(subtask, response, None, None, ids, reason=f"call {response.status.value}: {response.error}")
+            return MonitorOutcome(subtask, response, None, None, ids, reason=f"call {response.status.value}: {response.error}", **where)
         parse = parse_status(response.text)
         if not parse.ok:
             log.info("monitor parse failed (%s): %r", parse.reason, response.text[:200])
-            return MonitorOutcome(subtask, response, parse, None, ids, reason=f"parse: {parse.reason}")
-        return MonitorOutcome(subtask, response, parse, parse.status, ids)
+            return MonitorOutcome(subtask, response, parse, None, ids, reason=f"parse: {parse.reason}", **where)
+        return MonitorOutcome(subtask, response, parse, parse.status, ids, **where)

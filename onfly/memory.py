@@ -24,6 +24,12 @@ Hybrid memory (paper, "Monitoring Agent with Hybrid Memory"), three steps per mo
    is still short, and is sorted chronologically. ``|Q_t| = S`` whenever at least ``S + 2``
    frames have been observed (``o_1`` and ``o_t`` are never in ``Q_t``).
 
+Concurrency: the pilot's control thread observes every frame while the monitoring call runs on
+a worker. :meth:`snapshot` (call it on the control thread when the call is started) runs the
+selection and returns an immutable :class:`MemorySnapshot`; the worker reads only that. Every
+memory also serializes ``observe`` / ``select`` / ``snapshot`` with a lock, so a selection can
+never see a frame half-recorded (odometry advanced, ``latest`` not yet moved).
+
 Alternatives with the same interface: :class:`SlidingWindowMemory` (``Q_t`` = the latest ``S``
 frames before ``o_t``) and :class:`TimeSamplingMemory` (``Q_t`` = ``S`` frames uniformly spaced
 in time between ``o_1`` and ``o_t``).
@@ -31,6 +37,7 @@ in time between ``o_1`` and ``o_t``).
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -42,6 +49,7 @@ __all__ = [
     "MemoryConfig",
     "MemoryError",
     "FrameRecord",
+    "MemorySnapshot",
     "MonitoringMemory",
     "HybridMemory",
     "SlidingWindowMemory",
@@ -122,6 +130,27 @@ class FrameRecord:
     payload: Any = None
 
 
+@dataclass(frozen=True)
+class MemorySnapshot:
+    """``M_t = [o_1, Q_t, o_t]`` as selected at one instant; immutable, safe to hand to a worker.
+
+    Attributes
+    ----------
+    records : tuple of FrameRecord, oldest first (empty before the first frame)
+    """
+
+    records: tuple[FrameRecord, ...]
+
+    @property
+    def frame_ids(self) -> tuple[str, ...]:
+        return tuple(r.frame_id for r in self.records)
+
+    @property
+    def judged(self) -> FrameRecord | None:
+        """``o_t``, the frame the monitoring call judges (its pose is the normal point)."""
+        return self.records[-1] if self.records else None
+
+
 class MonitoringMemory(Protocol):
     """What the monitoring agent needs from a memory."""
 
@@ -130,6 +159,8 @@ class MonitoringMemory(Protocol):
     def observe(self, frame_id: str, t_s: float, position, yaw: float, feature, payload: Any = None) -> FrameRecord: ...
 
     def select(self) -> list[FrameRecord]: ...
+
+    def snapshot(self) -> MemorySnapshot: ...
 
 
 def _unit(feature) -> np.ndarray:
@@ -148,6 +179,22 @@ class _Base:
         self.recent: list[FrameRecord] = []
         self.odom_m = 0.0
         self._seq = 0
+        self._lock = threading.RLock()
+
+    def observe(self, frame_id: str, t_s: float, position, yaw: float, feature, payload: Any = None) -> FrameRecord:
+        """Record one frame (thread-safe against :meth:`select` and :meth:`snapshot`)."""
+        with self._lock:
+            return self._observe(frame_id, t_s, position, yaw, feature, payload)
+
+    def select(self) -> list[FrameRecord]:
+        """``M_t = [o_1, Q_t, o_t]`` (thread-safe; updates the selection state)."""
+        with self._lock:
+            return self._select()
+
+    def snapshot(self) -> MemorySnapshot:
+        """Select now and freeze the result (call on the control thread, hand to the worker)."""
+        with self._lock:
+            return MemorySnapshot(tuple(self._select()))
 
     def _record(self, frame_id, t_s, position, yaw, feature, payload) -> FrameRecord:
         p = np.asarray(position, dtype=float).reshape(3)
@@ -191,7 +238,7 @@ class HybridMemory(_Base):
         self._acc_trans = 0.0
         self._acc_rot = 0.0
 
-    def observe(self, frame_id: str, t_s: float, position, yaw: float, feature, payload: Any = None) -> FrameRecord:
+    def _observe(self, frame_id: str, t_s: float, position, yaw: float, feature, payload: Any = None) -> FrameRecord:
         prev = self.latest
         rec = self._record(frame_id, t_s, position, yaw, feature, payload)
         if prev is not None:
@@ -291,7 +338,7 @@ class HybridMemory(_Base):
         self.queue = q
         return q
 
-    def select(self) -> list[FrameRecord]:
+    def _select(self) -> list[FrameRecord]:
         """Run the three steps and return ``M_t = [o_1, Q_t, o_t]``."""
         cands, self._pending = self._pending, []
         self.merge(self.dedup(cands))
@@ -301,10 +348,10 @@ class HybridMemory(_Base):
 class SlidingWindowMemory(_Base):
     """``Q_t`` = the latest ``S`` observed frames before ``o_t`` (ablation)."""
 
-    def observe(self, frame_id: str, t_s: float, position, yaw: float, feature, payload: Any = None) -> FrameRecord:
+    def _observe(self, frame_id: str, t_s: float, position, yaw: float, feature, payload: Any = None) -> FrameRecord:
         return self._record(frame_id, t_s, position, yaw, feature, payload)
 
-    def select(self) -> list[FrameRecord]:
+    def _select(self) -> list[FrameRecord]:
         return self._assemble(self._middle_recent()[-self.config.slots :])
 
 
@@ -319,12 +366,12 @@ class TimeSamplingMemory(_Base):
         super().__init__(config)
         self.history: list[FrameRecord] = []
 
-    def observe(self, frame_id: str, t_s: float, position, yaw: float, feature, payload: Any = None) -> FrameRecord:
+    def _observe(self, frame_id: str, t_s: float, position, yaw: float, feature, payload: Any = None) -> FrameRecord:
         rec = self._record(frame_id, t_s, position, yaw, feature, payload)
         self.history.append(rec)
         return rec
 
-    def select(self) -> list[FrameRecord]:
+    def _select(self) -> list[FrameRecord]:
         if self.first is None or self.latest is None:
             return []
         middle = self.history[1:-1]

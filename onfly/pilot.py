@@ -308,7 +308,8 @@ class OnFlyPilot:
             if not self.runtime.busy(SINGLE) and obs.frame_id != self._decision_frame and not recovering:
                 self._decision_frame = obs.frame_id
                 goal = self.goal_world
-                self.runtime.submit(SINGLE, lambda: _SingleStream(self.decision.decide(obs, subtask, goal), self.monitor.assess(subtask)))
+                snap = self.monitor.snapshot()  # taken here, on the control thread
+                self.runtime.submit(SINGLE, lambda: _SingleStream(self.decision.decide(obs, subtask, goal), self.monitor.assess(subtask, snap)))
             return
         if not recovering and not self.runtime.busy(DECISION) and obs.frame_id != self._decision_frame:
             self._decision_frame = obs.frame_id
@@ -318,7 +319,8 @@ class OnFlyPilot:
         if not self.runtime.busy(MONITORING) and (confirm_now or t_s - self._last_monitor_s >= self.config.monitor_period_s):
             self._last_monitor_s = t_s
             self._confirm_frame = obs.frame_id
-            self.runtime.submit(MONITORING, lambda: self.monitor.assess(subtask))
+            snap = self.monitor.snapshot()  # taken here, on the control thread
+            self.runtime.submit(MONITORING, lambda: self.monitor.assess(subtask, snap))
 
     def _start_early_decision(self, obs: Observation) -> None:
         """Before the subtask queue exists: decide on the whole instruction (``early_start``),
@@ -429,7 +431,11 @@ class OnFlyPilot:
         if self.mode is PilotMode.RECOVERING and out.status.value != Status.STOP.value:
             return
         status = Status(out.status.value)
-        event = self.tasks.on_status(status, t_s, state.p, state.yaw)
+        if out.judged_position is not None:
+            # the normal point is where the judged frame was taken, not where the answer landed
+            event = self.tasks.on_status(status, out.judged_t_s, out.judged_position, out.judged_yaw)
+        else:
+            event = self.tasks.on_status(status, t_s, state.p, state.yaw)
         if event is TaskEvent.NONE and status is Status.STOP:
             if self.mode is not PilotMode.CONFIRMING:
                 if self.search.active:

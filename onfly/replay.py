@@ -58,7 +58,7 @@ import math
 import tempfile
 import time
 from collections import Counter, deque
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Iterable, Iterator, Mapping
 
@@ -365,6 +365,9 @@ class ReplayReport:
     per_frame : FrameResult per processed frame; decision_log : DecisionRecord per call
     config : the ReplayConfig as a dict
     wall_s : wall time of the whole replay, seconds
+    vision_runs_max_per_frame, vision_runs_mean_per_frame : vision-encoder runs per frame the
+        agents and the verifier shared, from a backend that counts them (the in-process
+        transformers backend: 1 when the vision pass is shared); None for other backends
     """
 
     source: str
@@ -398,6 +401,8 @@ class ReplayReport:
     decision_log: tuple[DecisionRecord, ...]
     config: dict
     wall_s: float
+    vision_runs_max_per_frame: int | None = None
+    vision_runs_mean_per_frame: float | None = None
 
     def to_dict(self, per_frame: bool = True) -> dict:
         """JSON-compatible dict (NaN and inf become None); ``per_frame=False`` drops the
@@ -726,11 +731,16 @@ def replay(
     finally:
         if bar is not None:
             bar.close()
+        runs = getattr(owner.backend, "vision_encoder_runs", None) if owner is not None else None
         if owner is not None:
             owner.close()
     if not frames:
         raise ReplayError(f"{getattr(source, 'path', source)}: no frames to replay")
-    return _report(source, config, frames, frames_read, speeds, agents, owner, samples, time.perf_counter() - t_wall)
+    report = _report(source, config, frames, frames_read, speeds, agents, owner, samples, time.perf_counter() - t_wall)
+    if isinstance(runs, dict) and runs:
+        counts = list(runs.values())
+        report = replace(report, vision_runs_max_per_frame=int(max(counts)), vision_runs_mean_per_frame=float(np.mean(counts)))
+    return report
 
 
 def _process(

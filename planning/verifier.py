@@ -5,14 +5,17 @@ Paper Sec. "Semantic-Geometric Verified Local Planning". Input is a :class:`Cand
 the world frame (or an explicit rejection) and a :class:`VerificationRecord` of what was done.
 
 1. **Semantic-guided refinement.** ``d = depth(p)``. If ``d > D_max`` or ``p`` has no reading,
-   refinement is skipped (the record says which) and ``p' = p``. Otherwise the cosine
+   refinement is skipped (the record says which) and ``p' = p``; the range is then gated to the
+   clear part of ``p``'s ray, and an unread pixel is bounded by the surface around its hole (it
+   is never open space; see :mod:`planning.verifier_config`). Otherwise the cosine
    similarity of the patch features against the feature at ``p`` is thresholded at ``tau``
    inside a square ROI around ``p``, the 4-connected component containing ``p`` is kept, and
-   ``p'`` is the pixel of that component nearest to ``p`` that passes the clearance check.
-   Without features (geometric-only mode, flagged in the record) the component is the whole
-   ROI: a depth-connected region around a pixel that fell on an obstacle would be that obstacle
-   itself, so the purely geometric correction searches the ROI, as the paper's "purely geometric
-   correction" would. ``d' = min(depth(p'), D_max)`` (``D_max`` when refinement was skipped).
+   ``p'`` is the pixel of that component nearest to ``p`` that passes the clearance check under
+   the obstacle rule evaluated at ``p'`` itself. Without features (geometric-only mode, flagged
+   in the record) the component is the target's *surface*: the pixels depth-continuous with
+   ``p`` inside the ROI, bounded by depth edges, so no refinement moves a goal onto another
+   object (a target on a pole in front of a box stays on the pole).
+   ``d' = min(depth(p'), D_max)``.
 2. **Bearing-aware range gating.** ``theta = atan((p'_x - c_x) / f_x)``, ``theta_max`` is half
    the horizontal FOV, ``d_f = d' exp(-0.5 (theta / (sigma_theta theta_max))^2)``,
    ``X_cam = d_f K^-1 [p'_x, p'_y, 1]^T`` and ``X_world = T_world_cam X_cam``.
@@ -37,7 +40,9 @@ whole ray clears every obstacle, the returned goal -- wherever the gating puts i
 and the straight path to it from the camera are at least ``r`` from every obstacle surface
 point visible in the depth image. A refined pixel must also have a depth reading and must not
 be an obstacle itself.
-Skipped refinement still checks ``p``: if its ray is not clear the candidate is rejected.
+Skipped refinement keeps ``p`` and shortens the range to the part of its ray that clears every
+reading by ``r`` (exact, against the back-projected readings); a clear part shorter than
+``min_range_m`` is rejected.
 
 Conventions: pixels ``(u, v)`` with integer values at pixel centres (see
 :mod:`planning.camera`); the depth and patch value at a continuous pixel are those of the pixel
@@ -71,6 +76,7 @@ __all__ = [
     "VerifierInputError",
     "bearing_gate",
     "cone_radius_px",
+    "surface_region",
 ]
 
 logger = logging.getLogger(__name__)
@@ -81,8 +87,12 @@ _MAX_DEPTH = float(np.finfo(np.float32).max)
 _SLACK_EPS_PX = 1e-3
 #: A ray is clear when it passes farther than r + this from every obstacle point, metres.
 _CLEARANCE_EPS_M = 1e-9
+#: The clear part of a ray stops this far before it enters a point's r-ball, metres (rounding).
+_CLEAR_RANGE_MARGIN_M = 1e-6
 #: Exact re-checks of refined candidates before giving up (a failure would be a bug; logged).
 _MAX_EXACT_RECHECKS = 8
+#: Searches per candidate: the target's rule, then once more with a refined pixel's stricter one.
+_SEARCH_ROUNDS = 2
 #: Ratio between the depth edges of the bands in which exact obstacles are collected.
 _BAND_RATIO = 1.5
 
@@ -239,6 +249,13 @@ class VerificationRecord:
         ``d_f = d' * gating_factor``, z-depth of the goal in the camera frame; NaN when rejected.
     rejection : RejectionReason or None
         Why the candidate was rejected; None when accepted.
+    clear_range_m : float
+        Skipped refinement only: z-depth at which ``p``'s ray first comes within r of a reading
+        (or of the surface bounding an unread pixel), metres; inf when nothing limits it; NaN
+        when refinement ran or the candidate was rejected before.
+    bound_depth_m : float
+        Unread target only: the depth of the surface around the hole (smallest reading on the
+        border of the no-reading region in the ROI), metres; NaN otherwise.
     """
 
     pixel_uv: tuple[float, float]
@@ -256,6 +273,8 @@ class VerificationRecord:
     gating_factor: float
     range_m: float
     rejection: RejectionReason | None
+    clear_range_m: float = float("nan")
+    bound_depth_m: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -681,65 +700,46 @@ class Verifier:
                 return self._reject(candidate, RejectionReason.INVALID_DEPTH_EVERYWHERE)
             if cfg.reject_no_reading:
                 return self._reject(candidate, RejectionReason.NO_DEPTH_AT_TARGET)
-            note = RefinementNote.NO_DEPTH_READING
-            reference = cfg.d_max_m
-        elif d > cfg.d_max_m:
-            note = RefinementNote.BEYOND_D_MAX
-            reference = cfg.d_max_m
-        else:
-            note = None  # refinement runs; mode decided below
-            reference = d
-        threshold = cfg.obstacle_threshold_m(reference)
-        z_min = _nearest_obstacle_depth(depth, threshold)
-        r_m = cfg.clearance_radius_m
-        target_depth = d if has_reading else _NAN
-
-        if note is not None:  # refinement skipped: p' = p, but its ray must still be clear
-            clearance = _gather_obstacles(depth, cam, _pixel_box(u, v), threshold, z_min, r_m).ray_clearance_m(cam, u, v)
-            if not clearance > r_m + _CLEARANCE_EPS_M:
+            bound = _hole_bound_depth(depth, roi, row, col)
+            if bound is None:  # nothing known about this ray: never open space
                 return self._reject(
-                    candidate,
-                    RejectionReason.UNREFINED_TARGET_UNSAFE,
-                    note=note,
-                    target_depth_m=target_depth,
-                    threshold_m=threshold,
-                    clearance_m=clearance,
+                    candidate, RejectionReason.NO_DEPTH_AT_TARGET, note=RefinementNote.NO_DEPTH_READING
                 )
-            return self._accept(candidate, (u, v), cfg.d_max_m, note, False, 0, target_depth, threshold, clearance)
+            return self._skip(candidate, RefinementNote.NO_DEPTH_READING, _NAN, bound)
+        if d > cfg.d_max_m:
+            return self._skip(candidate, RefinementNote.BEYOND_D_MAX, d, _NAN)
 
         # -- step 1: semantic-guided refinement ------------------------------------------------
-        comp, note = self._component(candidate, roi, row, col)
+        r_m = cfg.clearance_radius_m
+        surface = _SurfaceRegion.grow(depth, row, col, cfg.surface_jump_ratio, cfg.foreground_margin_m, roi, cfg.roi_px)
+        comp, note = self._component(candidate, roi, row, col, surface)
         component_size = int(np.count_nonzero(comp))
         geometric_only = note is not RefinementNote.SEMANTIC
-        clearance_p = _gather_obstacles(depth, cam, _pixel_box(u, v), threshold, z_min, r_m).ray_clearance_m(cam, u, v)
-        if clearance_p > r_m + _CLEARANCE_EPS_M:  # already feasible: stays put
+        view = _ObstacleView.at(depth, surface, d, cfg)
+        clearance_p = view.gather(cam, _pixel_box(u, v), r_m).ray_clearance_m(cam, u, v)
+        clear_p = self._near_target_range(candidate, view, u, v, d)
+        if clearance_p > r_m + _CLEARANCE_EPS_M and not clear_p < cfg.min_range_m:  # already feasible: stays put
             return self._accept(
-                candidate, (u, v), min(d, cfg.d_max_m), note, geometric_only, component_size, d, threshold, clearance_p
+                candidate, (u, v), min(d, cfg.d_max_m), note, geometric_only, component_size, d, view.threshold_m,
+                clearance_p, clear_range_m=clear_p,
             )
 
         r0, r1, c0, c1 = roi
-        slack_map = _slack_map(depth, cam, roi, threshold, z_min, r_m, cfg.radius_class_ratio)
         roi_depth = depth[r0:r1, c0:c1]
-        with np.errstate(invalid="ignore"):
-            # Candidates need a reading and must not be obstacles themselves (depth >= T).
-            allowed = comp & (roi_depth >= threshold) & np.isfinite(roi_depth)
-        rr, cc = np.nonzero(allowed & (slack_map > _SLACK_EPS_PX))
-        if rr.size:
-            dist2 = (cc + c0 - u) ** 2 + (rr + r0 - v) ** 2
-            order = np.argsort(dist2, kind="stable")[:_MAX_EXACT_RECHECKS]
-            for k in order:
-                qr, qc = int(rr[k] + r0), int(cc[k] + c0)
-                near_line = _gather_obstacles(depth, cam, _segment_box(u, v, qc, qr), threshold, z_min, r_m)
-                clearance_q = near_line.ray_clearance_m(cam, float(qc), float(qr))
-                if clearance_q > r_m + _CLEARANCE_EPS_M:
-                    qr, qc, clearance_q = _pull_toward_target(
-                        near_line, cam, r_m, allowed, roi, (u, v), (qr, qc), clearance_q
-                    )
-                    dq = min(float(depth[qr, qc]), cfg.d_max_m)
-                    return self._accept(
-                        candidate, (float(qc), float(qr)), dq, note, geometric_only, component_size, d, threshold, clearance_q
-                    )
-                logger.error("verifier: slack map accepted pixel (%d, %d) that fails the exact check", qc, qr)
+        search = view
+        for _round in range(_SEARCH_ROUNDS):
+            found, stricter = self._search(candidate, roi, comp, roi_depth, surface, search)
+            if found is not None:
+                (qr, qc), own, clearance_q, clear_q = found
+                return self._accept(
+                    candidate, (float(qc), float(qr)), min(float(depth[qr, qc]), cfg.d_max_m), note, geometric_only,
+                    component_size, d, own.threshold_m, clearance_q, clear_range_m=clear_q,
+                )
+            if stricter is None or stricter.threshold_m <= search.threshold_m:
+                break
+            # A pixel passed the target's rule but not its own (a farther surface, a higher
+            # threshold): search again with the stricter rule.
+            search = stricter
         return self._reject(
             candidate,
             RejectionReason.NO_FEASIBLE_PIXEL,
@@ -748,18 +748,95 @@ class Verifier:
             geometric_only=geometric_only,
             component_size=component_size,
             target_depth_m=d,
-            threshold_m=threshold,
+            threshold_m=view.threshold_m,
             clearance_m=clearance_p,
         )
 
     # -- helpers ---------------------------------------------------------------------------------
-    def _component(self, candidate: CandidateGoal, roi, row: int, col: int) -> tuple[np.ndarray, RefinementNote]:
-        """Boolean ROI mask of the semantic component containing (row, col), and the mode."""
+    def _search(self, candidate, roi, comp, roi_depth, surface, view):
+        """Nearest pixel of ``comp`` whose ray clears the obstacles of ``view`` *and* of the rule
+        evaluated at its own depth. Returns ``(((row, col), own_view, clearance) or None,
+        stricter_view or None)``; the second is the rule of a pixel that failed only its own."""
+        cfg = self.config
+        cam = candidate.camera
+        depth = candidate.depth_m
+        u, v = candidate.pixel_uv
+        r_m = cfg.clearance_radius_m
         r0, r1, c0, c1 = roi
-        shape = (r1 - r0, c1 - c0)
+        slack_map = _slack_map(view.depth_m, cam, roi, view.threshold_m, view.z_min, r_m, cfg.radius_class_ratio)
+        with np.errstate(invalid="ignore"):
+            # Candidates need a reading and must not be obstacles themselves.
+            allowed = comp & (roi_depth > 0) & np.isfinite(roi_depth) & ~(view.depth_m[r0:r1, c0:c1] < view.threshold_m)
+        rr, cc = np.nonzero(allowed & (slack_map > _SLACK_EPS_PX))
+        stricter = None
+        if not rr.size:
+            return None, None
+        dist2 = (cc + c0 - u) ** 2 + (rr + r0 - v) ** 2
+        for k in np.argsort(dist2, kind="stable")[:_MAX_EXACT_RECHECKS]:
+            qr, qc = int(rr[k] + r0), int(cc[k] + c0)
+            near_line = view.gather(cam, _segment_box(u, v, qc, qr), r_m)
+            clearance_q = near_line.ray_clearance_m(cam, float(qc), float(qr))
+            if not clearance_q > r_m + _CLEARANCE_EPS_M:
+                logger.error("verifier: slack map accepted pixel (%d, %d) that fails the exact check", qc, qr)
+                continue
+            pulled = _pull_toward_target(near_line, cam, r_m, allowed, roi, (u, v), (qr, qc), clearance_q)
+            for pr_, pc_, c_ in (pulled, (qr, qc, clearance_q)):
+                # The obstacle rule evaluated at the refined pixel itself.
+                own = _ObstacleView.at(depth, surface, float(depth[pr_, pc_]), cfg)
+                own_clear = own.gather(cam, _pixel_box(pc_, pr_), r_m).ray_clearance_m(cam, float(pc_), float(pr_))
+                if own_clear > r_m + _CLEARANCE_EPS_M and not bool(own.depth_m[pr_, pc_] < own.threshold_m):
+                    clear = self._near_target_range(candidate, own, float(pc_), float(pr_), float(depth[pr_, pc_]))
+                    if not clear < cfg.min_range_m:
+                        return ((pr_, pc_), own, min(own_clear, c_), clear), None
+                    continue
+                if stricter is None or own.threshold_m > stricter.threshold_m:
+                    stricter = own
+            logger.debug("verifier: pixel (%d, %d) fails the obstacle rule at its own depth", qc, qr)
+        return None, stricter
+
+    def _near_target_range(self, candidate: CandidateGoal, view: "_ObstacleView", u: float, v: float, d: float) -> float:
+        """Clear part of the ray for a goal on a target whose surface was exempted from the
+        near field (``view.exempted``): the goal stands in front of it, r clear of every reading,
+        instead of on it. NaN when nothing was exempted (the goal stays at ``d'``, paper)."""
+        if not view.exempted:
+            return _NAN
+        cfg = self.config
+        return _clear_range_z(candidate.depth_m, candidate.camera, u, v, min(d, cfg.d_max_m), cfg.clearance_radius_m, _NAN)
+
+    def _skip(self, candidate: CandidateGoal, note: RefinementNote, d: float, bound_m: float) -> VerifiedGoal:
+        """Refinement skipped (far or unread target): ``p' = p``, range gated to the clear ray."""
+        cfg = self.config
+        cam = candidate.camera
+        u, v = candidate.pixel_uv
+        d_prime = min(d if math.isfinite(d) else bound_m, cfg.d_max_m)
+        clear = _clear_range_z(candidate.depth_m, cam, u, v, d_prime, cfg.clearance_radius_m, bound_m)
+        if not clear >= cfg.min_range_m:
+            return self._reject(
+                candidate,
+                RejectionReason.UNREFINED_TARGET_UNSAFE,
+                note=note,
+                target_depth_m=d,
+                threshold_m=_NAN,
+                clearance_m=_NAN,
+                clear_range_m=clear,
+                bound_depth_m=bound_m,
+            )
+        return self._accept(
+            candidate, (u, v), d_prime, note, False, 0, d, _NAN, _NAN, clear_range_m=clear, bound_depth_m=bound_m
+        )
+
+    def _component(
+        self, candidate: CandidateGoal, roi, row: int, col: int, surface: "_SurfaceRegion"
+    ) -> tuple[np.ndarray, RefinementNote]:
+        """Boolean ROI mask of the component containing (row, col), and the mode.
+
+        With features: the semantic component (cosine >= tau, connected). Without, or with a
+        degenerate feature at p: the target's surface (depth-continuous with p) inside the ROI.
+        """
+        r0, r1, c0, c1 = roi
         feats = candidate.features
         if feats is None:
-            return np.ones(shape, dtype=bool), RefinementNote.NO_FEATURES
+            return surface.crop(roi), RefinementNote.NO_FEATURES
         hp, wp = feats.shape[:2]
         patch = candidate.patch_px
         pi = np.minimum((np.arange(r0, r1) / patch).astype(np.intp), hp - 1)
@@ -768,7 +845,7 @@ class Verifier:
         f_p = np.asarray(feats[ip, jp], dtype=np.float64)
         norm_p = float(np.linalg.norm(f_p))
         if not (math.isfinite(norm_p) and norm_p > 0.0):
-            return np.ones(shape, dtype=bool), RefinementNote.DEGENERATE_FEATURE
+            return surface.crop(roi), RefinementNote.DEGENERATE_FEATURE
         i0, i1, j0, j1 = int(pi[0]), int(pi[-1]) + 1, int(pj[0]), int(pj[-1]) + 1
         block = np.asarray(feats[i0:i1, j0:j1], dtype=np.float64)
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
@@ -790,6 +867,9 @@ class Verifier:
         target_depth_m: float,
         threshold_m: float,
         clearance_m: float,
+        *,
+        clear_range_m: float = _NAN,
+        bound_depth_m: float = _NAN,
     ) -> VerifiedGoal:
         cfg = self.config
         cam = candidate.camera
@@ -797,6 +877,8 @@ class Verifier:
         theta = math.atan((u2 - cam.cx) / cam.fx)
         gate = bearing_gate(theta, 0.5 * cam.hfov_rad, cfg.sigma_theta)
         d_f = d_prime * gate
+        if math.isfinite(clear_range_m):
+            d_f = min(d_f, clear_range_m)
         X_cam = cam.back_project(np.array([u2, v2]), d_f)
         X_world = transform_points(candidate.T_world_cam, X_cam)
         u, v = candidate.pixel_uv
@@ -817,6 +899,8 @@ class Verifier:
             gating_factor=float(gate),
             range_m=float(d_f),
             rejection=None,
+            clear_range_m=float(clear_range_m),
+            bound_depth_m=float(bound_depth_m),
         )
         return VerifiedGoal(goal_world=X_world, accepted=True, record=record)
 
@@ -832,6 +916,8 @@ class Verifier:
         target_depth_m: float = _NAN,
         threshold_m: float = _NAN,
         clearance_m: float = _NAN,
+        clear_range_m: float = _NAN,
+        bound_depth_m: float = _NAN,
     ) -> VerifiedGoal:
         u, v = candidate.pixel_uv
         logger.debug("verifier: rejected pixel (%.1f, %.1f): %s", u, v, reason.value)
@@ -851,8 +937,162 @@ class Verifier:
             gating_factor=_NAN,
             range_m=_NAN,
             rejection=reason,
+            clear_range_m=float(clear_range_m),
+            bound_depth_m=float(bound_depth_m),
         )
         return VerifiedGoal(goal_world=None, accepted=False, record=record)
+
+
+# -- the target's surface, unread holes and the clear part of a ray ------------------------------
+
+
+class _SurfaceRegion:
+    """The target's surface inside a window of the image (see :mod:`planning.verifier_config`),
+    grown on first use (the common case -- features, a target beyond the near field -- never
+    needs it).
+
+    ``mask`` is a boolean array over rows ``[r0, r1)`` and columns ``[c0, c1)`` of the image.
+    """
+
+    def __init__(self, depth, row, col, jump_ratio, margin_m, window) -> None:
+        self.window = window
+        self._args = (depth, row, col, jump_ratio, margin_m)
+        self._mask: np.ndarray | None = None
+
+    @property
+    def mask(self) -> np.ndarray:
+        if self._mask is None:
+            depth, row, col, jump_ratio, margin_m = self._args
+            wr0, wr1, wc0, wc1 = self.window
+            self._mask = surface_region(depth[wr0:wr1, wc0:wc1], row - wr0, col - wc0, jump_ratio, margin_m)
+        return self._mask
+
+    @classmethod
+    def grow(cls, depth, row, col, jump_ratio, margin_m, roi, roi_px) -> "_SurfaceRegion":
+        """The surface of (row, col) inside the ROI grown by ``roi_px`` on every side (beyond
+        the window nothing is exempt from the near field: conservative)."""
+        h, w = depth.shape
+        r0, r1, c0, c1 = roi
+        window = (max(0, r0 - roi_px), min(h, r1 + roi_px), max(0, c0 - roi_px), min(w, c1 + roi_px))
+        return cls(depth, row, col, jump_ratio, margin_m, window)
+
+    def crop(self, box: tuple[int, int, int, int]) -> np.ndarray:
+        """The mask over ``box`` (inside the window)."""
+        r0, r1, c0, c1 = box
+        wr0, _, wc0, _ = self.window
+        return self.mask[r0 - wr0 : r1 - wr0, c0 - wc0 : c1 - wc0].copy()
+
+    def contains(self, row: int, col: int) -> bool:
+        wr0, wr1, wc0, wc1 = self.window
+        return wr0 <= row < wr1 and wc0 <= col < wc1 and bool(self.mask[row - wr0, col - wc0])
+
+
+def surface_region(depth: np.ndarray, row: int, col: int, jump_ratio: float, band_m: float) -> np.ndarray:
+    """Pixels depth-continuous with ``(row, col)``: the target's surface.
+
+    4-connected region grown from the seed through neighbours whose depths differ by at most
+    ``jump_ratio`` of the smaller one (``|ln z_a - ln z_b| <= ln(1 + jump_ratio)``), restricted to
+    readings within ``band_m`` of the seed's depth. Pixels without a reading never join.
+
+    Parameters
+    ----------
+    depth : array, shape (H, W), z-depth in metres (0, NaN, inf: no reading)
+    row, col : int, the seed pixel (must have a reading)
+    jump_ratio : float, > 0
+    band_m : float, >= 0 (inf: no band)
+
+    Returns
+    -------
+    array, shape (H, W), bool
+    """
+    z = np.asarray(depth, dtype=np.float32)
+    d = float(z[row, col])
+    if not (math.isfinite(d) and d > 0.0):
+        raise ValueError(f"surface_region: seed ({row}, {col}) has no reading ({d})")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ok = np.isfinite(z) & (z > 0) & (np.abs(z - d) <= band_m)
+        logz = np.where(ok, np.log(np.where(ok, z, 1.0)), np.float32(-1e4)).astype(np.float32)
+    h, w = z.shape
+    mask = np.zeros((h + 2, w + 2), np.uint8)
+    tol = float(np.log1p(jump_ratio))
+    flags = 4 | cv2.FLOODFILL_MASK_ONLY | (1 << 8)
+    cv2.floodFill(logz, mask, (int(col), int(row)), 0, (tol,), (tol,), flags)
+    return mask[1:-1, 1:-1].astype(bool)
+
+
+@dataclass(frozen=True)
+class _ObstacleView:
+    """The depth image as the obstacle rule sees it for one reference depth: readings closer
+    than ``threshold_m`` are obstacles, except the target's surface (set to NaN here)."""
+
+    depth_m: np.ndarray
+    threshold_m: float
+    z_min: float | None
+    exempted: bool = False  #: part of the target's surface was taken out of the near field
+
+    @classmethod
+    def at(cls, depth: np.ndarray, surface: _SurfaceRegion, d_m: float, cfg: VerifierConfig) -> "_ObstacleView":
+        d_ref = min(d_m, cfg.d_max_m)
+        threshold = cfg.obstacle_threshold_m(d_ref)
+        view = depth
+        exempted = False
+        if cfg.obstacle_depth_m > d_ref - cfg.foreground_margin_m:
+            # The near-field part of the rule reaches the target's depth band: exempt its surface.
+            wr0, wr1, wc0, wc1 = surface.window
+            with np.errstate(invalid="ignore"):
+                exempt = surface.mask & (depth[wr0:wr1, wc0:wc1] >= d_ref - cfg.foreground_margin_m)
+            if exempt.any():
+                view = depth.copy()
+                view[wr0:wr1, wc0:wc1][exempt] = np.nan
+                exempted = True
+        return cls(view, threshold, _nearest_obstacle_depth(view, threshold), exempted)
+
+    def gather(self, camera: PinholeCamera, box, clearance_m: float) -> "_Obstacles":
+        return _gather_obstacles(self.depth_m, camera, box, self.threshold_m, self.z_min, clearance_m)
+
+
+def _hole_bound_depth(depth: np.ndarray, roi, row: int, col: int) -> float | None:
+    """Smallest reading on the border of the no-reading region containing (row, col) inside the
+    ROI (4-connected), metres; None when that border has no reading inside the ROI."""
+    r0, r1, c0, c1 = roi
+    z = depth[r0:r1, c0:c1]
+    valid = cv2.inRange(z, _TINY_DEPTH, _MAX_DEPTH)  # 255 where a reading
+    hole = cv2.bitwise_not(valid)
+    _, labels = cv2.connectedComponents(hole, connectivity=4)
+    comp = (labels == labels[row - r0, col - c0]).astype(np.uint8)
+    ring = cv2.dilate(comp, _CROSS_3) & (valid != 0) & (comp == 0)
+    if not ring.any():
+        return None
+    return float(z[ring.astype(bool)].min())
+
+
+def _clear_range_z(
+    depth: np.ndarray, camera: PinholeCamera, u: float, v: float, limit_z: float, clearance_m: float, surface_z: float
+) -> float:
+    """Z-depth up to which the ray through (u, v) keeps ``clearance_m`` from every reading.
+
+    Every reading closer than ``limit_z + clearance_m`` whose clearance disc reaches the pixel is
+    back-projected; the ray enters the ball of radius r around point ``Y`` at ray distance
+    ``a - sqrt(r^2 - q^2)`` (``a`` along the ray, ``q`` off it). ``surface_z`` (finite for an
+    unread pixel) adds the assumed surface on the ray itself. Returns ``min(limit_z, entry z)``;
+    0 when the camera is within r of a reading on the ray.
+    """
+    threshold = float(limit_z) + clearance_m + 1e-6
+    z_min = _nearest_obstacle_depth(depth, threshold)
+    pts = _gather_obstacles(depth, camera, _pixel_box(u, v), threshold, z_min, clearance_m).points
+    dvec = np.array([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, 1.0])
+    dvec /= math.sqrt(float(dvec @ dvec))
+    entry = math.inf
+    if len(pts):
+        along = pts @ dvec
+        q2 = np.einsum("ij,ij->i", pts, pts) - along * along
+        hit = q2 < clearance_m * clearance_m
+        if hit.any():
+            entry = float(np.min(along[hit] - np.sqrt(clearance_m * clearance_m - q2[hit])))
+    if math.isfinite(surface_z):
+        entry = min(entry, surface_z / dvec[2] - clearance_m)
+    # One micron short of the ball's surface, so the goal clears every point by r after rounding.
+    return float(min(limit_z, max(entry - _CLEAR_RANGE_MARGIN_M, 0.0) * dvec[2]))
 
 
 def _any_valid(depth: np.ndarray) -> bool:

@@ -286,3 +286,33 @@ def test_base_url_with_or_without_v1():
     assert HttpBackend(HttpBackendConfig("https://api.example.org/openai", "m")).url == \
         "https://api.example.org:443/openai/v1/chat/completions"
     assert json.dumps(HttpBackendConfig("http://h:1", "m").endpoint_prefix) == '"/v1"'
+
+
+def test_local_feature_source_gives_features_where_the_server_gives_none():
+    from vlm.factory import make_backend
+    from vlm.types import VisionFeatures
+
+    image = _images(1, seed=3)[0]
+    plain = HttpBackend(HttpBackendConfig(base_url="http://127.0.0.1:9", model="m"))
+    assert plain.features(image) is None
+    calls: list[str] = []
+
+    def encoder(im: VlmImage) -> VisionFeatures:
+        calls.append(im.frame_id)
+        return VisionFeatures(np.ones((8, 10, 4), np.float32), 16.0, im.size, "test-encoder")
+
+    with_source = HttpBackend(HttpBackendConfig(base_url="http://127.0.0.1:9", model="m"), feature_source=encoder)
+    f = with_source.features(image)
+    assert f.source == "test-encoder" and calls == [image.frame_id]
+
+    class Tower:  # anything with features(), e.g. an in-process TransformersBackend
+        def features(self, im):
+            return encoder(im)
+
+    via_factory = make_backend("http://127.0.0.1:9#m", feature_source=Tower())
+    assert via_factory.features(image).source == "test-encoder" and len(calls) == 2
+    with pytest.raises(TypeError, match="feature_source"):
+        HttpBackend(HttpBackendConfig(base_url="http://127.0.0.1:9", model="m"), feature_source=3)
+    bad = HttpBackend(HttpBackendConfig(base_url="http://127.0.0.1:9", model="m"), feature_source=lambda im: "grid")
+    with pytest.raises(TypeError, match="expected VisionFeatures"):
+        bad.features(image)

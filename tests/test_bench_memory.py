@@ -28,7 +28,7 @@ from planning.camera import PinholeCamera
 # and segment winners still move, are the least stable; short flights would be dominated by
 # them), small 112 x 80 images (12 image tokens) and 4 model calls per strategy, to stay fast.
 TINY = BenchMemoryConfig(episodes=1, calls=4, seed=3, path_min_m=70.0, path_max_m=80.0,
-                         image_width_px=112, image_height_px=80, image_tokens=24)
+                         image_width_px=112, image_height_px=80, image_tokens=24, advance_every=2)
 TINY_CAMERA = PinholeCamera.from_fov(112, 80, 90.0, 60.0)
 
 
@@ -119,6 +119,26 @@ def test_tiny_run_invariants(tiny_result):
     sliding_warm = {c.cached_tokens for c in calls if c.strategy == "sliding" and not c.cold}
     assert len(sliding_warm) == 1
     assert 0 < m["image_tokens_per_image"] <= TINY.image_tokens
+
+
+def test_subtask_advance_keeps_the_image_prefix_and_one_vision_pass_per_frame(tiny_result):
+    m = tiny_result.metrics
+    calls = tiny_result.advance_calls
+    advances = [c for c in calls if c.advance]
+    assert {c.order for c in advances} == {"v2", "v1_order"} and all(c.call >= 0 for c in advances)
+    v2 = {(c.episode, c.call): c for c in advances if c.order == "v2"}
+    v1 = {(c.episode, c.call): c for c in advances if c.order == "v1_order"}
+    for key, c in v2.items():
+        # v1 put the subtask first: an advance re-runs every image; v2 keeps every image but o_t
+        # (and any keyframe appended since the last call) cached.
+        img = m["image_tokens_per_image"]
+        assert c.prompt_tokens == v1[key].prompt_tokens
+        assert v1[key].cached_tokens + (TINY.slots + 2) * img <= v1[key].prompt_tokens  # no image cached
+        assert c.cached_tokens >= v1[key].cached_tokens + img  # at least o_1 stays cached
+    assert m["advance_cached_fraction_v2"] > m["advance_cached_fraction_v1_order"]
+    # the decision prompt, the monitoring prompt and features() read one encoder run per frame
+    assert m["vision_runs_per_frame_max"] == 1 and m["vision_runs_per_frame_mean"] == 1.0
+    assert m["vision_runs_frames"] >= 2 * TINY.calls
 
 
 def test_json_has_every_key(tiny_result):

@@ -172,3 +172,53 @@ def test_factory_and_validation():
         mem.observe("b", 0.5, [0, 0, 0], 0, feat(1))
     with pytest.raises(MemoryError, match="finite"):
         mem.observe("c", 2.0, [np.nan, 0, 0], 0, feat(1))
+
+
+class _BlockingFeature:
+    """A feature whose conversion blocks until released: it holds an ``observe`` half-way
+    (odometry already advanced, ``latest`` not yet moved) for as long as the test wants."""
+
+    def __init__(self, value) -> None:
+        import threading
+
+        self.value = np.asarray(value, float)
+        self.entered = threading.Event()
+        self.release = threading.Event()
+
+    def __array__(self, dtype=None, copy=None):
+        self.entered.set()
+        assert self.release.wait(10.0)
+        return self.value if dtype is None else self.value.astype(dtype)
+
+
+@pytest.mark.parametrize("cls", [HybridMemory, SlidingWindowMemory, TimeSamplingMemory])
+def test_snapshot_cannot_be_torn_by_a_concurrent_observe(cls):
+    import threading
+
+    mem = cls(MemoryConfig(slots=2))
+    fly_straight(mem, 8, step_m=0.5)
+    before = mem.snapshot()
+    assert before.judged.frame_id == "f7" and before.frame_ids[0] == "f0"
+    blocking = _BlockingFeature(feat(99))
+    writer = threading.Thread(target=lambda: mem.observe("f8", 4.0, [4.0, 0, 1], 0.0, blocking))
+    writer.start()
+    assert blocking.entered.wait(5.0)  # observe is now half-way through recording f8
+    result: list = []
+    reader = threading.Thread(target=lambda: result.append(mem.snapshot()))
+    try:
+        reader.start()
+        reader.join(0.3)
+        # The snapshot waits for the observe to finish instead of reading a half-recorded frame.
+        assert reader.is_alive() and not result
+    finally:
+        blocking.release.set()
+    writer.join(5.0)
+    reader.join(5.0)
+    snap = result[0]
+    assert snap.judged.frame_id == "f8" and snap.judged.odom_m == pytest.approx(4.0)
+    seqs = [r.seq for r in snap.records]
+    assert seqs == sorted(seqs) and snap.records[0].seq == 0
+    # A snapshot is frozen: later frames never change one already handed to a worker.
+    fly_straight(mem, 3, step_m=0.5, start=9, t0=0.0)
+    assert before.judged.frame_id == "f7" and snap.judged.frame_id == "f8"
+    assert isinstance(snap.records, tuple)

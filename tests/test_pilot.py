@@ -136,10 +136,12 @@ def test_lost_triggers_stop_and_reorient_recovery(planner):
     target = ev["lost"].data["recovery_yaw"]
     normal_t = [t for t, _, status, _ in m.pilot.tasks.history if status.value == "CONTINUE" and t < lost_t]
     assert len(normal_t) == 2
-    # a status is stamped with its landing time and applied at the next tick, with that
-    # tick's state
+    # the normal point is the pose of the frame the CONTINUE judged (stamped with its capture
+    # time), not the pose when the answer landed
     yaw_at_normal = [y for t, y, _ in yaws if t >= normal_t[-1] - 1e-9]
     assert target == pytest.approx(yaw_at_normal[0])
+    landed = [e.t_s for e in m.pilot.events if e.kind == "monitor" and e.data["status"] == "CONTINUE" and e.t_s < lost_t]
+    assert normal_t[-1] < landed[-1] - 1.0  # judged more than a second before the answer landed
     # while recovering the vehicle turns toward the last normal heading and does not fly on
     during = [(t, y, mode) for t, y, mode in yaws if lost_t < t < resumed_t]
     assert all(mode is PilotMode.RECOVERING for _, _, mode in during[1:])

@@ -38,7 +38,7 @@ from vlm.types import ChatMessage, VlmImage
 # version must name one exact text. Bump "## version:" in the file and update the pin.
 PINNED = {
     "decision": ("decision/v1", "043a999f64cf635141b022af3ca0c480178e5f948edbe0a5685404fd51d6f202"),
-    "monitor": ("monitor/v1", "070bfc0058f6949d6d1c8db906a152960c9e017c4133cc56d078b41ec3a533d0"),
+    "monitor": ("monitor/v2", "0c82ac88a7066fb7704704cc28a8e434ed24bc16e5335c25f9de24589481b51b"),
     "decompose": ("decompose/v1", "531dcedca5041025b19524364a85a208ff85a9b1c8c2bf4598b36aff21d5aa4c"),
     "typefly": ("typefly/v1", "91e40abda5ab5999748b97cba358b7ca2d18629e22d4c1efcc17ebc8aa72a563"),
     "pivot": ("pivot/v1", "36e94787a2fcc626451c252d525b8a36cccf3b3348111317faebc2fa2667a935"),
@@ -104,11 +104,13 @@ def test_monitor_prompt_order_first_keyframes_latest():
     assert [i.frame_id for i in images] == ["o1", "k1", "k2", "k3", "ot"]
     assert count_placeholders(messages) == len(images)
     user = messages[1].content
-    assert user.startswith("Current subtask: stop next to the red van\nFirst frame:\n<image>")
-    assert user.index("Keyframe 1:") < user.index("Keyframe 3:") < user.index("Latest frame:")
+    assert user.startswith("First frame:\n<image>")
+    # what changes least first: keyframes, then the subtask, then the latest frame
+    assert (user.index("Keyframe 1:") < user.index("Keyframe 3:") < user.index("Current subtask: stop next to the red van\n")
+            < user.index("Latest frame:"))
     for word in ("CONTINUE", "STOP", "LOST"):
         assert word in messages[0].content
-    assert parse_prompt(messages) == MonitorPrompt("monitor/v1", "stop next to the red van", 3)
+    assert parse_prompt(messages) == MonitorPrompt("monitor/v2", "stop next to the red van", 3)
     messages0, images0 = build_monitor_prompt("stop", first, [], latest)
     assert "Keyframes: none" in messages0[1].content and len(images0) == 2
     assert parse_prompt(messages0).n_keyframes == 0
@@ -133,11 +135,14 @@ def test_monitor_prefix_is_byte_stable_when_only_later_keyframes_change():
     assert text_a[:cut] == text_b[:cut]
 
 
-def test_monitor_prefix_changes_when_the_subtask_changes():
-    first = _img("o1")
-    a = prompt_segments(*build_monitor_prompt("fly to the tree", first, [], _img("t")))
-    b = prompt_segments(*build_monitor_prompt("land on the roof", first, [], _img("t")))
-    assert a[0] == b[0] and a[2] != b[2]
+def test_a_subtask_advance_keeps_every_image_but_the_latest_in_the_prefix():
+    first, keys = _img("o1"), [_img("k1"), _img("k2")]
+    a = prompt_segments(*build_monitor_prompt("fly to the tree", first, keys, _img("t")))
+    b = prompt_segments(*build_monitor_prompt("land on the roof", first, keys, _img("t")))
+    k2 = a.index("\x00image:k2")
+    # every segment up to and including the last keyframe is shared; the subtask text differs
+    assert a[: k2 + 1] == b[: k2 + 1] and a[k2 + 1] != b[k2 + 1]
+    assert a.index("\x00image:t") > k2 + 1 and b.index("\x00image:t") > k2 + 1
 
 
 def test_placeholder_count_must_equal_images():

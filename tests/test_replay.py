@@ -248,15 +248,16 @@ class PointingVlm:
         self.closed = True
 
 
-def test_verifier_moves_a_pixel_on_a_near_obstacle_and_the_report_counts_it():
+def test_verifier_moves_a_pixel_beside_a_near_obstacle_and_the_report_counts_it():
     # left half of the image 1 m away (near field: an obstacle), right half 5 m away; the VLM
-    # points into the left half, the geometric-only refinement moves it clear to the right
+    # points at the far wall right beside the edge, where its ray grazes the near half: the
+    # geometric-only refinement moves it clear to the right, along the far wall's surface
     def frame(i):
         obs = _obs(0.5 * i, 0.1 * i, 5.0, i)
         obs.depth_m[:, :16] = 1.0
         return obs
 
-    backend = PointingVlm((8.0, 12.0))
+    backend = PointingVlm((17.0, 12.0))
     config = ReplayConfig(goal_mode="agents", instruction="fly to the far wall", vlm="http:unused")
     report = replay(ListSource(frame(i) for i in range(3)), config, progress=False, backend=backend)
     assert not backend.closed  # the caller's backend stays open
@@ -267,8 +268,8 @@ def test_verifier_moves_a_pixel_on_a_near_obstacle_and_the_report_counts_it():
     assert (v.candidates, v.accepted, v.moved) == (3, 3, 3)
     assert v.refinement_notes == {"no_features": 3}
     for d in report.decision_log:
-        assert d.pixel_uv == (8.0, 12.0) and d.refined_uv[0] > 16.0  # off the near half
-        assert d.pixel_shift_px == pytest.approx(math.hypot(d.refined_uv[0] - 8.0, d.refined_uv[1] - 12.0))
+        assert d.pixel_uv == (17.0, 12.0) and d.refined_uv[0] > 17.0  # away from the near half
+        assert d.pixel_shift_px == pytest.approx(math.hypot(d.refined_uv[0] - 17.0, d.refined_uv[1] - 12.0))
     assert v.pixel_shift_max_px == max(d.pixel_shift_px for d in report.decision_log)
     assert report.latency_ms["decision_vlm"].median_ms == pytest.approx(250.0)
     assert report.monitor_calls == 1 and report.monitor_statuses == {"CONTINUE": 1}  # t = 0.5 only (period 2 s)

@@ -181,3 +181,6 @@ def test_kitchen_with_an_instruction_runs_the_tiny_random_model_through_the_pipe
     # a random-weight model answers garbage: every decision fails to parse and the vehicle holds
     assert r["goals_accepted"] == 0 and r["decision_failures"] == {"parse": 3}
     assert all(f["goal_m"] == f["position_m"] for f in r["per_frame"])
+    # one vision-encoder pass per frame, shared by the decision prompt, the monitoring prompt
+    # and the verifier's features
+    assert r["vision_runs_max_per_frame"] == 1 and r["vision_runs_mean_per_frame"] == 1.0

@@ -1,4 +1,4 @@
-"""The ten committed scenes: load, render, safe start, reachable and visible targets."""
+"""The committed scenes: load, render, safe start, reachable and visible targets."""
 
 from __future__ import annotations
 
@@ -14,11 +14,14 @@ from onfly.world import World, list_scenes
 from onfly.world.scene import scenes_dir
 
 REPO = Path(__file__).resolve().parent.parent
-EXPECTED = {"urban_block", "factory_hall", "villa", "duplex", "corridor", "park", "parking_lot", "warehouse", "plaza", "terrace"}
+PAPER = {"urban_block", "factory_hall", "villa", "duplex", "corridor", "park", "parking_lot", "warehouse", "plaza", "terrace"}
+# the harder scenes of issue 16 (rooms and doorways, low ceilings, clutter; tasks in onfly/data/tasks/hard/)
+HARD = {"apartment", "office_floor", "parking_garage"}
+EXPECTED = PAPER | HARD
 BODY_R = 0.25
 
 
-def test_the_ten_scenes_are_committed():
+def test_the_paper_and_hard_scenes_are_committed():
     assert set(list_scenes()) == EXPECTED
 
 
@@ -125,6 +128,28 @@ def test_every_target_is_reachable_through_free_space_from_the_start(world):
         assert d <= 3.0, f"{o.name}: nearest reachable free voxel is {d:.1f} m away"
 
 
+STRUCTURE = {"wall", "ceiling", "floor", "beam", "duct", "column", "fence"}
+
+
+@pytest.mark.parametrize("name", sorted(HARD))
+def test_hard_scenes_are_indoor_with_low_ceilings_and_beams_and_structure_is_not_a_target(name):
+    """Each harder scene is a closed interior: a ceiling 2.4-3.0 m up (real room heights), a
+    beam or duct hanging lower (2.0-2.35 m: flyable under at 1.5 m, not over), and walls,
+    ceilings, beams, ducts, columns and fences are never targets."""
+    from onfly.bench.tasks import object_bounds
+
+    scene = World.from_scene(name).scene
+    ceilings = [o for o in scene.objects if o.label == "ceiling"]
+    assert ceilings
+    assert 2.4 <= min(object_bounds(scene, o.name)[0][2] for o in ceilings) <= 3.0
+    low = [object_bounds(scene, o.name)[0][2] for o in scene.objects if o.label in {"beam", "duct"}]
+    assert low and 2.0 <= min(low) <= 2.35
+    for o in scene.objects:
+        if o.label in STRUCTURE:
+            assert not o.target, o.name
+    assert scene.bounds.max_m[2] <= 3.0
+
+
 def test_committed_scenes_carry_the_materials_a_depth_camera_misses():
     from onfly.world.scene import load_scene, resolve_scene
 
@@ -138,4 +163,7 @@ def test_committed_scenes_carry_the_materials_a_depth_camera_misses():
     # van and car windscreens are glass, tyres and forklift masts dark
     van = urban.object_by_name("red van")
     assert {van.part_material(p) for p in van.parts} == {"opaque", "glass", "dark"}
-    assert {n for n, s in scenes.items() if s.indoor} == {"factory_hall", "corridor", "warehouse"}
+    assert {n for n, s in scenes.items() if s.indoor} == {"factory_hall", "corridor", "warehouse"} | HARD
+    # the harder scenes' windows and glass doors are glass
+    assert scenes["apartment"].object_by_name("living room window").material == "glass"
+    assert scenes["office_floor"].object_by_name("glass entrance door").material == "glass"

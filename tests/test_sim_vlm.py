@@ -452,7 +452,7 @@ def test_max_new_tokens_truncates_like_a_server():
 
 
 def test_features_similar_within_objects_and_dissimilar_across_labels():
-    sim = SimulatedVlm("nominal", seed=1)
+    sim = SimulatedVlm("nominal", seed=1, feature_model="perfect")
     img = frame("feat", [Obj(7, "red van", "van", 5.0, rect=(0, 0, 64, 64)), Obj(8, "blue van", "van", 5.0, rect=(64, 0, 128, 64)), Obj(9, "oak tree", "tree", 5.0, rect=(0, 64, 64, 120))], size=(150, 120))
     f = sim.features(img)
     assert f.grid.shape == (8, 10, 64) and f.grid.dtype == np.float32
@@ -463,10 +463,41 @@ def test_features_similar_within_objects_and_dissimilar_across_labels():
     assert 0.45 < cos((0, 0), (0, 5)) < 0.85  # two vans: same label, other instance (~0.64)
     assert abs(cos((0, 0), (5, 1))) < 0.5  # van vs tree
     assert f.patch_of(20.0, 70.0) == (4, 1)
-    again = SimulatedVlm("noisy", seed=1).features(img)
+    again = SimulatedVlm("noisy", seed=1, feature_model="perfect").features(img)
     assert np.array_equal(again.grid, f.grid)  # features depend on the seed and frame, not the preset
-    assert not np.array_equal(SimulatedVlm("nominal", seed=2).features(img).grid, f.grid)
+    assert not np.array_equal(SimulatedVlm("nominal", seed=2, feature_model="perfect").features(img).grid, f.grid)
     assert sim.features(VlmImage(np.zeros((4, 4, 3), np.uint8), "raw")) is None
+
+
+def test_degraded_features_blur_boundaries_bring_look_alikes_close_and_follow_texture():
+    objs = [Obj(7, "red van", "van", 5.0, rect=(0, 0, 64, 64)), Obj(8, "blue van", "van", 5.0, rect=(64, 0, 128, 64)),
+            Obj(9, "oak tree", "tree", 5.0, rect=(0, 64, 64, 128)), Obj(10, "grey box", "box", 5.0, rect=(64, 64, 128, 128))]
+    img = frame("deg", objs, size=(128, 128))
+    rgb = np.zeros((128, 128, 3), np.uint8)
+    rgb[:64, :] = (200, 30, 30)  # both vans red: a look-alike of the same colour
+    rgb[64:, :64] = (30, 140, 30)
+    rgb[64:, 64:] = (200, 30, 30)  # a box painted like the vans
+    img = VlmImage(rgb, "deg", img.annotation)
+    perfect = SimulatedVlm("nominal", seed=3, feature_model="perfect").features(img).grid
+    f = SimulatedVlm("nominal", seed=3).features(img)
+    assert f.source == "sim:degraded" and f.grid.shape == (8, 8, 64)
+    assert np.allclose(np.linalg.norm(f.grid, axis=2), 1.0, atol=1e-5)
+    g = f.grid
+    cos = lambda grid, a, b: float(grid[a] @ grid[b])  # noqa: E731
+    # Inside an object, away from boundaries: still close.
+    assert cos(g, (1, 1), (2, 2)) > 0.85
+    # Look-alikes (same label, same colour) come closer than in the perfect model, past tau.
+    assert cos(g, (1, 1), (1, 6)) > cos(perfect, (1, 1), (1, 6)) + 0.05 and cos(g, (1, 1), (1, 6)) > 0.6
+    # Texture: a box painted like the van is closer to it than to the green tree.
+    assert cos(g, (6, 6), (1, 1)) > cos(g, (6, 6), (6, 1)) + 0.1
+    assert cos(g, (6, 6), (1, 1)) > cos(perfect, (6, 6), (1, 1)) + 0.1
+    # Blurred boundaries: a van patch on the border is closer to the tree than a central one.
+    assert cos(g, (3, 1), (6, 1)) > cos(g, (1, 1), (6, 1)) + 0.05
+    # Seeded and reproducible.
+    assert np.array_equal(SimulatedVlm("noisy", seed=3).features(img).grid, g)
+    assert not np.array_equal(SimulatedVlm("nominal", seed=4).features(img).grid, g)
+    with pytest.raises(Exception, match="feature_model"):
+        SimulatedVlm("nominal", feature_model="ideal")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import tomllib
 from collections import Counter
 from pathlib import Path
 
@@ -18,9 +19,15 @@ from onfly.bench.tasks import (
     tasks_dir,
     write_task_file,
 )
+from onfly.bench.runner import BenchConfig
 from onfly.world.geometry import SceneGeometry
 from onfly.world.scene import list_scenes, load_scene, resolve_scene
 from vlm.sim.grounding import words
+
+
+PAPER_SCENES = ["corridor", "duplex", "factory_hall", "park", "parking_lot", "plaza", "terrace", "urban_block", "villa", "warehouse"]
+HARD_SCENES = ["apartment", "office_floor", "parking_garage"]
+REPO = Path(__file__).resolve().parent.parent
 
 
 @pytest.fixture(scope="module")
@@ -28,12 +35,18 @@ def tasks():
     return load_tasks()
 
 
+@pytest.fixture(scope="module")
+def hard():
+    """The harder set of issue 16 (onfly/data/tasks/hard/): its own group, not in the default."""
+    return load_tasks(sorted((tasks_dir() / "hard").glob("*.toml")))
+
+
 def test_committed_tasks_have_the_papers_composition(tasks):
     assert len(tasks) == 150
     kinds = Counter(t.kind for t in tasks)
     assert kinds == {"object": 60, "precise": 60, "long_range": 30}
     per_scene = Counter(t.scene for t in tasks)
-    assert sorted(per_scene) == list_scenes()
+    assert sorted(per_scene) == PAPER_SCENES
     assert set(per_scene.values()) == {15}
     assert len({t.task_id for t in tasks}) == 150
     assert len({t.instruction for t in tasks}) == 150
@@ -60,10 +73,10 @@ def test_long_range_tasks_are_multi_step(tasks):
             assert t.via, t.task_id
 
 
-def test_instructions_name_their_targets_so_a_grounded_vlm_can_find_them(tasks):
+def test_instructions_name_their_targets_so_a_grounded_vlm_can_find_them(tasks, hard):
     """Every target's name, one of its aliases or its label appears in the instruction words."""
     scenes = {name: load_scene(resolve_scene(name)) for name in list_scenes()}
-    for t in tasks:
+    for t in [*tasks, *hard]:
         scene = scenes[t.scene]
         text = " ".join(words(t.instruction))
         for name in t.targets:
@@ -111,7 +124,7 @@ def test_select_by_ids_scene_kind_and_count(tasks):
     assert len(sub) == 30
     assert Counter(t.kind for t in sub) == {"object": 12, "precise": 12, "long_range": 6}
     per_scene = Counter(t.scene for t in sub)
-    assert sorted(per_scene) == list_scenes() and max(per_scene.values()) <= 5
+    assert sorted(per_scene) == PAPER_SCENES and max(per_scene.values()) <= 5
     assert select_tasks(tasks, count=30) == sub  # deterministic
     with pytest.raises(ValueError, match=r"unknown task id\(s\) \['nope-1'\]"):
         select_tasks(tasks, ids=["nope-1"])
@@ -194,3 +207,85 @@ def test_duplicate_id_across_files(tmp_path):
 
 def test_committed_files_live_in_the_package():
     assert len(list(tasks_dir().glob("*.toml"))) == 10
+    assert sorted(p.stem for p in (tasks_dir() / "hard").glob("*.toml")) == HARD_SCENES
+
+
+def _config_selection(name: str) -> list[str]:
+    path = REPO / "experiments" / "configs" / name
+    data = tomllib.loads(path.read_text())
+    data.pop("paper_tables", None)  # read by experiments/paper_tables.py, not by the runner
+    cfg = BenchConfig.from_dict(data, source=str(path))
+    sel = select_tasks(load_tasks(cfg.task_files), ids=cfg.task_ids, scenes=cfg.scenes, kinds=cfg.kinds, count=cfg.count)
+    return [t.task_id for t in sel]
+
+
+def test_paper_configs_select_the_original_tasks_and_hard_selects_only_the_new(tasks, hard):
+    """The default task set stays the paper's 150 (the hard files live in a subfolder the default
+    does not read), so the paper's configs select what they selected before."""
+    paper = [t.task_id for t in tasks]
+    assert _config_selection("full.toml") == paper
+    assert _config_selection("paper_tables.toml") == paper
+    quick = _config_selection("quick.toml")
+    assert quick == [t.task_id for t in select_tasks(tasks, count=30)] and len(quick) == 30
+    assert _config_selection("paper_tables_quick.toml") == [
+        "corridor-o01", "duplex-p01", "factory_hall-o04", "park-l01", "parking_lot-p02",
+        "plaza-o01", "terrace-p01", "urban_block-o01", "villa-l01", "warehouse-p01"]  # fmt: skip
+    assert _config_selection("hard.toml") == [t.task_id for t in hard]
+    assert not set(paper) & {t.task_id for t in hard}
+
+
+def test_hard_set_composition(hard):
+    assert len(hard) >= 60
+    assert len({t.task_id for t in hard}) == len(hard) and len({t.instruction for t in hard}) == len(hard)
+    assert sorted({t.scene for t in hard}) == HARD_SCENES
+    per_scene = Counter(t.scene for t in hard)
+    assert min(per_scene.values()) >= 20
+    kinds = Counter(t.kind for t in hard)
+    assert set(kinds) == set(KINDS) and kinds["long_range"] >= 15
+    for t in hard:
+        assert t.task_id.startswith(t.scene + "-")
+        if t.kind == "long_range":
+            # multi-clause: several legs, several named objects, a route through via objects
+            assert len(t.subtasks) >= 2 and len(t.targets) >= 2 and t.via, t.task_id
+            assert len(t.instruction.split()) >= 15, t.task_id
+    first_words = Counter(t.instruction.split()[0].lower() for t in hard)
+    assert len(first_words) >= 12
+
+
+def test_hard_set_has_look_alike_goals(hard):
+    """Look-alikes: some goals share their label with another target of the same scene, so
+    they are told apart only by an attribute or a position (e.g. two chargers, two bedside
+    lamps, three whiteboards)."""
+    n = 0
+    scenes = {name: load_scene(resolve_scene(name)) for name in HARD_SCENES}
+    for t in hard:
+        scene = scenes[t.scene]
+        name = t.goal.object if t.goal.object is not None else t.targets[-1]
+        label = scene.object_by_name(name).label
+        n += sum(o.label == label for o in scene.targets) >= 2
+    assert n >= 12
+
+
+def test_every_hard_task_is_proven_by_the_checker(hard):
+    """Every hard task holds the checker's proof, and checking again reproduces it: a
+    collision-free path at the body radius (+ the proof margin) from the start through the via
+    objects to a goal point within 1.5 m of the goal, the goal visible from the path and from
+    the goal point, <= 30 m."""
+    from onfly.bench.checker import CheckerConfig, TaskChecker, goal_target
+
+    cfg = CheckerConfig()
+    checkers = {name: TaskChecker(load_scene(resolve_scene(name)), cfg) for name in HARD_SCENES}
+    for t in hard:
+        r = checkers[t.scene].check(t)
+        assert r.ok, (t.task_id, r.problems)
+        # and the goal point itself sees the goal (no goal reached through a wall)
+        assert checkers[t.scene].visible_mask(t.reference.goal_point_m[None], goal_target(t))[0], t.task_id
+        ref = t.reference
+        assert ref is not None, t.task_id
+        assert r.reference.path_length_m == pytest.approx(ref.path_length_m, abs=0.05), t.task_id
+        assert ref.min_clearance_m >= cfg.body_radius_m + cfg.proof_margin_m - 1e-3, t.task_id
+        assert ref.path_length_m <= cfg.max_path_m, t.task_id
+        np.testing.assert_allclose(ref.waypoints_m[0], t.start.position_m, atol=1e-3)
+        np.testing.assert_allclose(ref.waypoints_m[-1], ref.goal_point_m, atol=1e-3)
+        assert t.goal_region.distance(ref.goal_point_m) <= cfg.max_goal_gap_m + 1e-6, t.task_id
+        assert t.goal_region.distance(t.start.position_m) >= cfg.min_goal_distance_m - 1e-6, t.task_id

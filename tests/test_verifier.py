@@ -83,11 +83,56 @@ def render_boxes(camera: PinholeCamera, boxes, no_hit: float = np.nan) -> tuple[
 
 
 def rule_threshold(config: VerifierConfig, depth: np.ndarray, uv) -> float:
-    """The documented obstacle threshold, computed here from the config docs, not the verifier."""
+    """The documented obstacle threshold at pixel uv, computed here from the config docs."""
     col, row = int(math.floor(uv[0] + 0.5)), int(math.floor(uv[1] + 0.5))
     d = float(depth[row, col])
     ref = min(d, config.d_max_m) if (math.isfinite(d) and d > 0) else config.d_max_m
     return max(config.obstacle_depth_m, ref - config.foreground_margin_m)
+
+
+def surface_bruteforce(depth: np.ndarray, uv, ratio: float, band_m: float) -> np.ndarray:
+    """The target's surface by graph components (scipy), independently of the verifier's flood
+    fill: 4-neighbours with readings within band_m of the seed, |ln z_a - ln z_b| <= ln(1 + ratio)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    col, row = int(math.floor(uv[0] + 0.5)), int(math.floor(uv[1] + 0.5))
+    z = depth.astype(np.float64)
+    d = z[row, col]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ok = np.isfinite(z) & (z > 0) & (np.abs(z - d) <= band_m)
+        lz = np.log(np.where(ok, z, 1.0))
+    h, w = z.shape
+    idx = np.arange(h * w).reshape(h, w)
+    tol = math.log1p(ratio) + 1e-6
+    pairs = []
+    for a, b, la, lb, oa, ob in (
+        (idx[:, :-1], idx[:, 1:], lz[:, :-1], lz[:, 1:], ok[:, :-1], ok[:, 1:]),
+        (idx[:-1], idx[1:], lz[:-1], lz[1:], ok[:-1], ok[1:]),
+    ):
+        e = oa & ob & (np.abs(la - lb) <= tol)
+        pairs.append((a[e], b[e]))
+    i = np.concatenate([p[0] for p in pairs])
+    j = np.concatenate([p[1] for p in pairs])
+    graph = coo_matrix((np.ones(len(i)), (i, j)), shape=(h * w, h * w))
+    _, lab = connected_components(graph, directed=False)
+    lab = lab.reshape(h, w)
+    return (lab == lab[row, col]) & ok
+
+
+def rule_obstacles(config: VerifierConfig, depth: np.ndarray, target_uv, refined_uv, camera) -> np.ndarray:
+    """Obstacle points of the documented rule evaluated at the refined pixel: readings closer than
+    T(refined depth), except the target's surface at or beyond d_ref - margin."""
+    T = rule_threshold(config, depth, refined_uv)
+    col, row = int(math.floor(refined_uv[0] + 0.5)), int(math.floor(refined_uv[1] + 0.5))
+    d_ref = min(float(depth[row, col]), config.d_max_m)
+    z = depth.astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        obst = np.isfinite(z) & (z > 0) & (z < T)
+        if config.obstacle_depth_m > d_ref - config.foreground_margin_m:
+            surf = surface_bruteforce(depth, target_uv, config.surface_jump_ratio, config.foreground_margin_m)
+            obst &= ~(surf & (z >= d_ref - config.foreground_margin_m))
+    return camera.rays()[obst] * z[obst][:, None]
 
 
 def obstacle_points(camera: PinholeCamera, depth: np.ndarray, threshold_m: float) -> np.ndarray:
@@ -96,6 +141,11 @@ def obstacle_points(camera: PinholeCamera, depth: np.ndarray, threshold_m: float
     with np.errstate(invalid="ignore"):
         obst = np.isfinite(d) & (d > 0) & (d < threshold_m)
     return camera.rays()[obst] * d[obst][:, None]
+
+
+def reading_points(camera: PinholeCamera, depth: np.ndarray) -> np.ndarray:
+    """Every reading, back-projected (n, 3)."""
+    return obstacle_points(camera, depth, np.inf)
 
 
 def point_clearance(P: np.ndarray, X: np.ndarray) -> float:
@@ -151,11 +201,25 @@ def exact_nearest_feasible(cam, depth, labels, uv, label, roi, threshold_m) -> f
 
 
 def assert_safe(result, cand: CandidateGoal, config: VerifierConfig) -> None:
-    """The returned goal and the path to it clear every rule obstacle by r (brute force)."""
+    """The returned goal and the path to it clear every rule obstacle by r (brute force).
+
+    Refined goals: the rule evaluated at the refined pixel. Skipped refinement (far or unread
+    target): every reading, and an unread target's goal stays in front of its bounding surface."""
     assert result.accepted and result.goal_world is not None
-    assert result.record.ray_clearance_m > config.clearance_radius_m
+    rec = result.record
     X_cam = transform_points(invert_transform(cand.T_world_cam), result.goal_world)
-    P = obstacle_points(cand.camera, cand.depth_m, rule_threshold(config, cand.depth_m, cand.pixel_uv))
+    if rec.refinement_ran:
+        assert rec.ray_clearance_m > config.clearance_radius_m
+        P = rule_obstacles(config, cand.depth_m, cand.pixel_uv, rec.refined_uv, cand.camera)
+        assert rec.obstacle_threshold_m == pytest.approx(rule_threshold(config, cand.depth_m, rec.refined_uv))
+        if math.isfinite(rec.clear_range_m):  # a near target's goal clears every reading
+            assert X_cam[2] <= rec.clear_range_m + 1e-9
+            assert segment_clearance(reading_points(cand.camera, cand.depth_m), X_cam) >= config.clearance_radius_m - 1e-9
+    else:
+        P = reading_points(cand.camera, cand.depth_m)
+        assert X_cam[2] <= rec.clear_range_m + 1e-9
+        if rec.refinement_note is RefinementNote.NO_DEPTH_READING:
+            assert X_cam[2] <= rec.bound_depth_m - config.clearance_radius_m * 0.5
     assert point_clearance(P, X_cam) >= config.clearance_radius_m - 1e-9
     assert segment_clearance(P, X_cam) >= config.clearance_radius_m - 1e-9
 
@@ -178,6 +242,8 @@ def assert_safe(result, cand: CandidateGoal, config: VerifierConfig) -> None:
         ("reject_no_reading", 1),
         ("connectivity", 6),
         ("radius_class_ratio", 1.0),
+        ("surface_jump_ratio", 0.0),
+        ("min_range_m", -1.0),
     ],
 )
 def test_config_rejects_bad_field(field, value):
@@ -284,16 +350,94 @@ def test_refinement_never_leaves_the_semantic_region():
     assert_safe(geo, cand, VerifierConfig())
 
 
-def test_pixel_on_an_obstacle_is_moved_off_it_or_rejected():
-    cam, depth, labels = edge_scene(5.0, 1.5)
-    feats = onehot_features(labels, 16, 2)
-    uv = (345.0, 240.0)  # on the obstacle (1.5 m < obstacle_depth_m = 2 m)
-    sem = Verifier().verify(candidate(uv, depth, cam, feats))
-    assert not sem.accepted and sem.record.rejection is RejectionReason.NO_FEASIBLE_PIXEL
+def pole_and_box():
+    """The issue's case: a pole 1.5 m away (columns 312-327, label 1) in front of a box face at
+    3 m (label 0) filling the rest of the square camera's view."""
+    cam = square_camera()
+    depth = np.full(cam.shape, 3.0, np.float32)
+    labels = np.zeros(cam.shape, dtype=int)
+    depth[:, 312:328] = 1.5
+    labels[:, 312:328] = 1
+    return cam, depth, labels
+
+
+@pytest.mark.parametrize("with_features", [False, True])
+def test_pole_and_box_keeps_the_goal_on_the_pole(with_features):
+    cam, depth, labels = pole_and_box()
+    feats = onehot_features(labels, 16, 2) if with_features else None
+    uv = (320.0, 240.0)
+    cand = candidate(uv, depth, cam, feats)
+    res = Verifier().verify(cand)
+    rec = res.record
+    # The pole is the target's own surface: the near-field rule does not push the goal onto the
+    # box behind it (the old geometric search gave pixel (192, 107) at 3.0 m, note no_features).
+    assert res.accepted and rec.refined_uv == uv and rec.refined_depth_m == 1.5
+    assert rec.geometric_only is (not with_features)
+    assert rec.obstacle_threshold_m == 2.0
+    # On the pole's ray, r in front of the pole (the clear part of the ray): 1.5 - 0.2 m.
+    assert rec.clear_range_m == pytest.approx(1.3, abs=1e-5)
+    np.testing.assert_allclose(res.goal_world, [0.0, 0.0, 1.3], atol=1e-5)
+    assert_safe(res, cand, VerifierConfig())
+
+
+def test_pole_and_box_target_on_the_box_stays_on_the_box_without_features():
+    cam, depth, labels = pole_and_box()
+    uv = (332.0, 240.0)  # on the box, 4 px right of the pole: its ray grazes the pole
     cand = candidate(uv, depth, cam, None)
-    geo = Verifier().verify(cand)
-    assert geo.accepted and geo.record.refined_uv[0] < 336
-    assert_safe(geo, cand, VerifierConfig())
+    res = Verifier().verify(cand)
+    rec = res.record
+    assert res.accepted and rec.geometric_only and rec.refinement_note is RefinementNote.NO_FEATURES
+    u2, v2 = rec.refined_uv
+    assert labels[int(v2), int(u2)] == 0 and u2 > 328 and rec.refined_depth_m == 3.0
+    # The component is the box surface right of the pole only (the pole splits the ROI).
+    assert rec.component_size_px == 128 * (396 - 328)
+    assert_safe(res, cand, VerifierConfig())
+
+
+def test_surface_region_is_bounded_by_depth_edges_and_the_band():
+    cam, depth, _ = pole_and_box()
+    from planning.verifier import surface_region
+
+    pole = surface_region(depth, 240, 320, 0.1, 1.0)
+    assert pole.sum() == 480 * 16 and pole[:, 312:328].all()
+    # A slanted surface (depth growing 2 % per column) is one surface; a 15 % step splits it.
+    ramp = np.tile((3.0 * 1.02 ** np.arange(64)).astype(np.float32), (8, 1))
+    ramp[:, 40:] *= 1.15
+    region = surface_region(ramp, 4, 0, 0.1, math.inf)
+    assert region[:, :40].all() and not region[:, 40:].any()
+    # The band stops a continuous surface 1 m beyond the seed's depth.
+    region = surface_region(ramp, 4, 0, 0.1, 1.0)
+    assert region.any(axis=0).sum() == int(np.sum(np.abs(ramp[0, :40] - 3.0) <= 1.0))
+    with pytest.raises(ValueError, match="no reading"):
+        surface_region(np.zeros((4, 4), np.float32), 1, 1, 0.1, 1.0)
+
+
+def test_obstacle_rule_is_evaluated_at_the_refined_pixel():
+    """The target's semantic region has a 3 m part (where the VLM pointed, next to an obstacle
+    at 1.5 m) and a 6 m part; a post at 4.5 m is no obstacle for a goal at 3 m (T = 2 m) but is
+    one for a goal at 6 m (T = 5 m). The nearest pixel clearing the 1.5 m obstacle lies on the 6 m
+    part right beside the post: the rule at the refined pixel must reject it."""
+    cam = square_camera()
+    depth = np.full(cam.shape, 6.0, np.float32)
+    labels = np.zeros(cam.shape, dtype=int)
+    depth[:, 300:336] = 3.0
+    depth[:, 336:] = 1.5
+    labels[:, 336:] = 1
+    depth[200:280, 286:292] = 4.5
+    labels[200:280, 286:292] = 2
+    feats = onehot_features(labels, 2, 3)
+    uv = (334.0, 240.0)
+    cand = candidate(uv, depth, cam, feats, patch=2.0)
+    res = Verifier().verify(cand)
+    post = obstacle_points(cam, np.where(labels == 2, depth, np.nan).astype(np.float32), np.inf)
+    # The target's own rule alone would accept (293, 240), 0.02 m from the post's ray.
+    assert ray_clearance(post, cam, (293.0, 240.0)) < R_M
+    assert res.accepted
+    rec = res.record
+    u2, v2 = rec.refined_uv
+    assert rec.refined_depth_m == 6.0 and rec.obstacle_threshold_m == 5.0
+    assert ray_clearance(post, cam, rec.refined_uv) >= R_M
+    assert_safe(res, cand, VerifierConfig())
 
 
 @pytest.mark.parametrize("connectivity, accepted", [(4, False), (8, True)])
@@ -355,12 +499,32 @@ def test_beyond_d_max_skips_refinement_and_clamps_the_range():
     np.testing.assert_allclose(res.goal_world, cam.back_project(np.array(uv), 7.0 * rec.gating_factor), atol=1e-12)
 
 
-def test_beyond_d_max_next_to_a_foreground_obstacle_is_rejected_not_moved():
-    cam, depth, labels = edge_scene(10.0, 3.0)  # obstacle at 3 m < 7 - 1 m
-    res = Verifier().verify(candidate((330.0, 240.0), depth, cam, onehot_features(labels, 16, 2)))
-    assert not res.accepted and res.goal_world is None
-    assert res.record.rejection is RejectionReason.UNREFINED_TARGET_UNSAFE
-    assert res.record.refinement_note is RefinementNote.BEYOND_D_MAX and res.record.ray_clearance_m < R_M
+def test_beyond_d_max_next_to_a_foreground_obstacle_is_kept_with_the_range_gated_by_hand():
+    cam, depth, labels = edge_scene(10.0, 3.0)  # obstacle at 3 m for columns >= 336
+    uv = (330.0, 240.0)
+    cand = candidate(uv, depth, cam, onehot_features(labels, 16, 2))
+    res = Verifier().verify(cand)
+    rec = res.record
+    # Kept per the paper (p' = p) ...
+    assert res.accepted and rec.refined_uv == uv and rec.refinement_note is RefinementNote.BEYOND_D_MAX
+    # ... with the range cut where the ray first comes within r of a reading. By hand: the ray
+    # through column 330 has unit direction dvec; the nearest obstacle points are column 336 at
+    # 3 m (rows around 240); the ray enters the ball of radius r around Y at a - sqrt(r^2 - q^2).
+    dvec = np.array([10.0 / 320.0, 0.0, 1.0])
+    dvec /= np.linalg.norm(dvec)
+    Y = np.array([16.0 / 320.0 * 3.0, 0.0, 3.0])
+    a = float(Y @ dvec)
+    q2 = float(Y @ Y - a * a)
+    z_clear = (a - math.sqrt(R_M * R_M - q2)) * dvec[2]
+    assert 2.79 < z_clear < 2.83
+    assert rec.clear_range_m == pytest.approx(z_clear, abs=1e-5)
+    assert rec.range_m == pytest.approx(min(7.0 * rec.gating_factor, rec.clear_range_m), abs=1e-12)
+    assert_safe(res, cand, VerifierConfig())
+    # A ray that hits a reading right in front of the camera leaves no useful goal.
+    depth[230:250, 332:340] = 0.4  # beside the target pixel, which keeps its 10 m reading
+    res = Verifier().verify(candidate(uv, depth, cam))
+    assert not res.accepted and res.record.rejection is RejectionReason.UNREFINED_TARGET_UNSAFE
+    assert res.record.clear_range_m < 0.5
 
 
 # -- step 2: gating and the world transform -------------------------------------------------------
@@ -420,25 +584,50 @@ def test_goal_round_trips_through_camera_model_and_pose():
 
 
 @pytest.mark.parametrize("hole", [np.nan, 0.0, np.inf])
-def test_no_reading_at_target_goes_to_d_max_when_clear(hole):
-    cam, depth, labels = edge_scene(5.0, 1.5)
-    depth[200:280, 100:180] = hole
-    uv = (140.0, 240.0)
-    res = Verifier().verify(candidate(uv, depth, cam, onehot_features(labels, 16, 2)))
+@pytest.mark.parametrize("with_features", [False, True])
+def test_hole_in_the_wall_gives_no_goal_behind_the_wall(hole, with_features):
+    """Issue 17: a wall at 5 m with a 40 x 40 px patch of no readings (glass, a dark surface);
+    the VLM points into the patch. The default config never treats the patch as open space."""
+    cam = square_camera()
+    depth = np.full(cam.shape, 5.0, np.float32)
+    depth[220:260, 300:340] = hole
+    feats = np.ones((30, 40, 4)) if with_features else None
+    uv = (320.0, 240.0)
+    cand = candidate(uv, depth, cam, feats)
+    res = Verifier().verify(cand)
     rec = res.record
     assert res.accepted and rec.refinement_note is RefinementNote.NO_DEPTH_READING and not rec.refinement_ran
-    assert math.isnan(rec.target_depth_m) and rec.refined_depth_m == 7.0 and rec.refined_uv == uv
-    strict = Verifier(VerifierConfig(reject_no_reading=True)).verify(candidate(uv, depth, cam))
+    assert rec.bound_depth_m == 5.0 and rec.refined_uv == uv
+    # The goal stays r in front of the wall's plane: on axis, exactly 5 - 0.2 m.
+    assert rec.clear_range_m == pytest.approx(4.8, abs=1e-5)  # (a micron short of the ball)
+    np.testing.assert_allclose(res.goal_world, [0.0, 0.0, 4.8], atol=1e-5)
+    assert_safe(res, cand, VerifierConfig())
+    for u in np.linspace(300.0, 339.0, 7):  # anywhere in the patch
+        r = Verifier().verify(candidate((float(u), 230.0), depth, cam, feats))
+        assert r.accepted and r.goal_world[2] < 5.0 - 0.19
+    strict = Verifier(VerifierConfig(reject_no_reading=True)).verify(cand)
     assert not strict.accepted and strict.record.rejection is RejectionReason.NO_DEPTH_AT_TARGET
 
 
 @pytest.mark.parametrize("hole", [np.nan, 0.0])
-def test_no_reading_next_to_an_obstacle_is_rejected(hole):
+def test_no_reading_next_to_a_near_obstacle_is_bounded_by_it(hole):
     cam, depth, labels = edge_scene(5.0, 1.5)
-    depth[230:250, 325:336] = hole
-    res = Verifier().verify(candidate((330.0, 240.0), depth, cam, onehot_features(labels, 16, 2)))
-    assert not res.accepted and res.goal_world is None
-    assert res.record.rejection is RejectionReason.UNREFINED_TARGET_UNSAFE
+    depth[230:250, 325:336] = hole  # the hole borders the wall (5 m) and the obstacle (1.5 m)
+    cand = candidate((330.0, 240.0), depth, cam, onehot_features(labels, 16, 2))
+    res = Verifier().verify(cand)
+    rec = res.record
+    assert rec.bound_depth_m == 1.5
+    assert res.accepted and res.goal_world[2] < 1.5 - 0.19
+    assert_safe(res, cand, VerifierConfig())
+
+
+def test_no_reading_anywhere_near_the_target_is_rejected():
+    cam = square_camera()
+    depth = np.full(cam.shape, 5.0, np.float32)
+    depth[100:400, 100:500] = np.nan  # a hole larger than the 128 px ROI around the target
+    res = Verifier().verify(candidate((320.0, 240.0), depth, cam))
+    assert not res.accepted and res.record.rejection is RejectionReason.NO_DEPTH_AT_TARGET
+    assert res.record.refinement_note is RefinementNote.NO_DEPTH_READING
 
 
 @pytest.mark.parametrize("fill", [np.nan, 0.0, np.inf, -1.0])
@@ -543,8 +732,9 @@ def test_property_goal_clears_every_visible_obstacle_by_r():
             stats["skipped"] += not res.record.refinement_ran
             assert_safe(res, cand, cfg)
             X_cam = transform_points(invert_transform(T), res.goal_world)
-            P = obstacle_points(cam, depth, rule_threshold(cfg, depth, uv))
-            assert ray_clearance(P, cam, res.record.refined_uv) >= cfg.clearance_radius_m - 1e-9
+            if res.record.refinement_ran:  # the whole ray clears the rule at the refined pixel
+                P = rule_obstacles(cfg, depth, uv, res.record.refined_uv, cam)
+                assert ray_clearance(P, cam, res.record.refined_uv) >= cfg.clearance_radius_m - 1e-9
             assert X_cam[2] <= cfg.d_max_m + 1e-9
     # The property is not vacuous: many goals accepted, many of them moved or unrefined.
     assert stats["accepted"] >= 300 and stats["moved"] >= 60 and stats["skipped"] >= 30 and stats["rejected"] >= 30, stats

@@ -183,10 +183,25 @@ class HttpBackend:
     """Client of an OpenAI-compatible chat-completions server (see the module docstring).
 
     Each call opens its own connection, so one backend may be shared by several threads.
+
+    The OpenAI API returns no vision features. ``feature_source`` gives the verifier features
+    anyway: any object with ``features(image)`` (e.g. a :class:`vlm.backend_transformers.
+    TransformersBackend` of the served model's family, loaded in process for its vision tower)
+    or a callable ``image -> VisionFeatures | None`` (any configured image encoder). Without
+    one, :meth:`features` returns None and the verifier refines on the target's depth surface
+    (:mod:`planning.verifier`).
     """
 
-    def __init__(self, config: HttpBackendConfig) -> None:
+    def __init__(self, config: HttpBackendConfig, *, feature_source=None) -> None:
         self.config = config
+        if feature_source is None:
+            self._feature_fn = None
+        elif callable(getattr(feature_source, "features", None)):
+            self._feature_fn = feature_source.features
+        elif callable(feature_source):
+            self._feature_fn = feature_source
+        else:
+            raise TypeError(f"feature_source must have features(image) or be callable, got {type(feature_source).__name__}")
         self.name = f"http:{config.model}"
         parsed = urllib.parse.urlsplit(config.base_url)
         self._https = parsed.scheme == "https"
@@ -257,8 +272,13 @@ class HttpBackend:
                                    f"{_snippet(json.dumps(body))}") from exc
 
     def features(self, image: VlmImage) -> VisionFeatures | None:
-        """None: the OpenAI API exposes no vision features."""
-        return None
+        """Features from the local ``feature_source``; None without one (the API has none)."""
+        if self._feature_fn is None:
+            return None
+        result = self._feature_fn(image)
+        if result is not None and not isinstance(result, VisionFeatures):
+            raise TypeError(f"feature_source returned {type(result).__name__}, expected VisionFeatures or None")
+        return result
 
     def close(self) -> None:
         with self._lock:

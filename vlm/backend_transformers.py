@@ -19,11 +19,12 @@ Decoding is greedy and runs its own token loop so that three things stay under o
   positions are computed for the whole prompt once and sliced, so the suffix sees the same
   positions as in an uncached run.
 - **Vision encoding once per frame.** Per-image vision outputs are kept in a small LRU keyed
-  like the prefix (frame id + digest), so a frame shown to both agents is encoded once.
+  like the prefix (frame id + digest), so a frame shown to both agents is encoded once, and
+  ``features(image)`` reads the same entry: the decision prompt, the monitoring prompt and the
+  verifier share one vision pass per frame (``vision_encoder_runs`` counts them per frame).
 
-``features(image)`` runs the vision tower on the image scaled uniformly (aspect kept) and
-zero-padded to a multiple of the merged patch, and returns the merged patch grid
-(Hp, Wp, C) with ``patch_px`` in original-image pixels.
+``features(image)`` returns the merged patch embeddings the language model reads for the frame,
+resampled onto a square patch grid in original-image pixels.
 
 ``json_schema`` is accepted and not enforced: there is no constrained decoding in-process; the
 prompt carries the output format and the parsers judge the text.
@@ -89,7 +90,8 @@ class TransformersBackendConfig:
     dtype : ``"auto"`` (float32 on CPU, bfloat16 on CUDA), ``"float32"``, ``"bfloat16"``, ``"float16"``
     max_streams : number of ``cache_key`` streams whose KV-cache is kept (LRU)
     reuse_prefix : False disables prefix reuse (every call is a full prefill)
-    image_cache_size : frames whose vision outputs are kept (LRU)
+    image_cache_size : frames whose vision outputs are kept (LRU); the prompts and ``features()``
+        share them, so 0 makes every reader run the vision tower again
     image_max_pixels, image_min_pixels : override the processor's pixel budget (resized pixels)
     num_threads : torch intra-op threads; 0 leaves torch's setting alone
     """
@@ -226,6 +228,8 @@ class TransformersBackend:
         self._streams: OrderedDict[str, _Stream] = OrderedDict()
         self._images: OrderedDict[tuple[str, str], _EncodedImage] = OrderedDict()
         self._lock = threading.Lock()
+        self._runs_lock = threading.Lock()
+        self._vision_runs: dict[str, int] = {}
         self._closed = False
 
     # ----------------------------------------------------------------------------- public API
@@ -269,37 +273,51 @@ class TransformersBackend:
             self._lock.release()
 
     def features(self, image: VlmImage) -> VisionFeatures:
-        """Merged vision-tower patch features of ``image``.
+        """Vision features of ``image`` from the *same* vision pass the prompts use.
+
+        The frame is encoded once (the processor's own resize, exactly as for :meth:`complete`)
+        and its merged patch embeddings -- the vectors the language model reads for that image
+        -- are kept in the image LRU; the decision prompt, the monitoring prompt and this call
+        all read that entry, so one camera frame costs one vision-encoder run
+        (:attr:`vision_encoder_runs`). The processor's resize may scale x and y slightly
+        differently; the token grid is resampled (nearest token centre, nothing interpolated)
+        onto square patches of the smaller token side so the grid covers the image as
+        :class:`VisionFeatures` requires.
 
         Returns
         -------
-        VisionFeatures with ``grid`` float32 (Hp, Wp, C_text): one vector per merged patch
-        (one image token), raster order; ``patch_px`` the side of a merged patch in original
-        pixels. The image is scaled by one factor (aspect kept) to fit the pixel budget and
-        zero-padded right/bottom, so the grid may reach past the image edge.
+        VisionFeatures with ``grid`` float32 (Hp, Wp, C_text), ``patch_px`` in original pixels,
+        ``source`` ``"<model_type>.visual"``. These are post-merger (language-space) vectors;
+        the verifier's tau = 0.5 has not been checked on them with real weights (see
+        :mod:`planning.verifier_config`, "Threshold and ROI per feature source").
         """
         import torch
-        from PIL import Image
 
         w, h = image.size
-        scale = self._feature_scale(w, h)
-        rw, rh = max(1, round(w * scale)), max(1, round(h * scale))
-        pw = math.ceil(rw / self._merge_px) * self._merge_px
-        ph = math.ceil(rh / self._merge_px) * self._merge_px
-        canvas = Image.new("RGB", (pw, ph))
-        canvas.paste(Image.fromarray(np.ascontiguousarray(image.rgb)).resize((rw, rh), Image.BICUBIC), (0, 0))
         with self._lock, torch.inference_mode():
-            out = self._image_processor(images=[canvas], do_resize=False, return_tensors="pt")
-            grid = out["image_grid_thw"].to(self._device)
-            vision = self._model.model.get_image_features(out["pixel_values"].to(self._device), grid)
-            embeds = vision.pooler_output[0].float().cpu().numpy()
-        hp, wp = ph // self._merge_px, pw // self._merge_px
+            encoded = self._encode_image(image, _image_key(image))
+            embeds = encoded.embeds.float().cpu().numpy()
+            _, gh, gw = (int(x) for x in encoded.grid_thw.tolist())
+        merge = self._merge
+        hm, wm = gh // merge, gw // merge
+        tokens = embeds.reshape(hm, wm, -1)
+        sx, sy = w / wm, h / hm  # original pixels per token, x and y
+        patch = min(sx, sy)
+        hp, wp = math.ceil(h / patch - 1e-9), math.ceil(w / patch - 1e-9)
+        ti = np.minimum(((np.arange(hp) + 0.5) * patch / sy).astype(np.intp), hm - 1)
+        tj = np.minimum(((np.arange(wp) + 0.5) * patch / sx).astype(np.intp), wm - 1)
         return VisionFeatures(
-            grid=embeds.reshape(hp, wp, -1).astype(np.float32),
-            patch_px=self._merge_px / scale,
+            grid=np.ascontiguousarray(tokens[np.ix_(ti, tj)], dtype=np.float32),
+            patch_px=float(patch),
             image_size=(w, h),
             source=f"{self.model_type}.visual",
         )
+
+    @property
+    def vision_encoder_runs(self) -> dict[str, int]:
+        """Vision-tower runs per frame id since construction (a copy)."""
+        with self._runs_lock:
+            return dict(self._vision_runs)
 
     def reset_cache(self, cache_key: str | None = None) -> None:
         """Drop the kept KV-cache of one stream (or of all streams, and the image cache)."""
@@ -418,6 +436,8 @@ class TransformersBackend:
                                     size=self._size, return_tensors="pt")
         grid = out["image_grid_thw"].to(self._device)
         vision = self._model.model.get_image_features(out["pixel_values"].to(self._device), grid)
+        with self._runs_lock:
+            self._vision_runs[image.frame_id] = self._vision_runs.get(image.frame_id, 0) + 1
         deepstack = tuple(layer[0] for layer in (getattr(vision, "deepstack_features", None) or ()))
         encoded = _EncodedImage(grid_thw=grid[0], embeds=vision.pooler_output[0], deepstack=deepstack)
         if self.config.image_cache_size:
@@ -482,19 +502,6 @@ class TransformersBackend:
         grids = torch.stack([e.grid_thw for e in encoded]) if encoded else None
         positions, _ = self._model.model.get_rope_index(input_ids, mm_token_type_ids=mm_types, image_grid_thw=grids)
         return positions
-
-    def _feature_scale(self, w: int, h: int) -> float:
-        """One scale factor mapping the image into the processor's pixel budget."""
-        max_px = float(self._size.get("longest_edge") or self._merge_px**2 * 1280)
-        min_px = float(self._size.get("shortest_edge") or self._merge_px**2 * 4)
-        scale = math.sqrt(max_px / (w * h)) if w * h > max_px else 1.0
-        if w * h * scale * scale < min_px:
-            scale = math.sqrt(min_px / (w * h))
-        # Padding up to whole merged patches must stay inside the budget.
-        while (math.ceil(w * scale / self._merge_px) * math.ceil(h * scale / self._merge_px)
-               * self._merge_px**2 > max_px) and scale * min(w, h) > self._merge_px:
-            scale *= 0.98
-        return scale
 
     def _find_chat_template(self, path: str) -> str:
         if getattr(self._tokenizer, "chat_template", None):

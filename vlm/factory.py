@@ -96,18 +96,19 @@ def _make_http(spec: str, kind: str, rest: str, options: dict) -> VlmBackend:
         url = "http://" + url
     if not url.split("://", 1)[1].strip("/"):
         raise _bad_spec(spec, "http needs a server address")
+    feature_source = options.pop("feature_source", None)  # a local vision-feature source (HttpBackend docs)
     _checked_options(HttpBackendConfig, options, ("base_url", "model"))
     try:
         config = HttpBackendConfig(base_url=url, model=model.strip() or "unresolved", **options)
     except ValueError as exc:
         raise _bad_spec(spec, str(exc)) from exc
-    backend = HttpBackend(config)
+    backend = HttpBackend(config, feature_source=feature_source)
     if model.strip():
         return backend
     models = backend.list_models(timeout_s=min(config.timeout_s, 5.0))
     if not models:
         raise ValueError(f"{url} serves no models; name one with {spec}#<model>")
-    return HttpBackend(dataclasses.replace(config, model=models[0]))
+    return HttpBackend(dataclasses.replace(config, model=models[0]), feature_source=feature_source)
 
 
 def _make_transformers(spec: str, path: str, options: dict) -> VlmBackend:

@@ -198,17 +198,20 @@ def build_monitor_prompt(
     """Monitoring-agent prompt over the hybrid memory ``[o_1, Q_t, o_t]``.
 
     ``keyframes`` must already be in time order, oldest first. Images are returned as
-    ``[first, *keyframes, latest]``.
+    ``[first, *keyframes, latest]``. What changes least comes first (system, first frame,
+    keyframes, subtask, latest frame): a subtask advance keeps the cached image prefix.
     """
     tpl = load_template("monitor")
     first = _check_image(first, "first")
     latest = _check_image(latest, "latest")
     keyframes = [_check_image(k, f"keyframes[{i}]") for i, k in enumerate(keyframes)]
-    parts = [tpl.render("user_head", subtask=_one_line(subtask, "subtask"))]
+    subtask = _one_line(subtask, "subtask")
+    parts = [tpl.render("user_head")]
     if keyframes:
         parts += [tpl.render("keyframe", index=i + 1) for i in range(len(keyframes))]
     else:
         parts.append(tpl.render("no_keyframes"))
+    parts.append(tpl.render("subtask", subtask=subtask))
     parts.append(tpl.render("user_tail"))
     messages = [ChatMessage("system", tpl.render("system")), ChatMessage("user", "\n".join(parts))]
     return messages, [first, *keyframes, latest]
@@ -441,8 +444,9 @@ def parse_prompt(
         )
     tpl = load_template("monitor")
     if system == tpl.render("system"):
-        head = _template_regex(tpl, "user_head", {"subtask": r"[^\n]+"})
-        m = head.match(user)
+        if not user.startswith(tpl.render("user_head")):
+            return None
+        m = re.search("^" + _template_regex(tpl, "subtask", {"subtask": r"[^\n]+"}).pattern + "$", user, re.MULTILINE)
         if m is None:
             return None
         n_keyframes = len(re.findall(_template_regex(tpl, "keyframe", {"index": r"\d+"}).pattern, user))

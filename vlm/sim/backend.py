@@ -35,7 +35,7 @@ from vlm.prompts import (
     prompt_segments,
 )
 from vlm.sim.error_model import ErrorModel, ErrorModelError, LatencyModel, get_preset
-from vlm.sim.features import keyed_rng, synthetic_features
+from vlm.sim.features import FEATURE_MODELS, degraded_features, keyed_rng, synthetic_features
 from vlm.sim.grounding import Region, anchor_pixel, exploration_point, ground, region_of, visible_regions, words
 from vlm.types import (
     CallStatus,
@@ -105,6 +105,8 @@ class SimulatedVlm:
     seed : int, the root of every random draw
     latency : LatencyModel (defaults: the paper's Jetson Orin NX numbers)
     feature_dim, patch_px : size of the synthetic features (:mod:`vlm.sim.features`)
+    feature_model : ``"degraded"`` (default: features that err like a real ViT's,
+        :func:`vlm.sim.features.degraded_features`) or ``"perfect"`` (ground-truth instance ids)
     """
 
     def __init__(
@@ -115,12 +117,16 @@ class SimulatedVlm:
         latency: LatencyModel | None = None,
         feature_dim: int = 64,
         patch_px: int = 16,
+        feature_model: str = "degraded",
     ) -> None:
         self.model = preset if isinstance(preset, ErrorModel) else get_preset(preset)
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
             raise ErrorModelError(f"seed must be an int, got {seed!r}")
         if feature_dim < 2 or patch_px < 1:
             raise ErrorModelError(f"feature_dim must be >= 2 and patch_px >= 1, got {feature_dim}, {patch_px}")
+        if feature_model not in FEATURE_MODELS:
+            raise ErrorModelError(f"feature_model must be one of {FEATURE_MODELS}, got {feature_model!r}")
+        self.feature_model = feature_model
         self.seed = int(seed)
         self.latency = latency if latency is not None else LatencyModel()
         self.feature_dim = int(feature_dim)
@@ -141,11 +147,15 @@ class SimulatedVlm:
             self._prefix.clear()
 
     def features(self, image: VlmImage) -> VisionFeatures | None:
-        """Synthetic patch features (:mod:`vlm.sim.features`); None for a frame without annotation."""
+        """Synthetic patch features (:mod:`vlm.sim.features`, ``feature_model``); None for a frame
+        without annotation."""
         if image.annotation is None:
             log.debug("frame %s has no annotation: no simulated features", image.frame_id)
             return None
-        return synthetic_features(image.annotation, image.frame_id, seed=self.seed, dim=self.feature_dim, patch_px=self.patch_px)
+        if self.feature_model == "perfect":
+            return synthetic_features(image.annotation, image.frame_id, seed=self.seed, dim=self.feature_dim, patch_px=self.patch_px)
+        return degraded_features(image.annotation, image.rgb, image.frame_id, seed=self.seed, dim=self.feature_dim,
+                                 patch_px=self.patch_px)
 
     def complete(
         self,
