@@ -20,6 +20,14 @@ Measured in the same run:
   within one voxel of an observed obstacle voxel (geometry the camera never saw cannot be in
   any map) and that are at least one voxel from the surface.
 
+Three maps run on the same frames and are printed side by side: ``before`` (the old defaults:
+unknown space free, no body sphere, no clearing by pixels without a reading, a 10 x 10 x 4 m
+window), ``window only`` (the same in the new window) and ``after`` (``EsdfConfig()``: unknown
+is an obstacle, bounded no-reading clearing, a body sphere, a 16 x 16 x 5 m window covering
+D_max). Also reported: the largest *optimistic*
+error (the field above the truth, the unsafe direction), the share of seen-free sample points
+the map reads free, and the share of the last camera's view cone (0.5-7 m) the map knows.
+
 Run: ``.venv/bin/python experiments/bench_esdf.py --json /tmp/bench_esdf.json``
 """
 
@@ -151,24 +159,17 @@ def error_points(scene, esdf: EsdfMap, camera: PinholeCamera, frames, rng) -> tu
     return P[keep], truth[keep]
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--frames", type=int, default=150)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--obstacles", type=int, default=60)
-    ap.add_argument("--speed-mps", type=float, default=0.6)
-    ap.add_argument("--rate-hz", type=float, default=15.0)
-    ap.add_argument("--reference-every", type=int, default=10)
-    ap.add_argument("--unknown-policy", choices=["free", "occupied"], default="free")
-    ap.add_argument("--json", type=str, default=None, help="write the results here")
-    args = ap.parse_args(argv)
+#: The configurations compared in one run: the map before issue 17 (main's old defaults), the
+#: old map in the new window (the cost of item 3 alone) and the new defaults.
+CONFIGS = {
+    "before": EsdfConfig(unknown_policy="free", no_reading_clear_m=0.0, body_clear_radius_m=0.0, size_m=(10.0, 10.0, 4.0)),
+    "window only": EsdfConfig(unknown_policy="free", no_reading_clear_m=0.0, body_clear_radius_m=0.0),
+    "after": EsdfConfig(),
+}
 
-    config = EsdfConfig(unknown_policy=args.unknown_policy)
-    camera = PinholeCamera.from_fov(640, 480, 90.0, 60.0)
-    scene, path = build_scene(args.seed, args.obstacles)
-    poses = camera_poses(path, args.frames, args.speed_mps, args.rate_hz, height_m=1.5)
-    depths = [render_depth(scene, camera, T) for T in poses]  # rendered first: not timed
 
+def run_config(config: EsdfConfig, scene, camera, depths, poses, args) -> dict:
+    """Integrate every frame with ``config``; timings, exactness and error against the mesh."""
     esdf = EsdfMap(config)
     esdf.integrate(depths[0], camera, poses[0])  # first frame fills an empty map: not counted
     update_ms, ref_ms, diffs, stage = [], [], [], []
@@ -188,7 +189,8 @@ def main(argv=None) -> int:
     P, truth = error_points(scene, esdf, camera, tail, rng)
     ours, _ = esdf.query(P)
     clamp = config.max_distance_m
-    err = np.abs(np.minimum(ours, clamp) - np.minimum(truth, clamp))
+    signed = np.minimum(ours, clamp) - np.minimum(truth, clamp)
+    err = np.abs(signed)
 
     # query latency at the planner's size (about 40 points per control step)
     q = P[:40] if len(P) >= 40 else np.resize(P, (40, 3))
@@ -198,9 +200,19 @@ def main(argv=None) -> int:
         esdf.query(q)
     query_us_40 = (time.perf_counter() - t0) / n_calls * 1e6
 
+    # what the last camera knows: its share of the window and of the view cone up to 7 m
+    T = poses[-1]
+    C = esdf.voxel_centers().reshape(-1, 3)
+    P_cam = (C - T[:3, 3]) @ T[:3, :3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = camera.fx * P_cam[:, 0] / P_cam[:, 2] + camera.cx
+        v = camera.fy * P_cam[:, 1] / P_cam[:, 2] + camera.cy
+    cone = (P_cam[:, 2] > 0.5) & (P_cam[:, 2] < config.max_range_m) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+    known = esdf.known_grid.reshape(-1)
+
     stage = np.asarray(stage)
     update_ms = np.asarray(update_ms)
-    result = {
+    return {
         "update_ms_median": float(np.median(update_ms)),
         "update_ms_p95": float(np.percentile(update_ms, 95)),
         "update_ms_max": float(update_ms.max()),
@@ -208,9 +220,12 @@ def main(argv=None) -> int:
         "speedup": float(np.median(ref_ms) / np.median(update_ms)),
         "max_abs_error_m": float(err.max()),
         "mean_abs_error_m": float(err.mean()),
+        "max_optimistic_error_m": float(max(signed.max(), 0.0)),
+        "seen_free_points_read_free": float(np.mean(ours > 0.0)),
         "error_points": int(len(P)),
         "incremental_vs_full_max_diff_m": float(max(diffs)),
         "query_us_40_points": float(query_us_40),
+        "known_fraction_of_view_cone": float(known[cone].mean()) if cone.any() else 0.0,
         "voxel_m": config.voxel_m,
         "grid_shape": list(esdf.shape),
         "frames": int(len(update_ms)),
@@ -224,26 +239,52 @@ def main(argv=None) -> int:
         "esdf_voxels_median": float(np.median(stage[:, 4])),
         "changed_voxels_median": float(np.median(stage[:, 5])),
         "config": asdict(config),
-        "args": vars(args),
     }
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=150)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--obstacles", type=int, default=60)
+    ap.add_argument("--speed-mps", type=float, default=0.6)
+    ap.add_argument("--rate-hz", type=float, default=15.0)
+    ap.add_argument("--reference-every", type=int, default=10)
+    ap.add_argument("--configs", nargs="+", choices=sorted(CONFIGS), default=list(CONFIGS), help="which maps to run")
+    ap.add_argument("--json", type=str, default=None, help="write the results here")
+    args = ap.parse_args(argv)
+
+    camera = PinholeCamera.from_fov(640, 480, 90.0, 60.0)
+    scene, path = build_scene(args.seed, args.obstacles)
+    poses = camera_poses(path, args.frames, args.speed_mps, args.rate_hz, height_m=1.5)
+    depths = [render_depth(scene, camera, T) for T in poses]  # rendered first: not timed
+    no_reading = float(np.mean([np.mean(~np.isfinite(d)) for d in depths]))
+
+    results = {name: run_config(CONFIGS[name], scene, camera, depths, poses, args) for name in args.configs}
     rows = [
-        ("update ms (median / p95 / max)", f"{result['update_ms_median']:.2f} / {result['update_ms_p95']:.2f} / {result['update_ms_max']:.2f}"),
-        ("  shift / backproject / occupancy / esdf ms", " / ".join(f"{v:.2f}" for v in result["stage_ms_median"].values())),
-        ("  voxels rewritten per frame (median)", f"{result['esdf_voxels_median']:.0f} of {int(np.prod(esdf.shape))}"),
-        ("reference full recompute ms (median)", f"{result['reference_ms_median']:.2f}"),
-        ("speedup (reference / ours)", f"{result['speedup']:.1f}x"),
-        ("incremental vs full max diff m", f"{result['incremental_vs_full_max_diff_m']:.2e}"),
-        ("max / mean abs error vs mesh m", f"{result['max_abs_error_m']:.3f} / {result['mean_abs_error_m']:.3f} ({len(P)} pts)"),
-        ("query of 40 points us", f"{query_us_40:.1f}"),
-        ("voxel m / grid", f"{config.voxel_m} / {tuple(esdf.shape)}"),
+        ("unknown policy / no-reading clear m / body m", lambda r: f"{r['config']['unknown_policy']} / {r['config']['no_reading_clear_m']} / {r['config']['body_clear_radius_m']}"),
+        ("window m / grid", lambda r: f"{tuple(r['config']['size_m'])} / {tuple(r['grid_shape'])}"),
+        ("update ms (median / p95 / max)", lambda r: f"{r['update_ms_median']:.1f} / {r['update_ms_p95']:.1f} / {r['update_ms_max']:.1f}"),
+        ("  shift / backproject / occupancy / esdf ms", lambda r: " / ".join(f"{v:.1f}" for v in r["stage_ms_median"].values())),
+        ("  voxels rewritten per frame (median)", lambda r: f"{r['esdf_voxels_median']:.0f}"),
+        ("reference full recompute ms (median)", lambda r: f"{r['reference_ms_median']:.1f}"),
+        ("speedup (reference / ours)", lambda r: f"{r['speedup']:.1f}x"),
+        ("incremental vs full max diff m", lambda r: f"{r['incremental_vs_full_max_diff_m']:.1e}"),
+        ("max / mean abs error vs mesh m", lambda r: f"{r['max_abs_error_m']:.3f} / {r['mean_abs_error_m']:.3f}"),
+        ("max optimistic error m (ours above truth)", lambda r: f"{r['max_optimistic_error_m']:.3f}"),
+        ("seen-free points read free", lambda r: f"{100 * r['seen_free_points_read_free']:.1f} % of {r['error_points']}"),
+        ("known share of the last view cone (0.5-7 m)", lambda r: f"{100 * r['known_fraction_of_view_cone']:.1f} %"),
+        ("query of 40 points us", lambda r: f"{r['query_us_40_points']:.1f}"),
     ]
     width = max(len(r[0]) for r in rows)
-    print(f"ESDF benchmark: {result['frames']} frames 640x480, unknown={config.unknown_policy}, seed {args.seed}")
-    for name, value in rows:
-        print(f"  {name:<{width}}  {value}")
+    names = list(results)
+    print(f"ESDF benchmark: {args.frames - 1} frames 640x480 ({100 * no_reading:.1f} % pixels without a reading), seed {args.seed}")
+    print(f"  {'':<{width}}  " + "  ".join(f"{n:<28}" for n in names))
+    for label, fmt in rows:
+        print(f"  {label:<{width}}  " + "  ".join(f"{fmt(results[n]):<28}" for n in names))
     if args.json:
         with open(args.json, "w") as fh:
-            json.dump(result, fh, indent=2)
+            json.dump({"no_reading_pixel_share": no_reading, "results": results, "args": vars(args)}, fh, indent=2)
     return 0
 
 

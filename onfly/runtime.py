@@ -4,13 +4,17 @@ The pilot never waits for a VLM. It submits a call and keeps flying; the call's 
 handed back by :meth:`AgentRuntime.poll` once it has *landed*:
 
 - :class:`ClockRuntime` (simulation): the call is computed at once, and lands when the virtual
-  clock (:class:`onfly.world.clock.SimClock`) reaches ``submit time + latency``; the latency is
-  the outcome's ``latency_s`` (the simulated VLM's modelled latency, a real backend's wall time).
+  clock (:class:`onfly.world.clock.SimClock`) has served it: the outcome's ``latency_s`` (the
+  simulated VLM's modelled latency, a real backend's wall time) is its service time on the
+  clock's modelled inference engine, one queue shared by every kind by default (one GPU), so a
+  call issued while another runs lands after both (``docs/inference_queue.md``).
 - :class:`ThreadRuntime` (onboard): the call runs on a worker thread per kind and lands when it
-  finishes. With ``honour_modelled_latency=True`` (onboard *simulation*: a simulated VLM that
-  answers at once but models a latency) a finished call lands only once the runtime's clock
-  reaches ``submit time + outcome.latency_s``, so the flight sees the modelled hardware's delay
-  in wall time exactly as the virtual clock charges it in the benchmark.
+  finishes (a real backend queues on its own engine: the in-process backend behind one lock, a
+  server by its scheduler). With ``honour_modelled_latency=True`` (onboard *simulation*: a
+  simulated VLM that answers at once but models a latency) a finished call lands only when
+  the same engine model as the benchmark's, run on the runtime's clock, has served it, so the
+  flight sees the modelled hardware's delay and queueing in wall time as the virtual clock
+  charges them in the benchmark.
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Protocol
 
-from onfly.world.clock import SimClock
+from onfly.world.clock import LatencyModel, SimClock
 
 __all__ = ["Landed", "AgentRuntime", "ClockRuntime", "ThreadRuntime"]
 
@@ -89,23 +93,37 @@ def _modelled_latency_s(outcome: Any) -> float:
 
 
 class ThreadRuntime:
-    """Agent calls on worker threads (one per kind, so kinds never queue behind each other).
+    """Agent calls on worker threads (one per kind, so kinds never wait for each other's
+    *computation*; with ``honour_modelled_latency`` the modelled engine still serves them one
+    at a time).
 
     Parameters
     ----------
     clock : seconds, monotonic (the pilot's clock)
     honour_modelled_latency : False (default): a call lands as soon as its thread finishes.
-        True: it lands at ``max(finish, submit + outcome.latency_s)`` on ``clock``, and its
-        kind stays busy until then (for a simulated VLM whose answers are instant but whose
-        modelled latency must pass in wall time). A call that raised lands at once. Never use
-        it with a real backend: its ``latency_s`` is the wall time already spent.
+        True: a finished call enters a :class:`onfly.world.clock.SimClock` run on ``clock``
+        with its submission time and ``outcome.latency_s`` as service time, and lands when
+        that modelled engine has served it (never before its thread finished); its kind stays
+        busy until then (for a simulated VLM whose answers are instant but whose modelled
+        latency must pass in wall time). A call that raised lands at once. Never use it with
+        a real backend: its ``latency_s`` is the wall time already spent.
+    latency : the engine model used with ``honour_modelled_latency`` (default
+        ``LatencyModel()``: one engine, decision first)
     """
 
-    def __init__(self, clock: Callable[[], float] = time.monotonic, *, honour_modelled_latency: bool = False) -> None:
+    def __init__(
+        self,
+        clock: Callable[[], float] = time.monotonic,
+        *,
+        honour_modelled_latency: bool = False,
+        latency: LatencyModel | None = None,
+    ) -> None:
         self._clock = clock
         self.honour_modelled_latency = bool(honour_modelled_latency)
         self._pools: dict[str, cf.ThreadPoolExecutor] = {}
         self._running: dict[str, tuple[cf.Future, float]] = {}
+        self._engine = SimClock(float(clock()), latency) if self.honour_modelled_latency else None
+        self._queued: set[str] = set()  # kinds whose finished call waits in the modelled engine
 
     def now_s(self) -> float:
         return self._clock()
@@ -130,22 +148,31 @@ class ThreadRuntime:
         done, _ = cf.wait([entry[0]], timeout=timeout_s)
         return bool(done)
 
-    def _due(self, fut: cf.Future, submitted_s: float, now_s: float) -> bool:
-        if not fut.done():
-            return False
-        if not self.honour_modelled_latency or fut.exception() is not None:
-            return True
-        return now_s >= submitted_s + _modelled_latency_s(fut.result())
-
     def poll(self) -> list[Landed]:
         """Calls that have landed since the last poll (each returned once)."""
         out = []
         now = self.now_s()
-        for kind, (fut, t0) in list(self._running.items()):
-            if self._due(fut, t0, now):
+        engine = self._engine
+        due = engine.advance(now - engine.now_s) if engine is not None and now > engine.now_s else []
+        finished = sorted(
+            ((t0, kind, fut) for kind, (fut, t0) in self._running.items() if fut.done() and kind not in self._queued),
+            key=lambda x: x[0],
+        )
+        for t0, kind, fut in finished:
+            exc = fut.exception()
+            if engine is None or exc is not None:
                 del self._running[kind]
-                exc = fut.exception()
                 out.append(Landed(kind, exc if exc is not None else fut.result(), t0, now))
+                continue
+            result = fut.result()
+            engine.schedule(kind, result, latency_s=_modelled_latency_s(result), submitted_s=min(t0, engine.now_s))
+            self._queued.add(kind)
+        if engine is not None:
+            due = list(due) + engine.advance(0.0)
+            for call in due:
+                t0 = self._running.pop(call.kind)[1]
+                self._queued.discard(call.kind)
+                out.append(Landed(call.kind, call.result, t0, now))
         return out
 
     def close(self) -> None:

@@ -32,6 +32,29 @@ an obstacle: the transform treats the faces as bordering obstacles, and beyond t
 the value decreases at unit slope, ``d(q) = d(c) - |q - c|`` (``c`` the clamped point), with
 the matching gradient.
 
+Unknown space (default ``EsdfConfig.unknown_policy="occupied"``; ``docs/esdf_unknown_space.md``):
+a voxel is *unknown* until a depth reading hits it, a ray passes through it, or the vehicle's
+body sphere covers it; unknown voxels and space outside the window are obstacles for
+:meth:`EsdfMap.query` and :meth:`EsdfMap.is_free`, so a plan never enters space the camera has
+not seen free. A pixel without a reading (sky, glass, dark surfaces, beyond range) clears its
+ray only up to ``min(no_reading_clear_m, nearest reading on its row and column) -
+clear_margin_m`` and never clears an observed obstacle, so a hole in a wall does not become a
+passage while open sky still clears the space the vehicle flies through. The unknown voxels
+within ``body_clear_radius_m`` of the vehicle are marked free at every frame (it is there).
+
+Knownness queries (for guide searches, frontier exploration and the verifier), world metres:
+
+- :meth:`EsdfMap.known` ``(n, 3) -> bool (n,)``: the voxel holding the point was observed.
+- :meth:`EsdfMap.observed_free` ``(n, 3) -> bool (n,)``: observed and not occupied.
+- :attr:`EsdfMap.known_grid`, :attr:`EsdfMap.occupied_grid`: bool (nx, ny, nz) grids (voxel
+  centres from :meth:`EsdfMap.voxel_centers`).
+- :meth:`EsdfMap.frontier_points` ``-> (m, 3)``: observed-free voxels next to unknown ones.
+- :meth:`EsdfMap.mark_free_sphere`: mark unknown voxels in a sphere free (the vehicle's body).
+
+Knownness is complete under the default policy only: with ``unknown_policy="free"`` clearing
+projects only obstacle voxels (the optimistic map's shortcut), so free space that rays pass
+through is never marked observed and :meth:`EsdfMap.known` is true mostly on obstacles.
+
 The map assumes nothing about which world axis is up.
 """
 
@@ -205,7 +228,7 @@ class EsdfMap:
         return tuple(int(s) for s in shift), n_rewritten
 
     # -- integration ------------------------------------------------------------------------
-    def integrate(self, depth_m, camera: PinholeCamera, T_world_cam, center_world=None) -> EsdfUpdate:
+    def integrate(self, depth_m, camera: PinholeCamera, T_world_cam, center_world=None, body_world=None) -> EsdfUpdate:
         """Fuse one depth frame and update the field where it changed.
 
         Parameters
@@ -218,6 +241,9 @@ class EsdfMap:
             :func:`planning.frames.check_transform` (raises ``FrameError`` for NaN / inf,
             a non-orthonormal or reflecting rotation block, or a bad last row).
         center_world : (3,) metres, centre of the rolling window; default the camera position.
+        body_world : (3,) metres, the vehicle's position: the unknown voxels within
+            ``body_clear_radius_m`` of it become free after the frame. Default ``center_world``
+            when given (the pilot centres the window on the vehicle), else the camera position.
 
         Returns
         -------
@@ -236,21 +262,20 @@ class EsdfMap:
                 raise EsdfError(f"depth_m must be numeric metres, got dtype {depth.dtype}")
             depth = depth.astype(np.float32)
         center = T[:3, 3] if center_world is None else center_world
+        if body_world is not None:
+            body_world = np.asarray(body_world, dtype=float)
+            if body_world.shape != (3,) or not np.all(np.isfinite(body_world)):
+                raise EsdfError(f"body_world must be a finite array of shape (3,), got {body_world!r}")
         t_shift = time.perf_counter()
-        shift, n_esdf = self._recenter(center)
+        shift, n_esdf = self._recenter(center)  # validates center_world
+        body = np.asarray(center, dtype=float) if body_world is None else body_world
         t_occ = time.perf_counter()
-        delta = self._occ.integrate(depth, camera, T)
+        delta = self._occ.integrate(depth, camera, T, body_world=body)
         t_esdf = time.perf_counter()
         if delta.n_points == 0:
             log.debug("depth frame had no reading in [%.2f, %.2f) m", self.config.min_range_m, self.config.max_range_m)
-        box_min = box_max = None
-        if delta.flipped.size:
-            idx = np.stack(np.unravel_index(delta.flipped, self.shape), axis=-1)
-            lo, hi = idx.min(axis=0), idx.max(axis=0) + 1
-            for box in self._cluster_boxes(idx):
-                n_esdf += self._update_box(box)
-            box_min = tuple(float(v) for v in (lo + self._occ.origin_index) * self.voxel_m)
-            box_max = tuple(float(v) for v in (hi + self._occ.origin_index) * self.voxel_m)
+        n_box, box_min, box_max = self._apply_flipped(delta.flipped)
+        n_esdf += n_box
         t_end = time.perf_counter()
         return EsdfUpdate(
             n_points=delta.n_points,
@@ -267,6 +292,37 @@ class EsdfMap:
             esdf_ms=(t_end - t_esdf) * 1e3,
             total_ms=(t_end - t0) * 1e3,
         )
+
+    def _apply_flipped(self, flipped: np.ndarray):
+        """Rewrite the distances around flipped voxels (k,) flat; returns (voxels rewritten,
+        world box min, world box max) with None boxes when nothing flipped."""
+        if not flipped.size:
+            return 0, None, None
+        idx = np.stack(np.unravel_index(flipped, self.shape), axis=-1)
+        lo, hi = idx.min(axis=0), idx.max(axis=0) + 1
+        n = 0
+        for box in self._cluster_boxes(idx):
+            n += self._update_box(box)
+        box_min = tuple(float(v) for v in (lo + self._occ.origin_index) * self.voxel_m)
+        box_max = tuple(float(v) for v in (hi + self._occ.origin_index) * self.voxel_m)
+        return n, box_min, box_max
+
+    def mark_free_sphere(self, center_world, radius_m: float) -> int:
+        """Mark the *unknown* voxels whose centre is within ``radius_m`` metres of
+        ``center_world`` (3,) world metres free, and update the field. Observed voxels (hit or
+        seen through) are left alone. For the vehicle's own body, e.g. before the first frame;
+        :meth:`integrate` already does it at ``body_world`` with ``body_clear_radius_m``.
+
+        Returns the number of voxels whose obstacle state flipped.
+        """
+        c = np.asarray(center_world, dtype=float)
+        if c.shape != (3,) or not np.all(np.isfinite(c)):
+            raise EsdfError(f"center_world must be a finite array of shape (3,), got {center_world!r}")
+        if not (np.isfinite(radius_m) and radius_m >= 0):
+            raise EsdfError(f"radius_m must be a finite number >= 0, got {radius_m!r}")
+        flipped = self._occ.mark_free_sphere(c, float(radius_m))
+        self._apply_flipped(flipped)
+        return int(flipped.size)
 
     def _block_cost(self, lo: np.ndarray, hi: np.ndarray) -> int:
         """Voxels in the outside-transform block of a changed box (its cost, roughly)."""
@@ -449,6 +505,65 @@ class EsdfMap:
         """
         dist, _ = self.query(points)
         return dist > margin_m
+
+    # -- knownness --------------------------------------------------------------------------
+    def _voxel_lookup(self, points) -> tuple[np.ndarray, np.ndarray]:
+        """(flat local index (n,), inside-window mask (n,)) of the voxels holding ``points``."""
+        P = np.asarray(points, dtype=float)
+        if P.ndim != 2 or P.shape[1] != 3:
+            raise EsdfError(f"points must have shape (n, 3), got {P.shape}")
+        if not np.isfinite(P).all():
+            raise EsdfError("points contain NaN or inf")
+        idx = np.floor(P / self.voxel_m).astype(np.int64) - self._occ.origin_index
+        inside = np.all((idx >= 0) & (idx < self._shape_arr), axis=1)
+        flat = np.where(inside, np.clip(idx, 0, self._shape_arr - 1) @ self._strides, 0)
+        return flat, inside
+
+    def known(self, points) -> np.ndarray:
+        """True where the voxel holding each point (n, 3) world metres has been observed: hit,
+        passed through by a ray, or inside the vehicle's body sphere. False outside the window
+        (forgotten or never seen). Returns bool (n,)."""
+        flat, inside = self._voxel_lookup(points)
+        return inside & self._occ.observed.reshape(-1)[flat]
+
+    def observed_free(self, points) -> np.ndarray:
+        """True where the voxel holding each point (n, 3) world metres is known and not
+        occupied: space the camera has seen free (or the vehicle has been in). Returns bool (n,).
+
+        Voxel-level (nearest voxel, no interpolation); for clearance use :meth:`query`.
+        """
+        flat, inside = self._voxel_lookup(points)
+        occ = self._occ
+        free = occ.observed.reshape(-1)[flat] & ~(occ.logodds.reshape(-1)[flat] > np.float32(self.config.occupied_logodds))
+        return inside & free
+
+    @property
+    def known_grid(self) -> np.ndarray:
+        """Read-only bool view (nx, ny, nz): observed voxels (see :meth:`known`)."""
+        view = self._occ.observed.view()
+        view.flags.writeable = False
+        return view  # a view of the current array: fetch it again after the window moves
+
+    @property
+    def occupied_grid(self) -> np.ndarray:
+        """Bool (nx, ny, nz), a new array: observed voxels whose log-odds say obstacle."""
+        return self._occ.observed & (self._occ.logodds > np.float32(self.config.occupied_logodds))
+
+    def frontier_points(self) -> np.ndarray:
+        """World centres (m, 3), metres, of frontier voxels: observed free voxels with at least
+        one unknown face neighbour inside the window (the edge of what has been seen free,
+        where exploration leads). Faces on the window boundary do not count."""
+        known = self._occ.observed
+        free = known & ~(self._occ.logodds > np.float32(self.config.occupied_logodds))
+        unknown = ~known
+        touch = np.zeros(self.shape, dtype=bool)
+        for axis in range(3):
+            lo = [slice(None)] * 3
+            hi = [slice(None)] * 3
+            lo[axis], hi[axis] = slice(None, -1), slice(1, None)
+            touch[tuple(lo)] |= unknown[tuple(hi)]
+            touch[tuple(hi)] |= unknown[tuple(lo)]
+        return self._occ.centers_of(np.flatnonzero(free & touch))
 
     def occupied_points(self) -> np.ndarray:
         """World centres (m, 3), metres, of the observed obstacle voxels (for pictures)."""

@@ -1,7 +1,12 @@
 """Every parameter of the local ESDF map, in one frozen dataclass.
 
-Defaults follow the issue and the paper where they say something (10 x 10 x 4 m at 0.1 m,
-D_max = 7 m); the rest are our documented choices (log-odds after OctoMap / Fast-Planner).
+Defaults follow the issue and the paper where they say something (0.1 m voxels, D_max = 7 m);
+the rest are our documented choices (log-odds after OctoMap / Fast-Planner). The defaults are
+the *safe* ones for a real depth camera, used by every path that flies or replays (the pilot,
+``onfly fly``, ``onfly replay``, the benchmark): unknown space is an obstacle, a pixel without a
+reading clears only a bounded, neighbour-limited stretch of its ray, the vehicle's own body
+sphere is free, and the window covers ``max_range_m`` (the verifier's D_max) plus a margin.
+``docs/esdf_unknown_space.md`` explains the policy, its sources and its measured cost.
 """
 
 from __future__ import annotations
@@ -29,7 +34,10 @@ class EsdfConfig:
     voxel_m : edge of a cubic voxel, metres. Voxels sit on the global lattice
         ``floor(p_world / voxel_m)``, so the rolling window moves by whole voxels.
     size_m : (x, y, z) extent of the rolling window in world axes, metres; each is rounded to a
-        whole number of voxels (at least 2). Default 10 x 10 x 4 m around the vehicle.
+        whole number of voxels (at least 2). Default 16 x 16 x 5 m around the vehicle: the
+        horizontal half-width (8 m) covers the verifier's D_max (``max_range_m``, 7 m) plus 1 m,
+        so a goal check at 7 m reads the field, not the value clamped at the window's face
+        (the old 10 x 10 m window ended at 5 m). Vertically +-2.5 m.
 
     Sensor model
     ------------
@@ -70,16 +78,43 @@ class EsdfConfig:
     max_inside_distance_m : clamp of the depth inside obstacles (negative side). A body centre
         half a metre inside an obstacle has already crashed, so a short clamp is enough to give
         a gradient out of thin obstacles and costs less.
-    unknown_policy : what never-observed space means for the field: ``"free"`` (Fast-Planner's
-        optimistic map: only observed obstacles count; cheapest, since only occupied voxels
-        need the free-space test) or ``"occupied"`` (conservative: unknown voxels and the space
-        outside the grid are obstacles, so every unknown voxel of the frustum is projected to
-        mark observed free space; slower, and the shell of ``clear_margin_m`` in front of a
-        surface that no ray saw past stays unknown, so obstacles read up to that much closer).
+    unknown_policy : what never-observed space means for the field: ``"occupied"`` (default,
+        conservative: unknown voxels and the space outside the grid are obstacles, so the
+        planner flies only where rays have passed; every unknown voxel of the frustum is
+        projected to mark observed free space; the shell of ``clear_margin_m`` in front of a
+        surface that no ray saw past stays unknown, so obstacles read up to that much closer)
+        or ``"free"`` (Fast-Planner's optimistic map: only observed obstacles count; cheapest,
+        but a hole in the depth image, or space the camera never saw, is open space; kept for
+        comparisons and ideal-world studies).
+
+    Pixels without a reading (sky, glass, dark or shiny surfaces, beyond range, nearer than
+    ``min_range_m``)
+    ------------------------------------------------------------------------------------
+    no_reading_clear_m : a pixel without a reading clears (passes through) voxels along its
+        ray up to z-depth ``min(no_reading_clear_m, r_nb) - clear_margin_m``, where ``r_nb`` is
+        the nearest reading met scanning the pixel's row and column outward in the four image
+        directions (each clipped to ``max_range_m``); a pixel whose scans meet no reading, and
+        every pixel of a frame with no reading at all, clears nothing. It never
+        clears a voxel that is occupied (no reading is no evidence against an observed
+        obstacle). Default 4.5 m, Fast-Planner's and EGO-Planner's ``max_ray_length`` (their
+        depth fusion turns a 0 pixel into a free ray of that length). The neighbour bound keeps
+        a hole in a wall (glass, a dark patch) from clearing past the wall around it, since the
+        wall's readings lie on the hole's row and column; the length bound lets open sky above
+        the horizon clear the space the vehicle flies through. 0 turns it off (no-reading
+        pixels clear nothing; outdoors the vehicle then sees almost nothing free at its height).
+    body_clear_radius_m : every :meth:`planning.esdf.EsdfMap.integrate` marks the *unknown*
+        voxels within this radius of the vehicle free (the vehicle is there; voxblox's
+        ``clear_sphere_radius``, default 1.5 m, does the same for planning). Never overrides an
+        observed voxel. Default 1.2 m: a level camera with a 60 deg vertical field of view sees
+        nothing below the plane 30 deg under its axis, so the vehicle's first metre of flight
+        has unknown space (an obstacle) within ``r * sin(30 deg)`` below it; with 1.2 m the
+        clearance along a straight start stays above ~0.6 m, more than the planner's
+        ``d_safe_m`` (0.45 m), while at the 1.5 m flight height the sphere stays clear of the
+        ground. 0 turns it off.
     """
 
     voxel_m: float = 0.1
-    size_m: tuple[float, float, float] = (10.0, 10.0, 4.0)
+    size_m: tuple[float, float, float] = (16.0, 16.0, 5.0)
     max_range_m: float = 7.0
     min_range_m: float = 0.05
     stride_px: int = 2
@@ -92,7 +127,9 @@ class EsdfConfig:
     occupied_logodds: float = 0.0
     max_distance_m: float = 1.0
     max_inside_distance_m: float = 0.5
-    unknown_policy: Literal["free", "occupied"] = "free"
+    unknown_policy: Literal["free", "occupied"] = "occupied"
+    no_reading_clear_m: float = 4.5
+    body_clear_radius_m: float = 1.2
 
     def __post_init__(self) -> None:
         def positive(name: str) -> None:
@@ -102,7 +139,7 @@ class EsdfConfig:
 
         for name in ("voxel_m", "max_range_m", "max_distance_m", "max_inside_distance_m", "hit_logodds"):
             positive(name)
-        for name in ("min_range_m", "clear_margin_m", "surface_thickness_m"):
+        for name in ("min_range_m", "clear_margin_m", "surface_thickness_m", "no_reading_clear_m", "body_clear_radius_m"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise EsdfConfigError(f"{name} must be a finite number >= 0, got {value!r}")

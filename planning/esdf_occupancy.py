@@ -15,11 +15,16 @@ One frame does, in order (the docstring of :meth:`RollingOccupancy.integrate` ha
 2. **Misses (free-space clearing)** -- projective: every voxel that could still change the
    field (the obstacle voxels, plus the unknown ones when unknown counts as occupied) inside the
    frustum's bounding box is projected into the full-resolution image (numpy, vectorized); it is
-   passed through when its z-depth is ``clear_margin_m`` shorter than the pixel's reading
-   (finite readings beyond ``max_range_m`` clear up to ``max_range_m``; 0 / NaN / inf /
-   negative pixels clear nothing). A hit in the same frame wins.
+   passed through when its z-depth is below the pixel's *reach* (:func:`free_reach`): the
+   reading minus ``clear_margin_m`` (finite readings beyond ``max_range_m`` clear up to
+   ``max_range_m``); for a pixel without a reading (0 / NaN / inf / negative / below
+   ``min_range_m``) ``min(no_reading_clear_m, nearest reading on its row and column) -
+   clear_margin_m``, and such a pixel never clears an occupied voxel. A hit in the same frame
+   wins.
 3. **Log-odds update** on the touched voxels only, and the list of voxels whose obstacle state
    (the mask the distance transform sees) flipped.
+4. **Body sphere** -- the unknown voxels within ``body_clear_radius_m`` of the vehicle are
+   marked free (:meth:`RollingOccupancy.mark_free_sphere`; voxblox's clear sphere).
 """
 
 from __future__ import annotations
@@ -35,9 +40,12 @@ from planning.camera import PinholeCamera
 from planning.esdf_config import EsdfConfig
 from planning.frames import invert_transform
 
-__all__ = ["RollingOccupancy", "OccupancyDelta", "IndexBox"]
+__all__ = ["RollingOccupancy", "OccupancyDelta", "IndexBox", "free_reach"]
 
 log = logging.getLogger(__name__)
+
+#: Edge, in voxels, of the blocks culled against the view frustum before clearing.
+_BLOCK = 8
 
 #: Half-open box of local voxel indices: ``(lo (3,), hi (3,))`` with ``lo <= i < hi``.
 IndexBox = tuple[tuple[int, int, int], tuple[int, int, int]]
@@ -61,6 +69,67 @@ class OccupancyDelta:
     n_miss_voxels: int
     backproject_ms: float
     update_ms: float
+
+
+def _nearest_reading_along(d: np.ndarray, valid: np.ndarray, axis: int, reverse: bool) -> np.ndarray:
+    """Per pixel, the first valid value of ``d`` met scanning along ``axis`` (the pixel itself
+    included), toward lower indices or, with ``reverse``, higher ones; inf where none."""
+    n = d.shape[axis]
+    shape = [1, 1]
+    shape[axis] = n
+    pos = np.arange(n, dtype=np.int32).reshape(shape)
+    if reverse:
+        idx = np.where(valid, pos, np.int32(n))
+        last = np.flip(np.minimum.accumulate(np.flip(idx, axis=axis), axis=axis), axis=axis)
+        found = last < n
+    else:
+        idx = np.where(valid, pos, np.int32(-1))
+        last = np.maximum.accumulate(idx, axis=axis)
+        found = last >= 0
+    out = np.take_along_axis(d, np.clip(last, 0, n - 1), axis=axis)
+    return np.where(found, out, np.float32(np.inf))
+
+
+def free_reach(depth_m: np.ndarray, config: EsdfConfig) -> tuple[np.ndarray, np.ndarray]:
+    """How far each pixel's ray may clear free space, and which pixels hold a reading.
+
+    Parameters
+    ----------
+    depth_m : float32 array (h, w), z-depth in metres (0 / NaN / inf / negative / below
+        ``min_range_m`` are no reading)
+    config : the map's EsdfConfig (``min_range_m``, ``max_range_m``, ``clear_margin_m``,
+        ``no_reading_clear_m``)
+
+    Returns
+    -------
+    reach : float32 (h, w), z-depth in metres below which a voxel centre projecting to the pixel
+        is passed through. A reading ``d``: ``min(d, max_range_m) - clear_margin_m``. No
+        reading: ``min(no_reading_clear_m, r_nb) - clear_margin_m`` with ``r_nb`` the nearest of
+        the first readings met scanning left, right, up and down from the pixel (each clipped to
+        ``max_range_m``), so a hole never clears past the surface it is cut into. A pixel whose
+        four scans meet no reading (and every pixel of a frame without any reading) clears
+        nothing: nothing bounds it (a pane of glass filling the view).
+    valid : bool (h, w), True where the pixel holds a reading
+    """
+    cfg = config
+    with np.errstate(invalid="ignore"):
+        valid = (depth_m >= np.float32(cfg.min_range_m)) & (depth_m < np.inf)  # no NaN, inf, <= 0
+    clipped = np.where(valid, np.minimum(depth_m, np.float32(cfg.max_range_m)), np.float32(np.inf)).astype(np.float32)
+    margin = np.float32(cfg.clear_margin_m)
+    reach = clipped - margin
+    if valid.all():
+        return reach, valid
+    if cfg.no_reading_clear_m <= 0 or not valid.any():
+        reach[~valid] = -np.inf  # off, or a blind frame (nothing bounds a hole): clear nothing
+        return reach, valid
+    nb = _nearest_reading_along(clipped, valid, 1, False)
+    np.minimum(nb, _nearest_reading_along(clipped, valid, 1, True), out=nb)
+    np.minimum(nb, _nearest_reading_along(clipped, valid, 0, False), out=nb)
+    np.minimum(nb, _nearest_reading_along(clipped, valid, 0, True), out=nb)
+    hole = ~valid
+    # nb is inf where the scans met no reading: then nothing bounds the hole and it clears nothing
+    reach[hole] = np.where(np.isfinite(nb[hole]), np.minimum(nb[hole], np.float32(cfg.no_reading_clear_m)) - margin, -np.inf)
+    return reach, valid
 
 
 class RollingOccupancy:
@@ -149,7 +218,9 @@ class RollingOccupancy:
         return shift, boxes
 
     # -- one depth frame --------------------------------------------------------------------
-    def integrate(self, depth_m: np.ndarray, camera: PinholeCamera, T_world_cam: np.ndarray) -> OccupancyDelta:
+    def integrate(
+        self, depth_m: np.ndarray, camera: PinholeCamera, T_world_cam: np.ndarray, body_world: np.ndarray | None = None
+    ) -> OccupancyDelta:
         """Fuse one depth frame. Inputs are assumed validated (see ``EsdfMap.integrate``).
 
         Parameters
@@ -158,6 +229,8 @@ class RollingOccupancy:
             0 / NaN / inf / negative / below ``min_range_m`` are no reading.
         camera : intrinsics of ``depth_m``
         T_world_cam : (4, 4) rigid transform, camera optical frame -> world
+        body_world : (3,) metres, the vehicle's position; after the frame, the unknown voxels
+            within ``body_clear_radius_m`` of it are marked free. Default the camera position.
         """
         cfg = self.config
         t0 = time.perf_counter()
@@ -182,6 +255,11 @@ class RollingOccupancy:
         now_solid = lo[touched] > np.float32(cfg.occupied_logodds)
         flipped = touched[now_solid != solid[touched]]
         solid[flipped] = ~solid[flipped]
+        if cfg.body_clear_radius_m > 0:
+            body = T_world_cam[:3, 3] if body_world is None else np.asarray(body_world, dtype=float)
+            cleared = self.mark_free_sphere(body, cfg.body_clear_radius_m)
+            if cleared.size:
+                flipped = np.union1d(flipped, cleared)
         t2 = time.perf_counter()
         return OccupancyDelta(
             flipped=flipped,
@@ -191,6 +269,39 @@ class RollingOccupancy:
             backproject_ms=(t1 - t0) * 1e3,
             update_ms=(t2 - t1) * 1e3,
         )
+
+    def mark_free_sphere(self, center_world: np.ndarray, radius_m: float) -> np.ndarray:
+        """Mark the *unknown* voxels whose centre lies within ``radius_m`` of ``center_world``
+        (3,) metres observed and free (one miss). Observed voxels are left alone.
+
+        Returns the flat local indices whose obstacle state flipped (unknown -> free under
+        ``unknown_policy="occupied"``; none under ``"free"``).
+        """
+        cfg = self.config
+        c = (np.asarray(center_world, dtype=float) / self.voxel_m) - self.origin_index - 0.5  # local, voxels
+        r = float(radius_m) / self.voxel_m
+        lo = np.maximum(np.ceil(c - r).astype(np.int64), 0)
+        hi = np.minimum(np.floor(c + r).astype(np.int64) + 1, np.asarray(self.shape))
+        if radius_m <= 0 or np.any(hi <= lo):
+            return np.zeros(0, dtype=np.int64)
+        ax = [np.arange(a, b) for a, b in zip(lo, hi)]
+        d2 = (
+            ((ax[0] - c[0]) ** 2)[:, None, None] + ((ax[1] - c[1]) ** 2)[None, :, None] + ((ax[2] - c[2]) ** 2)[None, None, :]
+        )
+        box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
+        new = (d2 <= r * r) & ~self.observed[box]
+        if not new.any():
+            return np.zeros(0, dtype=np.int64)
+        self._pristine = False
+        self.observed[box] |= new
+        lo_box = self.logodds[box]
+        lo_box[new] = np.float32(max(cfg.miss_logodds, cfg.min_logodds))
+        sub = np.flatnonzero(new & self.solid[box])
+        self.solid[box] &= ~new
+        if sub.size == 0:
+            return np.zeros(0, dtype=np.int64)
+        idx = np.stack(np.unravel_index(sub, new.shape), axis=-1) + lo
+        return (idx[:, 0] * self.shape[1] + idx[:, 1]) * self.shape[2] + idx[:, 2]
 
     def _backproject(self, depth_m: np.ndarray, camera: PinholeCamera, T_world_cam: np.ndarray) -> np.ndarray:
         """World points (n, 3) float32 of the strided readings in [min_range_m, max_range_m).
@@ -270,10 +381,39 @@ class RollingOccupancy:
             return None
         return tuple(int(v) for v in lo), tuple(int(v) for v in hi)
 
+    def _frustum_blocks(self, camera: PinholeCamera, T_world_cam: np.ndarray, box: IndexBox) -> np.ndarray:
+        """Bool mask over ``box``: False on blocks of ``_BLOCK``^3 voxels lying wholly outside the
+        view frustum (beyond one of its four side planes, nearer than ``min_range_m`` or beyond
+        ``max_range_m``, each by more than the block's half-diagonal). A cull only: every voxel
+        it drops projects outside the image or out of range."""
+        cfg = self.config
+        lo, hi = np.asarray(box[0]), np.asarray(box[1])
+        nb = (hi - lo + _BLOCK - 1) // _BLOCK
+        v = cfg.voxel_m
+        # block centres, world -> camera frame
+        axes = [(lo[k] + self.origin_index[k] + (np.arange(nb[k]) + 0.5) * _BLOCK) * v for k in range(3)]
+        C = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+        P = (C - T_world_cam[:3, 3]) @ T_world_cam[:3, :3]
+        x, y, z = P[:, 0], P[:, 1], P[:, 2]
+        r = 0.5 * np.sqrt(3.0) * _BLOCK * v + 1e-6
+        keep = (z > cfg.min_range_m - r) & (z < cfg.max_range_m + r)
+        # side planes through the optical centre at the image's outer pixel edges
+        xl, xr = (-0.5 - camera.cx) / camera.fx, (camera.width - 0.5 - camera.cx) / camera.fx
+        yt, yb = (-0.5 - camera.cy) / camera.fy, (camera.height - 0.5 - camera.cy) / camera.fy
+        keep &= (x - xr * z) / np.hypot(1.0, xr) < r
+        keep &= (xl * z - x) / np.hypot(1.0, xl) < r
+        keep &= (y - yb * z) / np.hypot(1.0, yb) < r
+        keep &= (yt * z - y) / np.hypot(1.0, yt) < r
+        mask = keep.reshape(tuple(nb))
+        for axis in range(3):
+            mask = np.repeat(mask, _BLOCK, axis=axis)
+        return mask[: hi[0] - lo[0], : hi[1] - lo[1], : hi[2] - lo[2]]
+
     def _miss_voxels(
         self, depth_m: np.ndarray, camera: PinholeCamera, T_world_cam: np.ndarray, flags: np.ndarray
     ) -> np.ndarray:
-        """Flat indices of solid voxels in the frustum that this frame sees through.
+        """Flat indices of solid voxels in the frustum that this frame sees through
+        (their centre's z-depth below the pixel's :func:`free_reach`).
 
         Only ``solid`` voxels can change the field by being passed through: obstacles, plus
         unknown voxels under ``unknown_policy == "occupied"``. Voxels hit in this frame
@@ -284,26 +424,23 @@ class RollingOccupancy:
         if box is None:
             return np.zeros(0, dtype=np.int64)
         (x0, y0, z0), (x1, y1, z1) = box
-        sub = self.solid[x0:x1, y0:y1, z0:z1]
-        loc = np.flatnonzero(sub)
-        if loc.size == 0:
-            return loc.astype(np.int64)
-        sx, sy, sz = sub.shape
-        ix = loc // (sy * sz) + x0
-        rem = loc % (sy * sz)
-        iy = rem // sz + y0
-        iz = rem % sz + z0
-        flat = (ix * self.shape[1] + iy) * self.shape[2] + iz
-        keep = ~flags[flat]
-        flat, ix, iy, iz = flat[keep], ix[keep], iy[keep], iz[keep]
-        # Voxel centres in the camera frame: R^T (c - t), c = (i + origin + 0.5) * voxel.
+        window = (slice(x0, x1), slice(y0, y1), slice(z0, z1))
+        cand = self.solid[window] & ~flags.reshape(self.shape)[window]
+        if cand.size >= 8 * _BLOCK**3:
+            cand &= self._frustum_blocks(camera, T_world_cam, box)
+        ix, iy, iz = np.nonzero(cand)  # C-level unravel: no integer division in numpy
+        if ix.size == 0:
+            return np.zeros(0, dtype=np.int64)
+        # Voxel centres in the camera frame: R^T (c - t), c = (i + origin + 0.5) * voxel, from
+        # per-axis tables (the same float32 arithmetic as per voxel).
         R = T_world_cam[:3, :3]
         t = T_world_cam[:3, 3]
         v = cfg.voxel_m
         a = (self.origin_index + 0.5) * v - t  # (3,)
-        cx_w = (ix * v + a[0]).astype(np.float32)
-        cy_w = (iy * v + a[1]).astype(np.float32)
-        cz_w = (iz * v + a[2]).astype(np.float32)
+        cx_w = (np.arange(x0, x1) * v + a[0]).astype(np.float32)[ix]
+        cy_w = (np.arange(y0, y1) * v + a[1]).astype(np.float32)[iy]
+        cz_w = (np.arange(z0, z1) * v + a[2]).astype(np.float32)[iz]
+        flat = ((ix + x0) * self.shape[1] + (iy + y0)) * self.shape[2] + (iz + z0)
         Rt = R.T.astype(np.float32)
         xc = Rt[0, 0] * cx_w + Rt[0, 1] * cy_w + Rt[0, 2] * cz_w
         yc = Rt[1, 0] * cx_w + Rt[1, 1] * cy_w + Rt[1, 2] * cz_w
@@ -314,11 +451,13 @@ class RollingOccupancy:
         vv = np.floor(np.float32(camera.fy) * yc / zc + np.float32(camera.cy + 0.5)).astype(np.int64)
         inside = (u >= 0) & (u < camera.width) & (vv >= 0) & (vv < camera.height)
         flat, zc = flat[inside], zc[inside]
-        d = depth_m[vv[inside], u[inside]]
-        with np.errstate(invalid="ignore"):
-            valid = (d >= np.float32(cfg.min_range_m)) & (d < np.inf)  # no NaN, inf, <= 0
-            reach = np.minimum(d, np.float32(cfg.max_range_m)) - np.float32(cfg.clear_margin_m)
-            miss = valid & (zc < reach)
+        vv, u = vv[inside], u[inside]
+        reach_img, valid_img = free_reach(depth_m, cfg)
+        miss = zc < reach_img[vv, u]
+        if not valid_img.all():
+            # a pixel without a reading never clears an observed obstacle
+            occupied = self.observed.reshape(-1)[flat] & (self.logodds.reshape(-1)[flat] > np.float32(cfg.occupied_logodds))
+            miss &= valid_img[vv, u] | ~occupied
         return flat[miss]
 
 

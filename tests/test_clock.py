@@ -1,4 +1,5 @@
-"""Clock: VLM calls are charged their modelled latency and the vehicle flies on meanwhile."""
+"""Clock: VLM calls are charged their modelled latency on one modelled inference engine, and
+the vehicle flies on meanwhile."""
 
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ def test_default_latencies_are_the_papers():
 
 
 def test_results_are_delivered_only_when_time_reaches_completion():
-    clock = SimClock()
+    clock = SimClock(latency=LatencyModel(single_engine=False))  # parallel engines: the old model
     d = clock.schedule(DECISION, "pixel (10, 20)")
     m = clock.schedule(MONITORING, "CONTINUE", prefix_reused=False)
     assert d.done_s == pytest.approx(0.81) and m.done_s == pytest.approx(1.98)
@@ -36,8 +37,76 @@ def test_results_are_delivered_only_when_time_reaches_completion():
     assert clock.call_counts == {DECISION: 1, MONITORING: 1}
 
 
+def test_two_calls_issued_together_finish_one_after_the_other():
+    clock = SimClock()
+    assert clock.latency.single_engine and clock.latency.priority_kinds == (DECISION,)
+    d = clock.schedule(DECISION, "pixel (10, 20)")
+    m = clock.schedule(MONITORING, "CONTINUE", prefix_reused=False)
+    assert (d.start_s, d.done_s) == (0.0, pytest.approx(0.81))
+    assert m.start_s == pytest.approx(0.81) and m.done_s == pytest.approx(0.81 + 1.98)
+    assert m.wait_s == pytest.approx(0.81) and m.service_s == pytest.approx(1.98)
+    delivered = {}
+    for _ in range(30):
+        t = round(clock.now_s + 0.1, 6)
+        got = [c.result for c in clock.advance(0.1)]
+        if got:
+            delivered[t] = got
+    assert delivered == {0.9: ["pixel (10, 20)"], 2.8: ["CONTINUE"]}
+    assert clock.charged_s == {DECISION: pytest.approx(0.81), MONITORING: pytest.approx(1.98)}
+    assert clock.waited_s == {DECISION: 0.0, MONITORING: pytest.approx(0.81)}
+
+
+def test_decision_priority_jumps_the_queue_but_never_preempts():
+    clock = SimClock()
+    m1 = clock.schedule(MONITORING, "m1")  # runs 0 .. 1.15
+    m2 = clock.schedule("decompose", "q", latency_s=2.0)  # waits: 1.15 .. 3.15
+    clock.advance(0.5)
+    d = clock.schedule(DECISION, "d")  # served before the waiting call, after the running one
+    by_id = {c.call_id: c for c in clock.pending()}
+    assert by_id[m1.call_id].done_s == pytest.approx(1.15)
+    assert (d.start_s, d.done_s) == (pytest.approx(1.15), pytest.approx(1.96))
+    assert (by_id[m2.call_id].start_s, by_id[m2.call_id].done_s) == (pytest.approx(1.96), pytest.approx(3.96))
+    # plain FIFO: the decision waits its turn
+    fifo = SimClock(latency=LatencyModel(priority_kinds=()))
+    fifo.schedule(MONITORING, "m1")
+    fifo.schedule("decompose", "q", latency_s=2.0)
+    fifo.advance(0.5)
+    assert fifo.schedule(DECISION, "d").done_s == pytest.approx(1.15 + 2.0 + 0.81)
+
+
+def test_cancelling_the_running_call_frees_the_engine_at_once():
+    clock = SimClock()
+    a = clock.schedule(MONITORING, "a")  # 0 .. 1.15
+    b = clock.schedule(DECISION, "b")  # 1.15 .. 1.96
+    clock.advance(0.4)
+    assert clock.cancel(a.call_id)
+    (b_now,) = clock.pending()
+    assert b_now.call_id == b.call_id and b_now.done_s == pytest.approx(0.4 + 0.81)
+    assert [c.result for c in clock.advance(0.81)] == ["b"]
+    # the engine idle since 1.21: a new call starts at once
+    assert clock.schedule(DECISION, "c").done_s == pytest.approx(clock.now_s + 0.81)
+
+
+def test_a_call_learnt_of_late_is_placed_at_its_submission_time():
+    clock = SimClock(t0_s=5.0)
+    clock.advance(0.3)
+    c = clock.schedule(DECISION, "d", submitted_s=5.1)
+    assert (c.start_s, c.done_s) == (pytest.approx(5.1), pytest.approx(5.91))
+    with pytest.raises(ClockError, match="submitted_s must be finite and not after now"):
+        clock.schedule(DECISION, "d", submitted_s=6.0)
+
+
+@pytest.mark.parametrize(
+    "kw, message",
+    [({"decision_s": -1.0}, "decision_s"), ({"single_engine": "yes"}, "single_engine"), ({"priority_kinds": "decision"}, "priority_kinds")],
+)
+def test_latency_model_rejects_bad_fields(kw, message):
+    with pytest.raises(ValueError, match=message):
+        LatencyModel(**kw)
+
+
 def test_latency_precedence_explicit_then_response_then_model():
-    clock = SimClock(t0_s=10.0)
+    clock = SimClock(t0_s=10.0, latency=LatencyModel(single_engine=False))
     resp = VlmResponse(CallStatus.OK, "STOP", latency_s=0.42)
     assert clock.schedule(MONITORING, resp).latency_s == pytest.approx(0.42)
     assert clock.schedule(MONITORING, resp, latency_s=2.5).latency_s == pytest.approx(2.5)

@@ -5,6 +5,8 @@ converted to z-depth by the ray's optical z component), and the field is compare
 scene's exact ``compute_distance`` / ``compute_signed_distance`` on the same meshes.
 """
 
+import dataclasses
+
 import numpy as np
 import open3d as o3d
 import pytest
@@ -76,7 +78,10 @@ def exact(scene, P):
     return sd, nearest
 
 
-SMALL = EsdfConfig(size_m=(4.0, 4.0, 3.0), stride_px=1)
+# The mapping mechanics (exact distances, clearing, rolling) under the optimistic policy, with
+# no body sphere (the window centres below are not a vehicle); the default (unknown is an
+# obstacle, a body sphere) has its own tests in test_esdf_unknown.py.
+SMALL = EsdfConfig(size_m=(4.0, 4.0, 3.0), stride_px=1, unknown_policy="free", body_clear_radius_m=0.0)
 
 BOXES = [
     ((0.6, 0.6, 1.2), (-0.9, -0.8, 0.0), 0.3),
@@ -147,7 +152,7 @@ def test_field_matches_exact_mesh_distance(name):
 def test_inside_is_negative_with_unknown_as_occupied():
     meshes, views, center, _ = _geometry_case("box")
     scene = make_scene(meshes)
-    cfg = EsdfConfig(size_m=(4.0, 4.0, 3.0), stride_px=1, unknown_policy="occupied")
+    cfg = EsdfConfig(size_m=(4.0, 4.0, 3.0), stride_px=1, unknown_policy="occupied", body_clear_radius_m=0.0)
     esdf = EsdfMap(cfg)
     integrate_all(esdf, scene, views, center)
     rng = np.random.default_rng(3)
@@ -170,7 +175,7 @@ def test_surface_band_makes_thin_shells_negative_with_unknown_as_free():
     scene = make_scene([box_mesh((1.0, 1.0, 1.0), (0, 0, 0))])
     T = look_at([-2.5, 0.0, 0.0], [0, 0, 0])
     plain = EsdfMap(SMALL)
-    band = EsdfMap(EsdfConfig(size_m=(4.0, 4.0, 3.0), stride_px=1, surface_thickness_m=0.3))
+    band = EsdfMap(dataclasses.replace(SMALL, surface_thickness_m=0.3))
     depth = render_depth(scene, CAMERA, T)
     for esdf in (plain, band):
         esdf.integrate(depth, CAMERA, T, center_world=[0, 0, 0])
@@ -249,7 +254,7 @@ def test_obstacle_that_moved_away_disappears():
 
 
 def test_readings_beyond_max_range_clear_but_do_not_hit():
-    cfg = EsdfConfig(size_m=(4.0, 4.0, 3.0), stride_px=1, max_range_m=3.0)
+    cfg = dataclasses.replace(SMALL, max_range_m=3.0)
     esdf = EsdfMap(cfg)
     near_box = box_mesh((0.4, 0.4, 0.4), (1.0, 0.0, 0.0))
     T = look_at([-1.0, 0.0, 0.0], [1.0, 0.0, 0.0])
@@ -274,7 +279,7 @@ def test_readings_beyond_max_range_clear_but_do_not_hit():
 # -- rolling window ---------------------------------------------------------------------------
 def test_rolling_window_keeps_obstacles_on_the_lattice_without_smearing():
     scene = make_scene([box_mesh((0.5, 0.5, 0.5), (0.3, 0.2, 0.0), 0.4)])
-    cfg = EsdfConfig(size_m=(4.0, 4.0, 3.0), stride_px=1)
+    cfg = SMALL
     esdf = EsdfMap(cfg)
     integrate_all(esdf, scene, ring_views([0.3, 0.2, 0.0], 1.6, [-0.8, 0.0, 0.8]), [0.0, 0.0, 0.0])
     occ0 = {tuple(p) for p in np.round(esdf.occupied_points() / cfg.voxel_m, 6)}

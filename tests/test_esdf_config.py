@@ -10,10 +10,14 @@ from planning.esdf_config import EsdfConfig, EsdfConfigError
 def test_defaults_follow_the_issue_and_the_paper():
     cfg = EsdfConfig()
     assert cfg.voxel_m == 0.1
-    assert cfg.size_m == (10.0, 10.0, 4.0)
-    assert cfg.grid_shape == (100, 100, 40)
+    assert cfg.size_m == (16.0, 16.0, 5.0)
+    assert cfg.grid_shape == (160, 160, 50)
     assert cfg.max_range_m == 7.0
-    assert cfg.unknown_policy == "free"
+    # the window covers D_max plus a margin on every horizontal side of the vehicle
+    assert min(cfg.size_m[:2]) / 2 >= cfg.max_range_m + 0.5
+    # safe for a real depth camera: unknown is an obstacle, holes clear a bounded stretch
+    assert cfg.unknown_policy == "occupied"
+    assert cfg.no_reading_clear_m == 4.5 and cfg.body_clear_radius_m == 1.2
     assert cfg.max_distance_voxels == 10
     # inside depth is (d_in - 1) voxels, so the transform needs one voxel more than 0.5 m
     assert cfg.max_inside_voxels == 6
@@ -51,6 +55,8 @@ def test_frozen():
         ("hit_logodds", -1.0, "hit_logodds must be a positive"),
         ("occupied_logodds", 3.0, "min_logodds < occupied_logodds < max_logodds"),
         ("unknown_policy", "maybe", "unknown_policy must be one of"),
+        ("no_reading_clear_m", -1.0, "no_reading_clear_m must be a finite number >= 0"),
+        ("body_clear_radius_m", float("nan"), "body_clear_radius_m must be a finite number >= 0"),
     ],
 )
 def test_invalid_fields_raise_naming_the_field(field, value, message):

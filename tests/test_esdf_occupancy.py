@@ -13,6 +13,8 @@ T_LOOK_X = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.
 
 
 def _grid(**kw) -> RollingOccupancy:
+    """The mechanics under the optimistic policy without a body sphere unless asked."""
+    kw = {"unknown_policy": "free", "body_clear_radius_m": 0.0, **kw}
     occ = RollingOccupancy(EsdfConfig(size_m=(4.0, 4.0, 2.0), stride_px=1, **kw))
     occ.shift_to(occ.origin_for_center([0.0, 0.0, 0.0]))
     return occ
@@ -135,3 +137,30 @@ def test_hit_wins_over_miss_in_the_same_frame():
     assert lo == pytest.approx(2 * occ.config.hit_logodds) and solid
     # its neighbour at y in [-0.2, -0.1) is only seen through
     assert _state_at(occ, [1.05, -0.15, 0.05])[0] == pytest.approx(occ.config.hit_logodds + occ.config.miss_logodds)
+
+
+def test_frustum_block_cull_never_drops_a_voxel_that_would_be_cleared(monkeypatch):
+    """Clearing with the block cull equals clearing without it, for tilted and rolled cameras."""
+    from planning.frames import body_transform, cam_transform_from_body
+
+    cam = PinholeCamera.from_fov(96, 64, 90.0, 60.0)
+    cfg = EsdfConfig(size_m=(8.0, 8.0, 4.0), stride_px=2)  # the default policy: unknown is solid
+    rng = np.random.default_rng(5)
+    for _ in range(6):
+        T = cam_transform_from_body(body_transform(rng.uniform(-0.5, 0.5, 3), rng.uniform(-np.pi, np.pi)))
+        tilt = np.eye(4)  # pitch and roll the camera by up to 0.5 rad
+        a, b = rng.uniform(-0.5, 0.5, 2)
+        tilt[:3, :3] = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]]) @ np.array(
+            [[np.cos(b), -np.sin(b), 0], [np.sin(b), np.cos(b), 0], [0, 0, 1]]
+        )
+        T = T @ tilt
+        depth = rng.uniform(0.5, 9.0, cam.shape).astype(np.float32)
+        depth[rng.random(cam.shape) < 0.3] = 0.0
+        occ = RollingOccupancy(cfg)
+        occ.shift_to(occ.origin_for_center(T[:3, 3]))
+        culled = np.sort(occ._miss_voxels(depth, cam, T, occ._scratch))
+        with monkeypatch.context() as m:
+            m.setattr(RollingOccupancy, "_frustum_blocks", lambda self, c, t, box: np.ones(tuple(np.subtract(box[1], box[0])), bool))
+            full = np.sort(occ._miss_voxels(depth, cam, T, occ._scratch))
+        assert culled.size > 100
+        np.testing.assert_array_equal(culled, full)

@@ -55,7 +55,8 @@ def _build(depths, poses) -> tuple[EsdfMap, np.ndarray]:
     center = 0.5 * (np.percentile(P, 1, axis=0) + np.percentile(P, 99, axis=0))
     esdf = EsdfMap(CONFIG)
     for d, T in zip(depths, poses):
-        esdf.integrate(d, CAMERA, T, center_world=center)
+        # default config: unknown is an obstacle; the hand-held camera is the "vehicle"
+        esdf.integrate(d, CAMERA, T, center_world=center, body_world=T[:3, 3])
     return esdf, center
 
 

@@ -1,6 +1,6 @@
 """Agent runtimes: ClockRuntime lands calls after their modelled latency on the virtual clock;
 ThreadRuntime lands them when their thread finishes, or (honour_modelled_latency) no earlier
-than the modelled latency on its own clock."""
+than the modelled engine (one queue by default) serves them on its own clock."""
 
 import threading
 from dataclasses import dataclass
@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import pytest
 
 from onfly.runtime import ClockRuntime, ThreadRuntime
-from onfly.world.clock import SimClock
+from onfly.world.clock import LatencyModel, SimClock
 
 
 @dataclass(frozen=True)
@@ -43,8 +43,9 @@ def test_thread_runtime_default_lands_as_soon_as_the_thread_finishes():
 
 
 def test_honoured_latency_lands_at_submit_plus_latency_and_stays_busy_until_then():
+    """Parallel engines (the old model): each call lands at its submission plus its latency."""
     clock = FakeClock()
-    rt = ThreadRuntime(clock, honour_modelled_latency=True)
+    rt = ThreadRuntime(clock, honour_modelled_latency=True, latency=LatencyModel(single_engine=False))
     rt.submit("decision", lambda: Answer("d", 0.81))
     clock.t_s = 100.5
     rt.submit("monitoring", lambda: Answer("m", 1.15))
@@ -63,6 +64,34 @@ def test_honoured_latency_lands_at_submit_plus_latency_and_stays_busy_until_then
     clock.t_s = 101.65
     landed = rt.poll()
     assert [(x.kind, x.outcome.text, x.submitted_s) for x in landed] == [("monitoring", "m", 100.5)]
+    rt.close()
+
+
+def test_honoured_latency_on_one_engine_serves_calls_one_after_the_other():
+    """Default engine model: monitoring submitted while the decision runs waits for it, and a
+    decision submitted while monitoring waits is served first (decision priority)."""
+    clock = FakeClock()
+    rt = ThreadRuntime(clock, honour_modelled_latency=True)
+    rt.submit("monitoring", lambda: Answer("m1", 1.15))
+    finished(rt, "monitoring")
+    assert rt.poll() == []  # scheduled at 100.0, served until 101.15
+    clock.t_s = 100.2
+    rt.submit("decision", lambda: Answer("d", 0.81))
+    rt.submit("x", lambda: Answer("x", 0.5))
+    finished(rt, "decision")
+    finished(rt, "x")
+    clock.t_s = 100.3
+    assert rt.poll() == []
+    clock.t_s = 101.1
+    assert rt.poll() == [] and rt.busy("monitoring")
+    clock.t_s = 101.15
+    assert [(x.kind, x.submitted_s) for x in rt.poll()] == [("monitoring", 100.0)]
+    clock.t_s = 101.95
+    assert rt.poll() == []
+    clock.t_s = 101.96  # decision served 101.15 .. 101.96
+    assert [x.kind for x in rt.poll()] == ["decision"]
+    clock.t_s = 102.46  # then x, 101.96 .. 102.46
+    assert [x.kind for x in rt.poll()] == ["x"] and not rt.busy("x")
     rt.close()
 
 
@@ -130,3 +159,17 @@ def test_clock_runtime_charges_the_same_latency_on_the_virtual_clock():
     rt.advance(0.01)
     landed = rt.poll()
     assert [(x.kind, x.submitted_s, x.landed_s) for x in landed] == [("decision", 0.0, pytest.approx(0.81))]
+
+
+def test_clock_runtime_queues_calls_on_one_engine():
+    """Two calls issued together land one after the other on the virtual clock."""
+    rt = ClockRuntime(SimClock(0.0))
+    rt.submit("decision", lambda: Answer("d", 0.81))
+    rt.submit("monitoring", lambda: Answer("m", 1.15))
+    rt.advance(0.81)
+    assert [x.kind for x in rt.poll()] == ["decision"] and rt.busy("monitoring")
+    rt.advance(1.14)
+    assert rt.poll() == []
+    rt.advance(0.01)
+    landed = rt.poll()
+    assert [(x.kind, x.submitted_s, x.landed_s) for x in landed] == [("monitoring", 0.0, pytest.approx(1.96))]

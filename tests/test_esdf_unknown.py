@@ -1,0 +1,337 @@
+"""The default ESDF on a real depth camera's holes: unknown is not free.
+
+Constructed scenes with exact depth (a wall perpendicular to a level camera, a ground plane,
+sky and a patch of no readings), the knownness queries against a reference computed here from
+the pinhole model, and the planner (``Planner.step`` with the map) in front of a hole in a wall.
+"""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from planning.camera import PinholeCamera
+from planning.esdf import EsdfError, EsdfMap
+from planning.esdf_config import EsdfConfig
+from planning.esdf_occupancy import free_reach
+from planning.planner import Planner
+from planning.planner_config import PlannerConfig
+from planning.trajectory import VehicleState
+
+CAMERA = PinholeCamera.from_fov(640, 480, 90.0, 60.0)
+HOLE_5M = (20 * 5.0 / CAMERA.fx, 20 * 5.0 / CAMERA.fy)  # half-sizes (y, z) m of 40 x 40 px at 5 m
+ROT_LOOK_X = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # optical z = world +x
+HEIGHT_M = 1.5
+DEFAULT = EsdfConfig()
+
+
+def pose(p) -> np.ndarray:
+    """T_world_cam of a level camera at ``p`` looking along world +x."""
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = ROT_LOOK_X, p
+    return T
+
+
+def wall_depth(p, wall_x_m, hole_half_m=None, hole_center=(0.0, HEIGHT_M)):
+    """z-depth (h, w) of a wall x = wall_x_m seen from a level camera at ``p``; pixels whose
+    ray meets the wall inside the rectangular hole (world-fixed, half-sizes hole_half_m (y, z)
+    around (y, z) = hole_center) have no reading (0)."""
+    zd = np.float32(wall_x_m - p[0])
+    depth = np.full(CAMERA.shape, zd, dtype=np.float32)
+    if hole_half_m is not None:
+        rays = CAMERA.rays()  # z = 1
+        y = p[1] - rays[..., 0] * zd
+        z = p[2] - rays[..., 1] * zd
+        hy, hz = (hole_half_m, hole_half_m) if np.isscalar(hole_half_m) else hole_half_m
+        hole = (np.abs(y - hole_center[0]) < hy) & (np.abs(z - hole_center[1]) < hz)
+        depth[hole] = 0.0
+    return depth
+
+
+def ground_depth(p, max_reading_m=np.inf):
+    """z-depth of a ground plane z = 0 from a level camera at ``p``: sky (no reading, inf) above
+    the horizon; ground beyond ``max_reading_m`` is no reading too (0), as a D435 past range."""
+    rays = CAMERA.rays() @ ROT_LOOK_X.T  # world direction per pixel, optical z = 1
+    with np.errstate(divide="ignore"):
+        t = np.where(rays[..., 2] < 0, -p[2] / rays[..., 2], np.inf)
+    depth = t.astype(np.float32)
+    depth[np.isfinite(depth) & (depth > max_reading_m)] = 0.0
+    return depth
+
+
+def hole_in_the_wall_map(cfg=DEFAULT):
+    esdf = EsdfMap(cfg)
+    p = np.array([0.0, 0.0, HEIGHT_M])
+    depth = wall_depth(p, 5.0, hole_half_m=HOLE_5M)
+    assert (depth == 0).sum() == 40 * 40  # the issue's 40 x 40 px patch
+    esdf.integrate(depth, CAMERA, pose(p))
+    return esdf
+
+
+# -- the hole in the wall ----------------------------------------------------------------------
+def test_hole_in_a_wall_is_not_open_space():
+    esdf = hole_in_the_wall_map()
+    # through the hole and around it, behind the wall: never known, never free
+    ys, zs = np.meshgrid(np.linspace(-1.0, 1.0, 21), np.linspace(HEIGHT_M - 1.0, HEIGHT_M + 1.0, 21))
+    for x in (5.15, 5.5, 6.0, 7.0, 7.5):
+        P = np.stack([np.full(ys.size, x), ys.ravel(), zs.ravel()], axis=1)
+        assert not esdf.known(P).any() and not esdf.observed_free(P).any()
+        assert np.all(esdf.query(P)[0] <= 0.0)
+    # the wall's own layer: occupied around the hole, unknown in it, free nowhere
+    P = np.stack([np.full(ys.size, 5.05), ys.ravel(), zs.ravel()], axis=1)
+    assert not esdf.observed_free(P).any() and np.all(esdf.query(P)[0] <= 0.0)
+    assert not esdf.known(np.array([[5.05, 0.0, HEIGHT_M]]))[0]
+    # in the hole's direction the space is free only up to the no-reading bound (4.5 m)
+    ahead = np.array([[x, 0.0, HEIGHT_M] for x in (1.0, 2.0, 3.0, 4.0, 4.3)])
+    assert esdf.observed_free(ahead).all()
+    assert not esdf.known(np.array([[4.6, 0.0, HEIGHT_M]]))[0]
+    # beside the hole the wall's readings clear up to the wall
+    assert esdf.observed_free(np.array([[4.8, 1.5, HEIGHT_M]]))[0]
+    # the old optimistic map (the measured bug): free space behind the wall through the hole
+    old = hole_in_the_wall_map(dataclasses.replace(DEFAULT, unknown_policy="free"))
+    assert old.query(np.array([[7.0, 0.0, HEIGHT_M]]))[0][0] == pytest.approx(old.config.max_distance_m)
+
+
+def test_planner_does_not_plan_through_the_hole():
+    """Closed loop on the modelled clock: the vehicle re-senses the wall (its hole world-fixed)
+    at every step and flies the first knot of each plan toward a goal 2 m behind the wall."""
+    cfg = PlannerConfig()
+    planner = Planner(cfg)
+    esdf = EsdfMap(DEFAULT)
+    goal = np.array([7.0, 0.0, HEIGHT_M])
+    state = VehicleState(0.0, np.array([0.0, 0.0, HEIGHT_M]), np.zeros(3), 0.0)
+    furthest = -np.inf
+    for _ in range(40):
+        p = state.p.copy()
+        p[1:] = [0.0, HEIGHT_M]  # level flight along the hole's axis (the worst case)
+        esdf.integrate(wall_depth(p, 5.0, hole_half_m=HOLE_5M), CAMERA, pose(p), center_world=state.p)
+        plan = planner.step(state, goal, esdf)
+        assert plan.trajectory.p[:, 0].max() < 5.0 - cfg.d_safe_m + 0.1
+        assert plan.goal_used[0] < 5.0
+        furthest = max(furthest, plan.trajectory.p[:, 0].max())
+        k = 1
+        state = VehicleState(state.t_s + plan.trajectory.dt_s, plan.trajectory.p[k], plan.trajectory.v[k], float(plan.trajectory.yaw[k]))
+    assert state.p[0] < 5.0 - cfg.d_safe_m + 0.1
+    assert furthest > 2.0  # it did fly toward the wall: the policy does not freeze the vehicle
+
+
+# -- unknown space and the body sphere -----------------------------------------------------------
+def test_unknown_space_behind_the_camera_is_not_free():
+    esdf = EsdfMap(DEFAULT)
+    p = np.array([0.0, 0.0, HEIGHT_M])
+    esdf.integrate(wall_depth(p, 4.0), CAMERA, pose(p))
+    behind = np.array([[-x, y, HEIGHT_M] for x in (1.5, 2.0, 3.0, 5.0) for y in (-1.0, 0.0, 1.0)])
+    assert not esdf.known(behind).any()
+    assert not esdf.is_free(behind).any()
+    assert np.all(esdf.query(behind)[0] <= 0.0)
+    # outside the window: not known, an obstacle
+    far = np.array([[-20.0, 0.0, HEIGHT_M]])
+    assert not esdf.known(far)[0] and esdf.query(far)[0][0] < -10.0
+
+
+def test_body_sphere_is_free_and_never_overrides_an_observation():
+    cfg = DEFAULT
+    esdf = EsdfMap(cfg)
+    p = np.array([0.0, 0.0, HEIGHT_M])
+    esdf.integrate(wall_depth(p, 4.0), CAMERA, pose(p))
+    r = cfg.body_clear_radius_m
+    dirs = np.array([[-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1], [-0.6, 0.8, 0]], dtype=float)
+    inside = p + (r - 0.1) * dirs
+    outside = p + (r + 0.15) * dirs[[0, 3, 4]]  # behind, above, below: out of view
+    assert esdf.observed_free(inside).all()
+    assert not esdf.known(outside).any()
+    # the vehicle's own position has room for the planner's safety distance
+    assert esdf.query(p[None])[0][0] >= PlannerConfig().d_safe_m + 0.1
+    # an obstacle seen inside the sphere stays an obstacle
+    near = EsdfMap(cfg)
+    near.integrate(wall_depth(p, 0.9), CAMERA, pose(p))
+    assert near.occupied_grid.any()
+    wall_pt = np.array([[0.95, 0.0, HEIGHT_M]])
+    assert near.known(wall_pt)[0] and not near.observed_free(wall_pt)[0]
+    assert near.query(wall_pt)[0][0] <= 0.0
+    # mark_free_sphere: unknown only, and bad input named
+    assert near.mark_free_sphere([0.95, 0.0, HEIGHT_M], 0.3) >= 0
+    assert not near.observed_free(wall_pt)[0]
+    with pytest.raises(EsdfError, match="radius_m"):
+        near.mark_free_sphere(p, -1.0)
+    with pytest.raises(EsdfError, match="center_world"):
+        near.mark_free_sphere([0.0, np.nan, 0.0], 1.0)
+    with pytest.raises(EsdfError, match="body_world"):
+        near.integrate(wall_depth(p, 2.0), CAMERA, pose(p), body_world=[0.0, 0.0])
+
+
+def test_no_reading_never_clears_an_observed_obstacle_and_a_blind_frame_clears_nothing():
+    esdf = EsdfMap(DEFAULT)
+    p = np.array([0.0, 0.0, HEIGHT_M])
+    for _ in range(3):
+        esdf.integrate(wall_depth(p, 6.5, hole_half_m=None), CAMERA, pose(p))
+    box = np.array([[2.05, 0.0, HEIGHT_M]])
+    depth = wall_depth(p, 6.5)
+    rays = CAMERA.rays()
+    near = (np.abs(rays[..., 0] * 2.0) < 0.2) & (np.abs(rays[..., 1] * 2.0) < 0.2)
+    depth[near] = 2.0  # a 0.4 m box at 2 m
+    esdf.integrate(depth, CAMERA, pose(p))
+    assert not esdf.observed_free(box)[0] and esdf.known(box)[0]
+    depth[near] = 0.0  # the box turns dark: no readings where it is, the wall around it
+    for _ in range(8):
+        esdf.integrate(depth, CAMERA, pose(p))
+    assert not esdf.observed_free(box)[0], "a no-reading pixel cleared an observed obstacle"
+    # a frame without any reading clears nothing new
+    blind = EsdfMap(DEFAULT)
+    blind.integrate(np.zeros(CAMERA.shape, np.float32), CAMERA, pose(p))
+    ahead = np.array([[x, 0.0, HEIGHT_M] for x in (1.5, 2.0, 3.0)])
+    assert not blind.known(ahead).any()
+
+
+@pytest.mark.parametrize("ground_range_m", [np.inf, 7.0])
+def test_open_ground_under_the_sky_leaves_room_to_fly(ground_range_m):
+    """Outdoors a level camera at 1.5 m sees the ground from ~2.6 m and sky above the horizon
+    (no reading; with a D435-like range, the far ground too): the space the vehicle flies
+    through must still be seen free, or it could never move."""
+    esdf = EsdfMap(DEFAULT)
+    p = np.array([0.0, 0.0, HEIGHT_M])
+    depth = ground_depth(p, ground_range_m)
+    assert (~np.isfinite(depth) | (depth == 0)).mean() >= 0.5
+    esdf.integrate(depth, CAMERA, pose(p))
+    d_safe = PlannerConfig().d_safe_m
+    path = np.array([[x, 0.0, HEIGHT_M] for x in np.arange(0.0, 3.61, 0.2)])
+    assert esdf.observed_free(path).all()
+    assert esdf.query(path)[0].min() > d_safe, esdf.query(path)[0]
+    # the ground stays an obstacle
+    assert esdf.query(np.array([[3.0, 0.0, 0.05]]))[0][0] <= 0.0
+
+
+# -- the reach of a pixel and the knownness queries against a reference --------------------------
+def test_free_reach_bounds_holes_by_their_row_and_column():
+    cfg = DEFAULT
+    depth = np.full((5, 7), 6.0, np.float32)
+    depth[0, :] = np.inf  # sky row
+    depth[2, 3] = 0.0  # a one-pixel hole
+    depth[2, 4] = 1.0  # a near reading next to the hole on its row
+    depth[2, 6] = 0.5  # nearer, but behind that one: the scan stops at the first reading
+    depth[4, 0] = 9.0  # beyond max range: a reading clipped to 7 m
+    reach, valid = free_reach(depth, cfg)
+    m = cfg.clear_margin_m
+    assert not valid[0].any() and not valid[2, 3] and valid[4, 0]
+    assert reach[4, 0] == pytest.approx(cfg.max_range_m - m)
+    assert reach[2, 3] == pytest.approx(1.0 - m)  # the nearest reading on its row
+    assert reach[0, 1] == pytest.approx(cfg.no_reading_clear_m - m)  # sky: bounded by 4.5 m
+    assert reach[1, 1] == pytest.approx(6.0 - m)
+    off = free_reach(depth, dataclasses.replace(cfg, no_reading_clear_m=0.0))[0]
+    assert np.all(off[~valid] == -np.inf) and np.array_equal(off[valid], reach[valid])
+
+
+def _reference_known(esdf: EsdfMap, depth: np.ndarray, p: np.ndarray, reach_of_pixel) -> tuple[np.ndarray, np.ndarray]:
+    """(known, hit) bool grids of one frame from the pinhole model, computed independently:
+    hit = voxels holding a back-projected point (stride 2); cleared = voxel centres projecting
+    into the image with min_range < z < reach; plus the body sphere."""
+    cfg = esdf.config
+    C = esdf.voxel_centers().reshape(-1, 3)
+    P_cam = (C - p) @ ROT_LOOK_X  # R^T (c - t) as rows
+    z = P_cam[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.floor(CAMERA.fx * P_cam[:, 0] / z + CAMERA.cx + 0.5)
+        v = np.floor(CAMERA.fy * P_cam[:, 1] / z + CAMERA.cy + 0.5)
+    inside = (z > cfg.min_range_m) & (u >= 0) & (u < CAMERA.width) & (v >= 0) & (v < CAMERA.height)
+    reach = np.full(len(C), -np.inf)
+    reach[inside] = reach_of_pixel(v[inside].astype(int), u[inside].astype(int))
+    cleared = inside & (z < reach)
+    s = cfg.stride_px
+    d = depth[::s, ::s]
+    ok = (d >= cfg.min_range_m) & (d < cfg.max_range_m)
+    rays = CAMERA.rays()[::s, ::s]
+    pts = (rays * d[..., None])[ok] @ ROT_LOOK_X.T + p
+    idx = np.floor(pts / cfg.voxel_m).astype(np.int64) - esdf.origin_index
+    hit = np.zeros(esdf.shape, bool)
+    keep = np.all((idx >= 0) & (idx < np.array(esdf.shape)), axis=1)
+    hit[tuple(idx[keep].T)] = True
+    body = np.linalg.norm(C - p, axis=1) <= cfg.body_clear_radius_m
+    known = hit | (cleared | body).reshape(esdf.shape)
+    return known, hit
+
+
+def test_knownness_matches_a_pinhole_reference_on_a_wall_with_sky_and_a_hole():
+    cfg = DEFAULT
+    esdf = EsdfMap(cfg)
+    p = np.array([0.03, -0.02, HEIGHT_M])
+    # wall at 6.02 m: no voxel centre sits on a clearing bound (float32 ties)
+    depth = wall_depth(p, 6.02, hole_half_m=0.4, hole_center=(0.5, HEIGHT_M - 0.2))
+    depth[:120] = np.inf  # the top quarter: sky over the wall
+    esdf.integrate(depth, CAMERA, pose(p), center_world=p)
+    m = cfg.clear_margin_m
+    sky_or_hole = ~np.isfinite(depth) | (depth == 0)
+
+    def reach_of_pixel(v, u):
+        # every no-reading pixel here has the wall (5.99 m) on its column or row: min(4.5, 5.99)
+        return np.where(sky_or_hole[v, u], cfg.no_reading_clear_m - m, depth[v, u].astype(float) - m)
+
+    known_ref, hit_ref = _reference_known(esdf, depth, p, reach_of_pixel)
+    known = esdf.known_grid
+    assert known_ref.sum() > 100_000
+    np.testing.assert_array_equal(known, known_ref)
+    np.testing.assert_array_equal(esdf.occupied_grid, hit_ref)
+    C = esdf.voxel_centers().reshape(-1, 3)
+    sample = np.random.default_rng(0).choice(len(C), 20000, replace=False)
+    np.testing.assert_array_equal(esdf.known(C[sample]), known_ref.reshape(-1)[sample])
+    np.testing.assert_array_equal(esdf.observed_free(C[sample]), (known_ref & ~hit_ref).reshape(-1)[sample])
+    # the hole's voxels behind the clearing bound are unknown; beside it the wall clears more
+    assert not esdf.known(np.array([[5.0, 0.5, HEIGHT_M - 0.2]]))[0]
+    assert esdf.known(np.array([[5.5, -1.5, HEIGHT_M - 0.2]]))[0]
+    # frontier: observed free voxels with an unknown face neighbour, e.g. at the hole's bound
+    F = esdf.frontier_points()
+    assert len(F) > 0 and esdf.observed_free(F).all()
+    assert np.any(np.all(np.abs(F - [4.35, 0.5, HEIGHT_M - 0.2]) < 0.1, axis=1))
+    # bad input named
+    with pytest.raises(EsdfError, match=r"shape \(n, 3\)"):
+        esdf.known(np.zeros((2, 2)))
+    with pytest.raises(EsdfError, match="NaN"):
+        esdf.observed_free(np.array([[np.nan, 0.0, 0.0]]))
+
+
+# -- the window covers the verifier's range ---------------------------------------------------------
+def test_window_covers_the_verifier_range():
+    """A goal check 6.4 m ahead reads the wall 0.4 m further, not a value clamped at the
+    window's face (the old 10 m window ended at 5 m)."""
+    esdf = EsdfMap(DEFAULT)
+    p = np.array([0.0, 0.0, HEIGHT_M])
+    esdf.integrate(wall_depth(p, 6.85), CAMERA, pose(p))
+    lo, hi = esdf.bounds_world
+    assert np.all(hi[:2] - p[:2] >= 7.5) and np.all(p[:2] - lo[:2] >= 7.5)
+    d = esdf.query(np.array([[6.4, 0.0, HEIGHT_M], [6.4, 1.0, HEIGHT_M]]))[0]
+    np.testing.assert_allclose(d, 0.4, atol=0.1)
+    old = EsdfMap(dataclasses.replace(DEFAULT, size_m=(10.0, 10.0, 4.0)))
+    old.integrate(wall_depth(p, 6.85), CAMERA, pose(p))
+    assert old.query(np.array([[6.4, 0.0, HEIGHT_M]]))[0][0] < 0.0  # outside: read as an obstacle
+
+
+# -- a glass door rendered from a committed scene (the realistic world profile) ---------------------
+def test_glass_door_rendered_from_a_scene_is_not_a_passage():
+    """urban_block's glass door and glass tower give no depth readings under the realistic
+    profile; the VLM could point through the door into the lobby behind it (free in the truth).
+    The default map keeps the door and the lobby unknown, and the planner stops in front."""
+    import math
+
+    from onfly.world import World
+
+    start = VehicleState(0.0, np.array([-4.0, -24.0, 1.4]), np.zeros(3), math.pi)  # facing west
+    world = World.from_scene("urban_block", realism="realistic", seed=5, initial_state=start)
+    obs = world.observe()
+    door = obs.annotation.instance_ids == world.scene.object_by_name("glass door").instance_id
+    assert door.sum() > 1000 and np.all(obs.depth_m[door] == 0.0)
+    door_x = -4.0 - float(np.median(obs.annotation.depth_m[door]))  # about -7.9 m
+    lobby = np.array([[x, -24.0, 1.4] for x in (-9.5, -10.5)])
+    assert np.all(world.collision.clearance(lobby) > 1.0)  # free space behind the door
+    goal = lobby[1]
+    planner = Planner(PlannerConfig())
+    d_safe = planner.config.d_safe_m
+    new = EsdfMap(DEFAULT)
+    new.integrate(obs.depth_m, obs.camera, obs.T_world_cam, center_world=obs.position)
+    behind = np.array([[x, y, 1.4] for x in (door_x - 0.3, -9.5, -10.5) for y in (-24.5, -24.0, -23.5)])
+    assert not new.known(behind).any() and np.all(new.query(behind)[0] <= 0.0)
+    plan = planner.step(start, goal, new)
+    assert plan.trajectory.p[:, 0].min() > door_x + d_safe - 0.1 and plan.goal_used[0] > door_x
+    # the old optimistic map: the door is open space and the plan heads through it
+    old = EsdfMap(EsdfConfig(unknown_policy="free", no_reading_clear_m=0.0, body_clear_radius_m=0.0, size_m=(10.0, 10.0, 4.0)))
+    old.integrate(obs.depth_m, obs.camera, obs.T_world_cam, center_world=obs.position)
+    assert np.all(old.query(behind)[0] == old.config.max_distance_m)
+    assert Planner(PlannerConfig()).step(start, goal, old).goal_used[0] < door_x
