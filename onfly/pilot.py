@@ -582,6 +582,10 @@ class OnFlyPilot:
         scfg = self.config.search
         if not scfg.enabled or self.search.active or self.mode in (PilotMode.CONFIRMING, PilotMode.FINISHED):
             return
+        if self.mode is PilotMode.NAVIGATING and self.goal_world is not None:
+            # a target seen moments ago and missed now (far, small, occluded for a frame): keep
+            # flying its goal; when that goal times out the streak starts the search
+            return
         if self._not_visible_streak >= scfg.not_visible_streak:
             self._start_search(t_s, state, SearchTrigger.NOT_VISIBLE)
         elif self._no_goal_streak - self._rejected_streak >= scfg.fail_streak or self._no_goal_streak >= scfg.reject_streak:
@@ -611,7 +615,11 @@ class OnFlyPilot:
         self._face_yaw = None
         self._hold_p = state.p.copy()
         self.mode = PilotMode.SEARCHING
-        self._event(t_s, "search_start", {"trigger": trigger.value, "position": state.p, "toward_yaw": toward})
+        self._event(
+            t_s,
+            "search_start",
+            {"trigger": trigger.value, "position": state.p, "toward_yaw": toward, "heading": self.search.heading0, "travel": travel},
+        )
         if explore_first:
             self._explore(t_s, state)
 

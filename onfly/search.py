@@ -94,8 +94,9 @@ class SearchConfig:
     visit_spacing_m : the vehicle's track is remembered every this many metres
     stall_window_s, stall_distance_m : less travel than this in that window is a dead end
     gain_lookahead_m : how far beyond a candidate the gain fan reaches, metres
-    forward_weight : score cost of a leg pointing opposite to the heading the search began
-        with (0 = no preference; the gain is a fraction in [0, 1])
+    forward_weight : how much a leg's value depends on its direction, in [0, 1]: the value (the
+        gain plus a small bonus for length) is scaled by ``1 - w + w (1 + cos d) / 2``, ``d``
+        the angle to the heading the search keeps (so ``1 - w`` of it straight behind)
     side_gain_min : after a leg, look a quarter turn to the side whose unknown fraction is at
         least this (the camera faced forward all the leg; a target beside the way is missed
         otherwise)
@@ -119,7 +120,7 @@ class SearchConfig:
     stall_window_s: float = 12.0
     stall_distance_m: float = 0.6
     gain_lookahead_m: float = 4.0
-    forward_weight: float = 0.3
+    forward_weight: float = 0.8
     side_gain_min: float = 0.25
 
     def __post_init__(self) -> None:
@@ -145,8 +146,8 @@ class SearchConfig:
             raise SearchConfigError(f"SearchConfig.scan_dwell_s must be >= 0, got {self.scan_dwell_s}")
         if not (0.0 <= self.side_gain_min <= 1.0):
             raise SearchConfigError(f"SearchConfig.side_gain_min must be in [0, 1], got {self.side_gain_min}")
-        if not (np.isfinite(self.forward_weight) and self.forward_weight >= 0):
-            raise SearchConfigError(f"SearchConfig.forward_weight must be >= 0, got {self.forward_weight}")
+        if not (0.0 <= self.forward_weight <= 1.0):
+            raise SearchConfigError(f"SearchConfig.forward_weight must be in [0, 1], got {self.forward_weight}")
         if not (np.isfinite(self.explore_clearance_m) and self.explore_clearance_m >= 0):
             raise SearchConfigError(f"SearchConfig.explore_clearance_m must be >= 0, got {self.explore_clearance_m}")
         ranges = tuple(float(r) for r in self.explore_ranges_m)
@@ -235,11 +236,13 @@ def explore_target(
             if volume is not None:
                 useful = volume.contains(samples)
             gain = float(np.mean(~known_mask(field_map, samples) & useful))
-            score = gain + 0.05 * r / max(cfg.explore_ranges_m)
+            # a longer leg is worth a little even into known space (progress along the route)
+            value = gain + 0.1 * r / max(cfg.explore_ranges_m)
+            ahead = 0.5 * (1.0 + np.cos(wrap_angle(th - yaw)))  # 1 straight on ... 0 behind
+            score = value * ((1.0 - cfg.forward_weight) + cfg.forward_weight * ahead)
             if len(visited):
                 near = np.linalg.norm(np.asarray(visited)[:, :2] - cand[None, :2], axis=1)
                 score -= 0.5 * float(np.sum(np.clip(1.0 - near / cfg.visit_radius_m, 0.0, 1.0)))
-            score -= cfg.forward_weight * abs(wrap_angle(th - yaw)) / np.pi
             if prefer_yaw is not None:
                 score -= 0.3 * abs(wrap_angle(th - prefer_yaw)) / np.pi
             if score > best_score:
@@ -273,16 +276,31 @@ def side_to_look(
     return best
 
 
+def _seen_obstacle(field_map, points: np.ndarray, clearance_m: float) -> np.ndarray:
+    """True where an *observed* obstacle lies within ``clearance_m`` of ``points`` (n, 3).
+
+    A map with knownness (``observed_free``) tells seen obstacles from unknown space: unknown
+    is not a wall, it is where a search goes. A field without it falls back to its distance.
+    """
+    seen_free = getattr(field_map, "observed_free", None)
+    if not callable(seen_free):
+        dist, _ = field_map.query(points)
+        return dist < clearance_m
+    offsets = clearance_m * np.array([[0, 0, 0], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
+    probe = (points[:, None, :] + offsets[None, :, :]).reshape(-1, 3)
+    blocked = known_mask(field_map, probe) & ~np.asarray(seen_free(probe), dtype=bool)
+    return blocked.reshape(len(points), -1).any(axis=1)
+
+
 def open_heading(position: np.ndarray, yaw: float, field_map, *, clearance_m: float, min_free_m: float = 2.5) -> float:
     """The heading a search should keep going in: ``yaw`` when some way ahead (straight on or
-    45 deg to either side) is free for ``min_free_m`` (the route goes on past what is in front),
-    else the opposite (a dead end: back out)."""
+    45 deg to either side) has no seen obstacle within ``min_free_m`` (the route goes on past
+    what is in front, unknown space included), else the opposite (a dead end: back out)."""
     p = np.asarray(position, dtype=float)
     steps = np.arange(0.25, min_free_m + 1e-9, 0.25)
     for off in (0.0, np.pi / 4, -np.pi / 4):
         d = np.array([np.cos(yaw + off), np.sin(yaw + off), 0.0])
-        dist, _ = field_map.query(p + np.outer(steps, d))
-        if float(np.min(dist)) >= clearance_m:
+        if not bool(np.any(_seen_obstacle(field_map, p + np.outer(steps, d), clearance_m))):
             return float(yaw)
     return float(wrap_angle(yaw + np.pi))
 

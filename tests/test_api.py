@@ -70,7 +70,9 @@ def test_one_set_of_defaults_for_api_cli_and_benchmark():
 
     ep = EpisodeConfig()
     assert (ep.frame_period_s, ep.time_limit_s, ep.control_period_s, ep.success_radius_m) == (0.5, 70.0, 0.1, 5.0)
-    assert BenchConfig().world_settings() == {"width_px": 320, "height_px": 214, "hfov_deg": 90.0, "vfov_deg": 60.0, "render_threads": 1}
+    assert BenchConfig().world_settings() == {
+        "width_px": 320, "height_px": 214, "hfov_deg": 90.0, "vfov_deg": 60.0, "render_threads": 1, "realism": "ideal"
+    }
     assert BenchConfig().vlm == defaults.VLM
     args = build_parser(["run"]).parse_args(["run", "--task", "x"])
     # the CLI leaves unset values to the shared defaults (None = "as the benchmark")

@@ -169,12 +169,21 @@ class MavproxyStyle:
         assert msg is not None, f"no COMMAND_ACK for {command}"
         return msg.result
 
+    def drain(self):
+        """Read what is buffered, as MAVProxy's loop always does: a client that stops reading
+        lets the socket buffer fill with telemetry, and the kernel then drops the newest
+        datagrams, a command's ACK among them."""
+        while self.m.recv_match(blocking=False) is not None:
+            pass
+
     def mode(self, name):
+        self.drain()
         self.m.mav.set_mode_send(self.m.target_system, M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, self.m.mode_mapping()[name])
         return self.ack(M.MAVLINK_MSG_ID_SET_MODE)
 
     def long(self, cmd, *params):
         p = list(params) + [0.0] * (7 - len(params))
+        self.drain()
         self.m.mav.command_long_send(self.m.target_system, self.m.target_component, cmd, 0, *p)
         return self.ack(cmd)
 
@@ -213,6 +222,7 @@ def test_pymavlink_mavproxy_style_ardupilot_guided_flight():
         # `guided LAT LON ALT`: COMMAND_INT DO_REPOSITION, relative altitude
         gp = mp.m.recv_match(type="GLOBAL_POSITION_INT", blocking=True, timeout=3)
         lat = gp.lat + int(round(math.degrees(5.0 / EARTH_RADIUS_M) * 1e7))
+        mp.drain()
         mp.m.mav.command_int_send(1, 1, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, M.MAV_CMD_DO_REPOSITION, 0, 0,
                                   -1, M.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, math.nan, lat, gp.lon, 3.0)
         assert mp.ack(M.MAV_CMD_DO_REPOSITION) == M.MAV_RESULT_ACCEPTED

@@ -12,6 +12,7 @@ from onfly.bench.metrics import GoalRegion
 from onfly.bench.onfly_method import OnFlyMethod, ablation_config
 from onfly.pilot import OnFlyPilot, PilotConfig, PilotConfigError, PilotMode
 from onfly.runtime import ClockRuntime
+from onfly.world.clock import LatencyModel
 from onfly.world.world import World
 from planning.camera import PinholeCamera
 from planning.frames import wrap_angle
@@ -19,6 +20,10 @@ from planning.planner import Planner
 from vlm_fakes import ScriptedVlm, text, timeout
 
 CAM = PinholeCamera.from_fov(160, 107, 90.0, 60.0)
+#: Two calls in flight at once (a server that batches requests). The default modelled engine
+#: is one queue (one GPU: calls finish one after the other); tests about something else than
+#: that queue pin this so their timing does not depend on it.
+PARALLEL = LatencyModel(single_engine=False)
 RED_VAN = GoalRegion([4.3, -15.0, 1.3], [1.0, 2.3, 0.95])
 SHORT = EpisodeConfig(time_limit_s=40.0)
 
@@ -40,8 +45,8 @@ class BackendMethod(OnFlyMethod):
         self.pilot.begin(spec.instruction, spec.start_state.t_s)
 
 
-def fly(method, instruction, goal=RED_VAN, config=SHORT, scene="urban_block", seed=0):
-    world = World.from_scene(scene, camera=CAM)
+def fly(method, instruction, goal=RED_VAN, config=SHORT, scene="urban_block", seed=0, latency=None):
+    world = World.from_scene(scene, camera=CAM, latency=latency)
     return world, run_episode(
         world, method, instruction=instruction, goal=goal, reference_path_m=10.0, seed=seed, error_model="test", config=config
     )
@@ -98,6 +103,7 @@ def test_multi_subtask_instruction_advances_subtask_by_subtask(planner):
         "First fly to the white car, then continue to the bus stop and stop there.",
         goal=bus_stop_region(),
         config=EpisodeConfig(time_limit_s=70.0),
+        latency=PARALLEL,
     )
     p = m.pilot
     assert len(p.tasks.subtasks) == 2
@@ -224,7 +230,7 @@ def test_vlm_faults_never_stop_the_planner_or_crash_the_pilot(planner, fault):
     cfg = PilotConfig(goal_timeout_s=4.0)
     m = BackendMethod(backend, config=cfg, planner=planner)
     ticks = []
-    world = World.from_scene("urban_block", camera=CAM)
+    world = World.from_scene("urban_block", camera=CAM, latency=PARALLEL)
     r = run_episode(
         world, m, instruction="Fly to the red van.", goal=RED_VAN, reference_path_m=10.0, seed=0,
         error_model="test", config=EpisodeConfig(time_limit_s=25.0),
@@ -288,7 +294,7 @@ def test_ablation_configs_and_validation():
 
 def test_single_stream_pays_both_latencies(planner):
     m = OnFlyMethod("sim:perfect", ablation_config("onfly_no_dual_agent"), planner=planner)
-    world, r = fly(m, "Fly over to the red van and stop right next to it.", config=EpisodeConfig(time_limit_s=10.0))
+    world, r = fly(m, "Fly over to the red van and stop right next to it.", config=EpisodeConfig(time_limit_s=10.0), latency=PARALLEL)
     assert "decision" not in r.vlm_calls and "monitoring" not in r.vlm_calls
     # before the decomposition lands the one stream only decides (early start); after it,
     # every call on the stream carries a decision and a monitoring answer
@@ -305,7 +311,9 @@ def test_single_stream_pays_both_latencies(planner):
 def test_early_start_flies_before_the_decomposition_lands(planner, early_start):
     trace = []
     m = OnFlyMethod("sim:perfect", PilotConfig(early_start=early_start), planner=planner)
-    world = World.from_scene("urban_block", camera=CAM)
+    # early start needs a second call in flight beside the 3 s decomposition (a batching
+    # server); on one queue the early decisions wait for it (test_clock covers the queue)
+    world = World.from_scene("urban_block", camera=CAM, latency=PARALLEL)
     r = run_episode(
         world, m, instruction="Fly over to the red van and stop right next to it.", goal=RED_VAN, reference_path_m=10.0,
         seed=0, error_model="test", config=SHORT,
