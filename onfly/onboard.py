@@ -483,29 +483,30 @@ class OnboardFlight:
             log.warning("recording failed at t=%.2f: %s", t, exc)
 
     def _report_pilot_events(self, t: float) -> None:
-        """Feed the pilot's new events to the bridge's failsafe monitor (VLM health)."""
+        """Feed the pilot's new events to the bridge's failsafe monitor (VLM health), each at
+        its own time (the pilot stamps events on the flight's clock when the answer landed)."""
         fs = self.bridge.failsafe
         events = self.pilot.events
         for ev in events[self._n_events :]:
             d = ev.data
             if ev.kind == "decision":
                 if d.get("goal_world") is not None:
-                    fs.report_vlm_ok(t)
+                    fs.report_vlm_ok(ev.t_s)
                 elif d.get("status") == "timeout":
-                    fs.report_vlm_failure(t, FailsafeCause.VLM_TIMEOUT, f"decision: {d.get('reason', '')}")
+                    fs.report_vlm_failure(ev.t_s, FailsafeCause.VLM_TIMEOUT, f"decision: {d.get('reason', '')}")
                 elif d.get("status") == "error" or str(d.get("reason", "")).startswith("parse"):
-                    fs.report_vlm_failure(t, FailsafeCause.VLM_GARBAGE, f"decision: {d.get('reason', '')}")
+                    fs.report_vlm_failure(ev.t_s, FailsafeCause.VLM_GARBAGE, f"decision: {d.get('reason', '')}")
             elif ev.kind == "monitor":
                 if d.get("status") is not None:
-                    fs.report_vlm_ok(t)
+                    fs.report_vlm_ok(ev.t_s)
                 elif d.get("reason") == "memory too short":
                     continue  # no call was made
                 elif str(d.get("reason", "")).startswith("call timeout"):
-                    fs.report_vlm_failure(t, FailsafeCause.VLM_TIMEOUT, f"monitor: {d.get('reason', '')}")
+                    fs.report_vlm_failure(ev.t_s, FailsafeCause.VLM_TIMEOUT, f"monitor: {d.get('reason', '')}")
                 else:
-                    fs.report_vlm_failure(t, FailsafeCause.VLM_GARBAGE, f"monitor: {d.get('reason', '')}")
+                    fs.report_vlm_failure(ev.t_s, FailsafeCause.VLM_GARBAGE, f"monitor: {d.get('reason', '')}")
             elif ev.kind == "agent_error":
-                fs.report_vlm_failure(t, FailsafeCause.VLM_GARBAGE, f"{d.get('kind')} call raised: {d.get('error')}")
+                fs.report_vlm_failure(ev.t_s, FailsafeCause.VLM_GARBAGE, f"{d.get('kind')} call raised: {d.get('error')}")
                 self._event("agent_error", d, t)
             elif ev.kind in ("goal_timeout", "lost", "resumed", "advanced", "finished", "decomposition"):
                 self._event(f"pilot_{ev.kind}", d, ev.t_s)
