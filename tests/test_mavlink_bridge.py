@@ -139,6 +139,23 @@ def test_fence_clips_position_and_bad_setpoints_are_refused():
     np.testing.assert_allclose(out.p, [1.0, -1.0, 0.0])
 
 
+def test_vehicle_limits_are_the_planners_and_the_volume_is_the_fence():
+    from planning.planner_config import PlannerConfig
+    from planning.volume import FlightVolume
+
+    pc = PlannerConfig()
+    vol = FlightVolume(np.array([-2.0, -3.0, 0.0]), np.array([4.0, 5.0, 3.0]))
+    lim = SafetyLimits.for_vehicle(pc.v_max_mps, pc.a_max_mps2, vol, leash_m=100.0)
+    assert lim.v_max_mps == pytest.approx(1.01 * pc.v_max_mps) and lim.a_max_mps2 == pytest.approx(1.01 * pc.a_max_mps2)
+    assert lim.fence_min_m == (-2.0, -3.0, 0.0) and lim.fence_max_m == (4.0, 5.0, 3.0)
+    a, _ = memory_link_pair(1, 191, 1, 1)
+    bridge = MavlinkBridge(a, BridgeConfig(limits=lim))
+    # |a| = 1.04 m/s^2 (the per-axis planner's worst case) leaves at the norm limit
+    out = bridge.clip_setpoint(Setpoint(0.0, SetpointKind.TRACK, [9.0, 0.0, 1.0], [0.6, 0.6, 0.0], [0.6, 0.6, 0.6], 0.0), None)
+    assert np.linalg.norm(out.a) == pytest.approx(lim.a_max_mps2) and np.linalg.norm(out.v) == pytest.approx(lim.v_max_mps)
+    np.testing.assert_allclose(out.p, [4.0, 0.0, 1.0])
+
+
 def test_streamer_samples_the_trajectory_at_a_steady_rate_while_the_main_thread_is_busy(rig):
     bridge, vehicle = rig
     t0 = bridge.clock()

@@ -75,7 +75,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from onfly.mavlink.autopilot import OffboardConfig, make_session
-    from onfly.mavlink.bridge import BridgeConfig, BridgeError, MavlinkBridge
+    from onfly.mavlink.bridge import BridgeConfig, BridgeError, MavlinkBridge, SafetyLimits
     from onfly.mavlink.link import LinkError
     from onfly.onboard import GroundTruth, OnboardConfig, OnboardFlight, pose_source
     from onfly.pilot import OnFlyPilot, PilotConfig
@@ -97,7 +97,10 @@ def run(args: argparse.Namespace) -> int:
             takeoff_alt_m=takeoff, time_limit_s=args.time_limit_s, hold_after_finish_s=args.hold_s, on_finish=args.on_finish
         )
         pilot_config = _fly_config(args.config)[0] if args.config else PilotConfig()
-        bridge_config = BridgeConfig(target_system=args.system_id, source_system=args.system_id)
+        # the setpoints leave the companion under the planner's own limits and the volume
+        pc = pilot_config.planner
+        limits = SafetyLimits.for_vehicle(pc.v_max_mps, pc.a_max_mps2, volume)
+        bridge_config = BridgeConfig(target_system=args.system_id, source_system=args.system_id, limits=limits)
         offboard = OffboardConfig(takeoff_alt_m=max(takeoff, 0.5))
     except ValueError as exc:
         raise CliError(str(exc)) from exc

@@ -239,6 +239,17 @@ class SafetyLimits:
         object.__setattr__(self, "fence_min_m", lo)
         object.__setattr__(self, "fence_max_m", hi)
 
+    @classmethod
+    def for_vehicle(cls, v_max_mps: float, a_max_mps2: float, volume=None, tolerance_rel: float = 0.01, **kw) -> "SafetyLimits":
+        """The limits the planner plans with (speed and acceleration norms, plus
+        ``tolerance_rel`` for the planner's own cutting-plane tolerance) and the operator's
+        flight volume (:class:`planning.volume.FlightVolume`, the pilot's world frame) as the
+        fence, so the companion never sends what the planner would not plan."""
+        if volume is not None:
+            kw.setdefault("fence_min_m", tuple(float(x) for x in volume.min_m))
+            kw.setdefault("fence_max_m", tuple(float(x) for x in volume.max_m))
+        return cls(v_max_mps=v_max_mps * (1.0 + tolerance_rel), a_max_mps2=a_max_mps2 * (1.0 + tolerance_rel), **kw)
+
 
 @dataclass(frozen=True)
 class BridgeConfig:
