@@ -37,7 +37,16 @@ from onfly.agents import DecisionAgent, DecisionOutcome, MonitoringAgent, Monito
 from onfly.memory import MemoryConfig, make_memory
 from onfly.observation import Observation
 from onfly.runtime import AgentRuntime, Landed
-from onfly.search import Search, SearchConfig, SearchPhase, SearchTrigger, explore_target, open_heading, side_to_look
+from onfly.search import (
+    Search,
+    SearchConfig,
+    SearchPhase,
+    SearchTrigger,
+    explore_target,
+    frontier_target,
+    open_heading,
+    side_to_look,
+)
 from onfly.serialize import config_from_tables, to_jsonable
 from onfly.task_manager import Status, TaskEvent, TaskManager
 from planning.esdf import EsdfMap
@@ -628,19 +637,18 @@ class OnFlyPilot:
         z = float(state.p[2])
         if self.config.goal_min_z_m is not None:
             z = max(z, self.config.goal_min_z_m)
-        target = explore_target(
-            state.p,
-            self.search.heading0,
-            self.esdf,
-            config=self.config.search,
-            volume=self.volume,
-            volume_margin_m=self._volume_margin_m,
-            visited=self.search.visited,
-            z_m=z,
-            prefer_yaw=self._last_seen_yaw(state),
+        common = dict(
+            config=self.config.search, volume=self.volume, volume_margin_m=self._volume_margin_m, visited=self.search.visited, z_m=z
         )
+        # the most promising frontier of the map first; the ring of straight legs where the map
+        # has no reachable frontier at this height
+        target = frontier_target(state.p, self.search.heading0, self.esdf, **common)
+        how = "frontier"
+        if target is None:
+            target = explore_target(state.p, self.search.heading0, self.esdf, prefer_yaw=self._last_seen_yaw(state), **common)
+            how = "ring"
         self.search.explore_from(t_s, target, state.p, state.yaw)
-        self._event(t_s, "search_explore", {"target": target, "position": state.p})
+        self._event(t_s, "search_explore", {"target": target, "position": state.p, "how": how})
 
     def _search_control(self, t_s: float, state: VehicleState) -> tuple[np.ndarray, float | None]:
         point, yaw_ref, ev = self.search.control(t_s, state.p, state.yaw)
@@ -650,7 +658,10 @@ class OnFlyPilot:
         elif ev == "explore_done":
             # the camera faced forward all the leg: look to the side with the most unknown
             # space, then the next leg (the turn onto it sweeps more sectors)
-            side = side_to_look(state.p, state.yaw, self.esdf, config=self.config.search, volume=self.volume)
+            leg = self.search.leg_length_m(state.p)
+            side = None
+            if leg >= self.config.search.min_leg_m:
+                side = side_to_look(state.p, state.yaw, self.esdf, config=self.config.search, volume=self.volume)
             if side is None:
                 self._explore(t_s, state)
             else:

@@ -54,6 +54,7 @@ __all__ = [
     "SearchTrigger",
     "Search",
     "explore_target",
+    "frontier_target",
     "known_mask",
     "open_heading",
     "side_to_look",
@@ -100,6 +101,9 @@ class SearchConfig:
     side_gain_min : after a leg, look a quarter turn to the side whose unknown fraction is at
         least this (the camera faced forward all the leg; a target beside the way is missed
         otherwise)
+    min_leg_m : frontiers nearer than this (path metres) are taken only when no farther one is
+        reachable, and a leg shorter than this ends without a side look: short hops spend the
+        time on turning, not on seeing new space
     """
 
     enabled: bool = True
@@ -122,12 +126,14 @@ class SearchConfig:
     gain_lookahead_m: float = 4.0
     forward_weight: float = 0.8
     side_gain_min: float = 0.25
+    min_leg_m: float = 2.5
 
     def __post_init__(self) -> None:
         for name in ("not_visible_streak", "fail_streak", "reject_streak", "explore_headings"):
             if int(getattr(self, name)) < 1:
                 raise SearchConfigError(f"SearchConfig.{name} must be >= 1, got {getattr(self, name)}")
         for name in (
+            "min_leg_m",
             "scan_step_rad",
             "scan_total_rad",
             "scan_yaw_tolerance_rad",
@@ -250,6 +256,108 @@ def explore_target(
     return best
 
 
+def _reach_grid(field_map, p0: np.ndarray, clearance_m: float, stride: int = 2):
+    """Breadth-first reach over the map's horizontal layer at the vehicle's height: cells (at
+    ``stride`` voxels) whose distance keeps ``clearance_m``, 8-connected, from the vehicle's
+    cell. Returns ``(x (nx,), y (ny,), steps (nx, ny) float, inf where unreachable)``, steps in
+    metres of path."""
+    from collections import deque
+
+    sl = field_map.distance_slice(float(p0[2]))
+    x, y = sl.x_m[::stride], sl.y_m[::stride]
+    free = sl.distance_m[::stride, ::stride] >= clearance_m
+    h = float(x[1] - x[0]) if len(x) > 1 else 1.0
+    dist = np.full(free.shape, np.inf)
+    i0, j0 = int(np.argmin(np.abs(x - p0[0]))), int(np.argmin(np.abs(y - p0[1])))
+    free[i0, j0] = True  # the vehicle is where it is
+    dist[i0, j0] = 0.0
+    queue = deque([(i0, j0)])
+    nbrs = [(1, 0, 1.0), (-1, 0, 1.0), (0, 1, 1.0), (0, -1, 1.0), (1, 1, 1.414), (1, -1, 1.414), (-1, 1, 1.414), (-1, -1, 1.414)]
+    nx, ny = free.shape
+    while queue:
+        i, j = queue.popleft()
+        d0 = dist[i, j]
+        for di, dj, w in nbrs:
+            a, b = i + di, j + dj
+            if 0 <= a < nx and 0 <= b < ny and free[a, b] and dist[a, b] > d0 + w * h + 1e-9:
+                dist[a, b] = d0 + w * h
+                queue.append((a, b))
+    return x, y, dist
+
+
+def frontier_target(
+    position: np.ndarray,
+    yaw: float,
+    field_map,
+    *,
+    config: SearchConfig,
+    volume: FlightVolume | None,
+    volume_margin_m: float,
+    visited: np.ndarray,
+    z_m: float,
+) -> np.ndarray | None:
+    """The reachable place next to the most promising frontier of the map's known space, or None
+    (no map with frontiers, none at this height, or none reachable).
+
+    Frontier voxels (seen free, next to unknown; ``field_map.frontier_points()``) within 0.6 m
+    of the flight height are grouped in 1 m cells; a group is reached through the map's free
+    layer at that height (breadth-first, keeping ``explore_clearance_m``), and scored by its
+    size, its direction (as in :func:`explore_target`), its path length, and the places already
+    visited. The target is the reachable cell nearest the group: the camera arrives facing the
+    unknown beyond it (through a doorway, round a corner), which a straight ring of candidates
+    cannot reach.
+    """
+    frontier = getattr(field_map, "frontier_points", None)
+    if not callable(frontier) or not callable(getattr(field_map, "distance_slice", None)):
+        return None
+    cfg = config
+    F = np.asarray(frontier(), dtype=float).reshape(-1, 3)
+    F = F[np.abs(F[:, 2] - z_m) <= 0.6]
+    if volume is not None and len(F):
+        F = F[volume.contains(F, margin_m=volume_margin_m)]
+    if not len(F):
+        return None
+    p0 = np.array([position[0], position[1], z_m], dtype=float)
+    x, y, steps = _reach_grid(field_map, p0, cfg.explore_clearance_m)
+    reach = np.isfinite(steps)
+    if reach.sum() <= 1:
+        return None
+    ri, rj = np.nonzero(reach)
+    cells = np.stack([x[ri], y[rj]], axis=-1)
+    keys = np.floor(F[:, :2]).astype(np.int64)
+    groups: dict[tuple[int, int], list[int]] = {}
+    for k, key in enumerate(map(tuple, keys)):
+        groups.setdefault(key, []).append(k)
+    vis = np.asarray(visited, dtype=float).reshape(-1, 3)
+    best, best_score = None, -np.inf
+    best_near, best_near_score = None, -np.inf  # groups closer than a leg: only if none farther
+    for members in groups.values():
+        if len(members) < 3:  # a few voxels of noise, not a way on
+            continue
+        c = F[members, :2].mean(axis=0)
+        near = np.linalg.norm(cells - c[None], axis=1)
+        k = int(np.argmin(near))
+        if near[k] > 1.0:
+            continue  # nothing reachable next to it
+        tgt = np.array([cells[k, 0], cells[k, 1], z_m])
+        path_m = float(steps[ri[k], rj[k]])
+        if path_m < 1.0:
+            continue  # already here: the camera sees it from where it is
+        bearing = float(np.arctan2(c[1] - p0[1], c[0] - p0[0]))
+        ahead = 0.5 * (1.0 + np.cos(wrap_angle(bearing - yaw)))
+        size = min(len(members), 200) / 200.0  # a doorway's band of frontier: ~100-200 voxels
+        score = (0.2 + size) * ((1.0 - cfg.forward_weight) + cfg.forward_weight * ahead) / (1.0 + path_m / 8.0)
+        if len(vis):
+            d = np.linalg.norm(vis[:, :2] - tgt[None, :2], axis=1)
+            score -= 0.3 * float(np.sum(np.clip(1.0 - d / cfg.visit_radius_m, 0.0, 1.0)))
+        if path_m < cfg.min_leg_m:
+            if score > best_near_score:
+                best_near, best_near_score = tgt, score
+        elif score > best_score:
+            best, best_score = tgt, score
+    return best if best is not None else best_near
+
+
 def _fan_gain(p: np.ndarray, heading: float, field_map, volume: FlightVolume | None, reach_m: float) -> float:
     """Unknown fraction of a fan of points (+-30 deg, 1 m to ``reach_m``) from ``p`` along
     ``heading``; points outside the volume count as known (nothing to find there)."""
@@ -324,6 +432,7 @@ class Search:
     _scan_reached_s: float | None = None
     _hold_p: np.ndarray | None = None
     _explore_p: np.ndarray | None = None
+    _leg_start: np.ndarray | None = None
     _explore_start_s: float = 0.0
     _visited: list[np.ndarray] = field(default_factory=list)
     _track: list[tuple[float, np.ndarray]] = field(default_factory=list)
@@ -402,6 +511,12 @@ class Search:
             yaws = [float(wrap_angle(yaw + sign * step * (k + 1))) for k in range(n)]
         self._scan_yaws = yaws
 
+    def leg_length_m(self, position: np.ndarray) -> float:
+        """Horizontal distance from where the current exploration leg began, metres."""
+        if self._leg_start is None:
+            return 0.0
+        return float(np.linalg.norm(np.asarray(position, float)[:2] - self._leg_start[:2]))
+
     def look(self, t_s: float, position: np.ndarray, yaws: list[float]) -> None:
         """A short scan of the given headings from ``position`` (then ``"scan_done"``)."""
         self.phase = SearchPhase.SCAN
@@ -422,6 +537,7 @@ class Search:
             self.start(t_s, position, float(yaw), self.trigger or SearchTrigger.NO_GOAL)
             return
         self.phase = SearchPhase.EXPLORE
+        self._leg_start = np.asarray(position, dtype=float).copy()
         self._explore_p = np.asarray(target, dtype=float).copy()
         self._explore_start_s = float(t_s)
         self.reset_stall()  # the scan held position on purpose

@@ -335,3 +335,53 @@ def test_a_vehicle_in_a_dead_end_corner_gets_out_and_finds_the_target(planner):
     # out of the pocket (x < 0) and at the crate
     assert r.end_reason == "stopped" and r.metrics.success, (r.end_reason, kinds[-12:])
     assert_plans_inside(world, plans)
+
+
+class FrontierMap:
+    """Exact geometry (a wall at x = 2 with a 2 m doorway at y in [0.5, 2.5]) with a frontier
+    beyond the doorway and one behind the solid wall, as a map would report them."""
+
+    def __init__(self):
+        self.field = AnalyticField(boxes=[
+            Box(center=[2.0, -4.75, 1.5], half_extents=[0.1, 5.25, 2.0]),
+            Box(center=[2.0, 7.75, 1.5], half_extents=[0.1, 5.25, 2.0]),
+        ])
+        gy = np.arange(0.5, 2.51, 0.1)
+        gz = np.arange(1.0, 2.01, 0.1)
+        door = np.array([[3.0, y, z] for y in gy for z in gz])
+        behind = np.array([[3.0, y, z] for y in np.arange(-4.0, -2.0, 0.1) for z in gz])
+        self.frontier = np.vstack([door, behind])
+
+    def query(self, points):
+        return self.field.query(points)
+
+    def known(self, points):
+        return np.asarray(points)[:, 0] < 2.0
+
+    def frontier_points(self):
+        return self.frontier
+
+    def distance_slice(self, z_m):
+        from planning.esdf import DistanceSlice
+
+        x = np.arange(-6.0, 6.0, 0.1) + 0.05
+        y = np.arange(-6.0, 6.0, 0.1) + 0.05
+        X, Y = np.meshgrid(x, y, indexing="ij")
+        d = self.field.distance(np.stack([X.ravel(), Y.ravel(), np.full(X.size, z_m)], axis=-1)).reshape(X.shape)
+        return DistanceSlice(z_m, x, y, d)
+
+
+def test_the_frontier_target_is_the_reachable_doorway_not_the_frontier_behind_a_wall():
+    from onfly.search import frontier_target
+
+    m = FrontierMap()
+    target = frontier_target(np.array([-2.0, -3.0, 1.5]), 0.0, m, config=SearchConfig(), volume=None, volume_margin_m=0.45,
+                             visited=np.zeros((0, 3)), z_m=1.5)
+    assert target is not None
+    # next to the doorway's frontier (reached through the doorway), not behind the solid wall
+    assert 0.0 <= target[1] <= 3.0 and target[0] > 1.0
+    assert float(m.field.distance(target[None])[0]) >= SearchConfig().explore_clearance_m
+    # the door shut: the frontier behind the wall cannot be reached, so there is no target
+    m.field = AnalyticField(boxes=[*m.field.boxes, Box(center=[2.0, 1.5, 1.5], half_extents=[0.1, 1.1, 2.0])])
+    assert frontier_target(np.array([-2.0, -3.0, 1.5]), 0.0, m, config=SearchConfig(), volume=None, volume_margin_m=0.45,
+                           visited=np.zeros((0, 3)), z_m=1.5) is None
