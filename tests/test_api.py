@@ -99,3 +99,16 @@ def test_api_errors_name_the_argument(tmp_path):
     with pytest.raises(BenchConfigError, match="unknown simulated-VLM preset 'nomnal'"):
         onfly.benchmark(onfly.BenchConfig(methods=("oracle",), task_ids=("parking_lot-o01",), vlm="sim:nomnal"), tmp_path / "b")
     assert not (tmp_path / "b").exists()
+
+
+def test_readme_api_example_runs_as_written(tmp_path, monkeypatch, capsys):
+    readme = DOCS.parents[1] / "README.md"
+    blocks = re.findall(r"```python\n(.*?)```", readme.read_text(), re.S)
+    assert len(blocks) == 1 and len([line for line in blocks[0].splitlines() if line.strip()]) < 10
+    monkeypatch.chdir(tmp_path)
+    ns: dict = {}
+    exec(compile(blocks[0], str(readme), "exec"), ns)
+    out = capsys.readouterr().out.splitlines()
+    assert ns["flight"].success and out[0].startswith("True ")
+    assert out[1] == "1.0"  # both oracle episodes succeeded
+    assert ns["report"].frames == 20 and float(out[2]) > 0
