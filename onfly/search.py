@@ -224,8 +224,6 @@ def explore_target(
     p0 = np.array([position[0], position[1], z_m], dtype=float)
     headings = yaw + np.linspace(0.0, 2 * np.pi, cfg.explore_headings, endpoint=False)
     best, best_score = None, -np.inf
-    fan = np.deg2rad([-30.0, 0.0, 30.0])
-    steps = np.linspace(1.0, cfg.gain_lookahead_m, 4)
     for th in headings:
         d = np.array([np.cos(th), np.sin(th), 0.0])
         for r in cfg.explore_ranges_m:
@@ -236,12 +234,7 @@ def explore_target(
             dist, _ = field_map.query(seg)
             if np.min(dist) < cfg.explore_clearance_m or not bool(np.all(known_mask(field_map, seg[-1:]))):
                 continue
-            dirs = np.stack([np.cos(th + fan), np.sin(th + fan), np.zeros(3)], axis=-1)
-            samples = (cand[None, None, :] + steps[None, :, None] * dirs[:, None, :]).reshape(-1, 3)
-            useful = np.ones(len(samples), dtype=bool)
-            if volume is not None:
-                useful = volume.contains(samples)
-            gain = float(np.mean(~known_mask(field_map, samples) & useful))
+            gain = _fan_gain(cand, th, field_map, volume, cfg.gain_lookahead_m)
             # a longer leg is worth a little even into known space (progress along the route)
             value = gain + 0.1 * r / max(cfg.explore_ranges_m)
             ahead = 0.5 * (1.0 + np.cos(wrap_angle(th - yaw)))  # 1 straight on ... 0 behind
