@@ -85,7 +85,9 @@ def test_mavsdk_px4_arm_takeoff_goto_land_with_telemetry_units(px4_outdoor):
     assert pos0.latitude_deg == pytest.approx(47.397742, abs=1e-6) and pos0.absolute_altitude_m == pytest.approx(488.0, abs=0.01)
     batt = tel.battery()
     assert 14.0 < batt.voltage_v < 16.9 and 0 < batt.remaining_percent <= 100.0  # volts and percent, not mV / fraction
-    assert tel.landed_state() == LandedState.ON_GROUND and not tel.in_air()
+    # EXTENDED_SYS_STATE streams at its own rate: wait for the first one instead of racing it
+    wait_until(lambda: tel.landed_state() == LandedState.ON_GROUND, 5.0, "landed_state ON_GROUND")
+    assert not tel.in_air()
     assert Param(rig.system).get_param_float("MIS_TAKEOFF_ALT") == pytest.approx(2.5)
     act.set_takeoff_altitude(3.0)  # PARAM_SET of MIS_TAKEOFF_ALT
     assert v.params["MIS_TAKEOFF_ALT"] == pytest.approx(3.0)
