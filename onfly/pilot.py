@@ -15,6 +15,14 @@ One :meth:`OnFlyPilot.tick` per control period (0.1 s by default):
 Safety rules the loop keeps: no goal yet, a goal older than ``goal_timeout_s`` without a fresh
 decision, or recovery in progress -> hold position; the planner's own fallbacks (shifted plan,
 braking) cover solver failures. A VLM that times out or emits garbage never blocks the loop.
+Every goal, search point and hold point stays inside the operator's flight volume (``volume``),
+and so does every plan.
+
+Ours, beyond the paper: when the current subtask's target is not being found ("not visible"
+answers, unparseable or rejected decisions, a LOST with nothing to turn back to, a dead end)
+the pilot searches (mode ``SEARCHING``, :mod:`onfly.search`): a scan in place, then legs to the
+map's frontiers, until a decision points at the target again; LOST turns toward the last
+sighting when there is one.
 
 Ablations (paper, Table III) are switches of :class:`PilotConfig`: ``dual_agent=False`` runs
 decision and monitoring as one stream (one call pays both latencies), ``verify=False`` lifts
@@ -559,7 +567,6 @@ class OnFlyPilot:
             key = plan.fallback.value
             self.planner_fallbacks[key] = self.planner_fallbacks.get(key, 0) + 1
         return PilotTick(traj, self.finished, self.mode, None if self.goal_world is None else self.goal_world.copy(), plan)
-
 
     # -- search and the flight volume -----------------------------------------------------------
     @property
