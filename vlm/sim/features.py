@@ -75,34 +75,10 @@ def synthetic_features(
     VisionFeatures with ``grid`` float32 (ceil(H / patch_px), ceil(W / patch_px), dim), unit
     rows, ``patch_px`` as given, ``source = "sim:labels"``.
     """
-    ids = np.asarray(annotation.instance_ids)
-    depth = np.asarray(annotation.depth_m, dtype=np.float32)
-    if ids.ndim != 2 or depth.shape != ids.shape:
-        raise ValueError(f"annotation instance_ids {ids.shape} and depth_m {depth.shape} must be equal (H, W)")
-    h, w = ids.shape
-    hp, wp = -(-h // patch_px), -(-w // patch_px)
-    known = np.isin(ids, np.fromiter(annotation.objects.keys(), dtype=np.int64, count=len(annotation.objects)))
-    known &= ids != 0
-    sky = ~known & ~(np.isfinite(depth) & (depth > 0))
-    # class index per pixel: objects by id, then background, then sky
-    keys = np.where(known, ids.astype(np.int64), np.where(sky, -2, -1))
-    uniq, inv = np.unique(keys, return_inverse=True)
-    inv = inv.reshape(h, w)
-    emb = np.empty((uniq.size, dim))
-    for k, key in enumerate(uniq.tolist()):
-        if key == -1:
-            label, inst = "background", "background"
-        elif key == -2:
-            label, inst = "sky", "sky"
-        else:
-            label, inst = annotation.objects[key].label, key
-        e = LABEL_WEIGHT * unit_vector(seed, "label", label, dim) + INSTANCE_WEIGHT * unit_vector(seed, "instance", inst, dim)
-        emb[k] = e / np.linalg.norm(e)
-    rows = np.arange(h)[:, None] // patch_px
-    cols = np.arange(w)[None, :] // patch_px
-    patch = (rows * wp + cols).ravel()
-    counts = np.bincount(patch * uniq.size + inv.ravel(), minlength=hp * wp * uniq.size).reshape(hp * wp, uniq.size)
-    grid = (counts / counts.sum(axis=1, keepdims=True)) @ emb
+    grid3 = _class_patch_grid(annotation, seed, dim, patch_px, LABEL_WEIGHT, INSTANCE_WEIGHT)
+    hp, wp = grid3.shape[:2]
+    h, w = np.asarray(annotation.instance_ids).shape
+    grid = grid3.reshape(hp * wp, dim)
     grid += noise_std * keyed_rng(seed, "feature-noise", frame_id).standard_normal(grid.shape)
     grid /= np.linalg.norm(grid, axis=1, keepdims=True)
     return VisionFeatures(grid=grid.reshape(hp, wp, dim).astype(np.float32), patch_px=float(patch_px), image_size=(w, h), source="sim:labels")
