@@ -83,7 +83,7 @@ from onfly.mavlink.link import mavlink2
 from onfly.pilot import OnFlyPilot, PilotMode
 from onfly.readers.realtime import MonotonicClock, PlaybackClock
 from onfly.sources.camera import CameraFeed
-from planning.frames import make_transform
+from planning.frames import make_transform, wrap_angle
 from planning.planner import Fallback
 from planning.straight_line import straight_line_plan
 from planning.trajectory import Trajectory, VehicleState
@@ -583,15 +583,18 @@ class OnboardFlight:
 
     def _column_clear(self, xy: np.ndarray, top_m: float) -> np.ndarray:
         """(k,) True where the column above each ``xy`` (k, 2), from ``land_crash_height_m`` to
-        ``top_m``, is free by ``land_clear_radius_m`` and known (where the map tells knownness)."""
-        from onfly.search import known_mask
+        ``top_m``, is known (where the map tells knownness) with no seen obstacle within
+        ``land_clear_radius_m``. Unknown space beside the column is not an obstacle here (the
+        map's default counts it as one): a level camera never sees the space beside a column
+        it looks down, and a site is only taken after the vehicle turned to look at it."""
+        from onfly.search import known_mask, seen_obstacle_near
 
         cfg = self.config
         esdf = self.pilot.esdf
         zs = np.arange(cfg.land_crash_height_m, max(top_m, cfg.land_handover_height_m + 0.1) + 1e-9, 0.25)
         k, nz = len(xy), len(zs)
         pts = np.column_stack([np.repeat(xy, nz, axis=0), np.tile(zs, k)])
-        ok = np.asarray(esdf.is_free(pts, margin_m=cfg.land_clear_radius_m)) & known_mask(esdf, pts)
+        ok = ~seen_obstacle_near(esdf, pts, cfg.land_clear_radius_m) & known_mask(esdf, pts)
         return ok.reshape(k, nz).all(axis=1)
 
     def landing_site(self, p_now: np.ndarray, yaw: float | None = None, exclude=()) -> tuple[np.ndarray, str]:
@@ -619,7 +622,7 @@ class OnboardFlight:
         behind = np.zeros(len(offsets), dtype=bool)
         if yaw is not None:
             bearing = np.arctan2(offsets[:, 1], offsets[:, 0])
-            off_axis = np.abs((bearing - yaw + np.pi) % (2 * np.pi) - np.pi)
+            off_axis = np.abs(wrap_angle(bearing - yaw))
             behind = (off_axis > np.deg2rad(40.0)) & (dist > step)
         order = np.lexsort((dist, behind))
         xy = p_now[:2] + offsets[order]
@@ -654,26 +657,39 @@ class OnboardFlight:
         pc = self.pilot.config.planner
         hold = None
         while True:
-            t = self._wait_next()
-            self._map_frame(t)
-            if self.bridge.released:
-                self._on_takeover(t)
+            step = self._landing_period(t_end)
+            if step is None:
                 return False
-            if t > t_end:
-                return False
-            state = self._trusted_state(t)
+            t, state = step
             if state is None:
                 continue
             hold = state.p.copy() if hold is None else hold
             d = np.asarray(target_xy) - hold[:2]
-            bearing = float(np.arctan2(d[1], d[0]))
-            if abs((bearing - state.yaw + np.pi) % (2 * np.pi) - np.pi) < 0.15 and abs(state.yaw_rate) < 0.1:
+            turn = float(wrap_angle(float(np.arctan2(d[1], d[0])) - state.yaw))
+            if abs(turn) < 0.15 and abs(state.yaw_rate) < 0.1:
                 return True
             # a hold at ``hold`` with the final heading: the autopilot turns at its own yaw-rate limit
             n = pc.horizon_steps
-            yaw_to = state.yaw + ((bearing - state.yaw + np.pi) % (2 * np.pi) - np.pi)
+            yaw_to = state.yaw + turn
             self.bridge.set_trajectory(Trajectory(t, pc.dt_s, np.tile(hold, (n + 1, 1)), np.zeros((n + 1, 3)), np.full(n + 1, yaw_to),
                                                   np.zeros((n, 3)), np.zeros(n)))
+
+    def _landing_period(self, t_end: float) -> tuple[float, VehicleState | None] | None:
+        """One control period of a landing manoeuvre: wait for it, feed the map the newest frame,
+        then the checks every manoeuvre shares. Returns ``(t, state)`` (state None: no trusted
+        state this period, wait) or None to stop: taken over (reported), out of time, or the
+        link lost for longer than ``link_lost_abort_s``."""
+        t = self._wait_next()
+        self._map_frame(t)
+        if self.bridge.released:
+            self._on_takeover(t)
+            return None
+        if t > t_end:
+            return None
+        state = self._trusted_state(t)
+        if state is None and self._link_lost_since is not None and t - self._link_lost_since > self.config.link_lost_abort_s:
+            return None
+        return t, state
 
     def _map_frame(self, t: float) -> None:
         """During the landing the pilot no longer ticks: keep its map fed with the newest frame
@@ -699,19 +715,13 @@ class OnboardFlight:
         x, y) no longer looks clear in the map the new frames build."""
         esdf = getattr(self.pilot, "esdf", None)
         while True:
-            t = self._wait_next()
-            self._map_frame(t)
+            step = self._landing_period(t_end)
+            if step is None:
+                return False
+            t, state = step
             if esdf is not None and not bool(self._column_clear(goal[None, :2], float(goal[2]))[0]):
                 return None
-            if self.bridge.released:
-                self._on_takeover(t)
-                return False
-            if t > t_end:
-                return False
-            state = self._trusted_state(t)
             if state is None:
-                if self._link_lost_since is not None and t - self._link_lost_since > self.config.link_lost_abort_s:
-                    return False
                 continue
             self._trace.append((t, state.p.copy()))
             d = state.p - goal

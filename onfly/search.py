@@ -57,6 +57,7 @@ __all__ = [
     "frontier_target",
     "known_mask",
     "open_heading",
+    "seen_obstacle_near",
     "side_to_look",
 ]
 
@@ -377,17 +378,26 @@ def side_to_look(
     return best
 
 
-def _seen_obstacle(field_map, points: np.ndarray, clearance_m: float) -> np.ndarray:
-    """True where an *observed* obstacle lies within ``clearance_m`` of ``points`` (n, 3).
+_PROBES = np.array(
+    [[0, 0, 0], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1],
+     [0.7071, 0.7071, 0], [0.7071, -0.7071, 0], [-0.7071, 0.7071, 0], [-0.7071, -0.7071, 0]],
+    dtype=float,
+)
+
+
+def seen_obstacle_near(field_map, points: np.ndarray, clearance_m: float) -> np.ndarray:
+    """True where an *observed* obstacle lies within ``clearance_m`` of ``points`` (n, 3)
+    (probed at the point and at ``clearance_m`` along the axes and the horizontal diagonals).
 
     A map with knownness (``observed_free``) tells seen obstacles from unknown space: unknown
-    is not a wall, it is where a search goes. A field without it falls back to its distance.
+    is not a wall, it is where a search goes and what a landing first turns to look at. A field
+    without knownness falls back to its distance.
     """
     seen_free = getattr(field_map, "observed_free", None)
     if not callable(seen_free):
         dist, _ = field_map.query(points)
         return dist < clearance_m
-    offsets = clearance_m * np.array([[0, 0, 0], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
+    offsets = clearance_m * _PROBES
     probe = (points[:, None, :] + offsets[None, :, :]).reshape(-1, 3)
     blocked = known_mask(field_map, probe) & ~np.asarray(seen_free(probe), dtype=bool)
     return blocked.reshape(len(points), -1).any(axis=1)
@@ -401,7 +411,7 @@ def open_heading(position: np.ndarray, yaw: float, field_map, *, clearance_m: fl
     steps = np.arange(0.25, min_free_m + 1e-9, 0.25)
     for off in (0.0, np.pi / 4, -np.pi / 4):
         d = np.array([np.cos(yaw + off), np.sin(yaw + off), 0.0])
-        if not bool(np.any(_seen_obstacle(field_map, p + np.outer(steps, d), clearance_m))):
+        if not bool(np.any(seen_obstacle_near(field_map, p + np.outer(steps, d), clearance_m))):
             return float(yaw)
     return float(wrap_angle(yaw + np.pi))
 
