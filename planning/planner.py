@@ -59,6 +59,7 @@ from __future__ import annotations
 import enum
 import logging
 import time
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -82,12 +83,17 @@ __all__ = [
     "ClosedLoopLog",
     "ProblemSnapshot",
     "ShiftedField",
+    "InflatedField",
     "run_closed_loop",
 ]
 
 logger = logging.getLogger(__name__)
 
 SOLVERS = ("qp", "nlp")
+
+#: Tracking errors below this are rounding, not tracking (a perfect tracker re-integrating the
+#: plan in other steps): no margin. A millimetre is 1 % of the ESDF's 0.1 m voxel.
+_TRACKING_NOISE_FLOOR_M = 1e-3
 
 
 class PlannerInputError(ValueError):
@@ -184,6 +190,12 @@ class PlanResult:
         none ran)
     guide_status : str, ``""`` (no search this step) or the search's status (``"found"``,
         ``"budget"``, ``"unreachable"``, see :class:`planning.guide_path.GuideResult`)
+    tracking_error_m : float, ``|previous plan(t) - measured position|`` this step, metres
+        (NaN when no previous plan covers ``t``)
+    tracking_margin_m : float, the margin added to ``d_safe_m`` and ``body_radius_m`` this step
+        (the largest recent tracking error, capped), metres
+    from_reference : bool, the plan started from the previous plan's reference state (else
+        from the measured state)
     """
 
     trajectory: Trajectory
@@ -201,6 +213,9 @@ class PlanResult:
     cpu_time_ms: float = 0.0
     guide_search_ms: float = 0.0
     guide_status: str = ""
+    tracking_error_m: float = float("nan")
+    tracking_margin_m: float = 0.0
+    from_reference: bool = False
 
     @property
     def ok(self) -> bool:
@@ -304,6 +319,25 @@ class ShiftedField:
         return _query(self._field, np.asarray(points, dtype=float) + self._origin)
 
 
+class InflatedField:
+    """A :class:`DistanceField` whose obstacles are inflated by ``margin_m``: ``query`` answers
+    ``d - margin_m`` with the same gradient, so every clearance the planner keeps (``d_safe_m``
+    in the QP, the goal check, the guide search, the plan check) grows by the margin. Every
+    other attribute (``known``, ``is_unknown`` ...) is the wrapped field's."""
+
+    def __init__(self, field: DistanceField, margin_m: float) -> None:
+        if not (np.isfinite(margin_m) and margin_m >= 0):
+            raise PlannerInputError(f"margin_m must be finite and >= 0, got {margin_m}")
+        self._field, self.margin_m = field, float(margin_m)
+
+    def query(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        d, g = _query(self._field, points)
+        return d - self.margin_m, g
+
+    def __getattr__(self, name: str):
+        return getattr(self._field, name)
+
+
 class Planner:
     """Receding-horizon MPC planner (see the module docstring for one step).
 
@@ -384,6 +418,46 @@ class Planner:
         self._guide_attempt_t: float | None = None
         self._guide_ms = 0.0
         self._guide_status = ""
+        self._prev_traj: Trajectory | None = None
+        self._track: deque[tuple[float, float]] = deque()  # (t_s, measured tracking error m)
+
+    # ------------------------------------------------------------------ tracking
+    def _reference(self, state: VehicleState) -> tuple[VehicleState, float, bool]:
+        """The state this step plans from, the measured tracking error and whether the plan
+        starts from the reference (see ``reference_start`` in :class:`PlannerConfig`).
+
+        The error ``|prev_plan(t) - p|`` is recorded for the tracking margin whenever the
+        previous plan covers ``t`` (at most ``reference_max_age_s`` old)."""
+        c = self.config
+        prev = self._prev_traj
+        if prev is None or not (-1e-9 <= state.t_s - prev.t0_s <= c.reference_max_age_s):
+            return state, float("nan"), False
+        p_r, v_r, _, _, _ = prev.sample(state.t_s)
+        # the acceleration the reference held over the period just flown (the jerk term's
+        # "last command"; the measured one carries the gusts)
+        a_r = prev.sample(state.t_s - 0.5 * prev.dt_s)[2]
+        err = float(np.linalg.norm(p_r - state.p))
+        self._track.append((float(state.t_s), err))
+        if not c.reference_start or err > c.reference_reset_m:
+            return state, err, False
+        return VehicleState(state.t_s, p_r, v_r, state.yaw, state.yaw_rate, a_r), err, True
+
+    @property
+    def tracking_margin_m(self) -> float:
+        """The clearance and volume margin of the next step: the largest measured tracking
+        error of the last ``tracking_window_s``, capped at ``tracking_margin_max_m`` (metres)."""
+        c = self.config
+        if c.tracking_margin_max_m <= 0 or not self._track:
+            return 0.0
+        peak = max(e for _, e in self._track)
+        if peak < _TRACKING_NOISE_FLOOR_M:
+            return 0.0
+        return min(c.tracking_margin_max_m, peak)
+
+    def _forget_old_errors(self, t_s: float) -> None:
+        window = self.config.tracking_window_s
+        while self._track and self._track[0][0] < t_s - window - 1e-9:
+            self._track.popleft()
 
     # ------------------------------------------------------------------ validation
     def _validate(self, state, goal_world, field, volume) -> np.ndarray:
@@ -466,7 +540,13 @@ class Planner:
         c, L = self.config, self.layout
         N, dt = L.N, c.dt_s
         budget_s = c.step_time_budget_ms * 1e-3
-        box = volume.shrunk(c.body_radius_m) if volume is not None else None
+        measured = state
+        state, track_err, from_ref = self._reference(measured)
+        self._forget_old_errors(measured.t_s)
+        margin = self.tracking_margin_m
+        if margin > 0:
+            field = InflatedField(field, margin)
+        box = volume.shrunk(c.body_radius_m + margin) if volume is not None else None
         clamped = False
         if box is not None:
             inside = box.clamp(goal)
@@ -617,6 +697,7 @@ class Planner:
         traj = Trajectory(
             t0_s=state.t_s, dt_s=dt, p=P, v=X[:, 3:6], yaw=X[:, 6], a=U[:, 0:3], yaw_rate=U[:, 3]
         )
+        self._prev_traj = traj
         command = ControlCommand(a=U[0, 0:3].copy(), yaw_rate=float(U[0, 3]))
         return PlanResult(
             trajectory=traj,
@@ -634,6 +715,9 @@ class Planner:
             cpu_time_ms=(time.thread_time() - cpu_start) * 1e3,
             guide_search_ms=self._guide_ms,
             guide_status=self._guide_status,
+            tracking_error_m=track_err,
+            tracking_margin_m=margin,
+            from_reference=from_ref,
         )
 
     def converge(

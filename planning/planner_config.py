@@ -132,6 +132,26 @@ class PlannerConfig:
     qp_polish : OSQP solution polishing
     nlp_tol : ipopt tolerance of the reference NLP
     nlp_max_iter : ipopt iteration cap
+    reference_start : start each plan from the previous plan's reference state (position,
+        velocity, acceleration) at the current time instead of the measured state, while the
+        measured position lies within ``reference_reset_m`` of it and the previous plan is at
+        most ``reference_max_age_s`` old (EGO-Planner's ``planFromCurrentTraj``, Fast-Planner's
+        ``start_pt_`` from the running B-spline). The vehicle's position controller then sees
+        and corrects the tracking error with its own authority (PX4's cascade up to its tilt
+        limit) instead of the planner re-basing every plan on wherever a gust pushed the
+        vehicle, which leaves only the planner's ``a_max_mps2`` against the disturbance. Yaw
+        always starts from the measured yaw. Off: every plan starts at the measured state
+    reference_reset_m : a measured position farther than this from the reference restarts the
+        plan from the measured state (the reference is no longer a place the vehicle can be
+        pulled back to), metres
+    reference_max_age_s : a previous plan older than this is not a reference (the planner was
+        not stepped meanwhile), seconds
+    tracking_margin_max_m : the clearance and flight-volume margin added to ``d_safe_m`` and
+        ``body_radius_m`` grows with the *measured* tracking error (``|plan(t) - measured
+        position|``, the error the vehicle's own estimate shows against the plan it was
+        flying): the largest error of the last ``tracking_window_s`` seconds, capped at this
+        value, metres (0 = no margin). Under perfect tracking the margin is 0
+    tracking_window_s : how long a measured tracking error keeps the margin up, seconds
     """
 
     horizon_steps: int = 40
@@ -184,6 +204,11 @@ class PlannerConfig:
     qp_polish: bool = False
     nlp_tol: float = 1e-8
     nlp_max_iter: int = 1000
+    reference_start: bool = True
+    reference_reset_m: float = 1.5
+    reference_max_age_s: float = 0.5
+    tracking_margin_max_m: float = 1.0
+    tracking_window_s: float = 10.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -209,7 +234,8 @@ class PlannerConfig:
         positive = (
             "dt_s", "v_max_mps", "a_max_mps2", "yaw_rate_max_rps", "d_safe_m", "w_goal",
             "w_slack_l1", "w_slack_l2", "speed_tolerance_rel", "accel_tolerance_rel", "qp_eps_abs",
-            "qp_rho", "nlp_tol", "guide_resolution_m", "guide_lookahead_m",
+            "qp_rho", "nlp_tol", "guide_resolution_m", "guide_lookahead_m", "reference_reset_m",
+            "reference_max_age_s", "tracking_window_s",
         )
         for name in positive:
             if getattr(self, name) <= 0:
@@ -219,7 +245,7 @@ class PlannerConfig:
             "w_yaw_rate", "w_prox_accel", "goal_clearance_margin_m", "goal_search_max_m", "yaw_hold_radius_m",
             "safety_tolerance_m", "max_speed_refinements", "qp_adaptive_rho_interval", "qp_eps_rel",
             "guide_clearance_margin_m", "guide_preferred_clearance_m", "guide_replan_period_s",
-            "body_radius_m", "guide_time_budget_ms", "step_time_budget_ms",
+            "body_radius_m", "guide_time_budget_ms", "step_time_budget_ms", "tracking_margin_max_m",
         )
         for name in non_negative:
             if getattr(self, name) < 0:
