@@ -697,7 +697,9 @@ def replay(
     t_wall = time.perf_counter()
     samples: dict[str, list[float]] = {name: [] for name in STAGES}
     esdf = EsdfMap(config.esdf)
-    planner = Planner(config.planner)
+    # open loop: the recorded vehicle never flew our plans, so every plan starts at the recorded
+    # state and a "tracking error" against them would be meaningless (planning/planner_config.py)
+    planner = Planner(replace(config.planner, reference_start=False, tracking_margin_max_m=0.0))
     owner = _Backend(config.vlm, config.seed, backend) if config.instruction is not None else None
     frames: list[FrameResult] = []
     agents: _Agents | None = None
