@@ -20,11 +20,14 @@ Measured in the same run:
   within one voxel of an observed obstacle voxel (geometry the camera never saw cannot be in
   any map) and that are at least one voxel from the surface.
 
-Three maps run on the same frames and are printed side by side: ``before`` (the old defaults:
+Four maps run on the same frames and are printed side by side: ``before`` (the old defaults:
 unknown space free, no body sphere, no clearing by pixels without a reading, a 10 x 10 x 4 m
-window), ``window only`` (the same in the new window) and ``after`` (``EsdfConfig()``: unknown
-is an obstacle, bounded no-reading clearing, a body sphere, a 16 x 16 x 5 m window covering
-D_max). Also reported: the largest *optimistic*
+window), ``window only`` (the same in the new window), ``after, no cull`` (the new defaults
+with ``reach_cull=False``: the clearing path before its shortcuts) and ``after``
+(``EsdfConfig()``: unknown is an obstacle, bounded no-reading clearing, a body sphere, a
+16 x 16 x 5 m window covering D_max, the clearing shortcuts). ``update CPU ms`` is this
+process's CPU time per frame (robust to other processes on shared cores); the last row checks
+that ``after`` and ``after, no cull`` build the same map after every frame. Also reported: the largest *optimistic*
 error (the field above the truth, the unsafe direction), the share of seen-free sample points
 the map reads free, and the share of the last camera's view cone (0.5-7 m) the map knows.
 
@@ -160,10 +163,13 @@ def error_points(scene, esdf: EsdfMap, camera: PinholeCamera, frames, rng) -> tu
 
 
 #: The configurations compared in one run: the map before issue 17 (main's old defaults), the
-#: old map in the new window (the cost of item 3 alone) and the new defaults.
+#: old map in the new window (the cost of item 3 alone), the new defaults without the clearing
+#: shortcuts (``reach_cull=False``: every candidate voxel of the frustum projected, the reach
+#: scanned over the whole image) and the new defaults.
 CONFIGS = {
     "before": EsdfConfig(unknown_policy="free", no_reading_clear_m=0.0, body_clear_radius_m=0.0, size_m=(10.0, 10.0, 4.0)),
     "window only": EsdfConfig(unknown_policy="free", no_reading_clear_m=0.0, body_clear_radius_m=0.0),
+    "after, no cull": EsdfConfig(reach_cull=False),
     "after": EsdfConfig(),
 }
 
@@ -173,8 +179,11 @@ def run_config(config: EsdfConfig, scene, camera, depths, poses, args) -> dict:
     esdf = EsdfMap(config)
     esdf.integrate(depths[0], camera, poses[0])  # first frame fills an empty map: not counted
     update_ms, ref_ms, diffs, stage = [], [], [], []
+    cpu_ms = []
     for k in range(1, len(poses)):
+        c0 = time.process_time()
         u = esdf.integrate(depths[k], camera, poses[k])
+        cpu_ms.append((time.process_time() - c0) * 1e3)
         update_ms.append(u.total_ms)
         stage.append([u.shift_ms, u.backproject_ms, u.occupancy_ms, u.esdf_ms, u.esdf_voxels, u.n_changed_voxels])
         if k % args.reference_every == 0:
@@ -214,6 +223,8 @@ def run_config(config: EsdfConfig, scene, camera, depths, poses, args) -> dict:
     update_ms = np.asarray(update_ms)
     return {
         "update_ms_median": float(np.median(update_ms)),
+        "update_cpu_ms_median": float(np.median(cpu_ms)),
+        "update_cpu_ms_mean": float(np.mean(cpu_ms)),
         "update_ms_p95": float(np.percentile(update_ms, 95)),
         "update_ms_max": float(update_ms.max()),
         "reference_ms_median": float(np.median(ref_ms)),
@@ -242,6 +253,24 @@ def run_config(config: EsdfConfig, scene, camera, depths, poses, args) -> dict:
     }
 
 
+def same_map(a: EsdfConfig, b: EsdfConfig, camera, depths, poses) -> bool:
+    """Both configs integrate the frames into identical maps (log-odds, observed, obstacle mask
+    and distance compared after every frame)."""
+    ma, mb = EsdfMap(a), EsdfMap(b)
+    for depth, T in zip(depths, poses):
+        ma.integrate(depth, camera, T)
+        mb.integrate(depth, camera, T)
+        oa, ob = ma._occ, mb._occ
+        if not (
+            np.array_equal(oa.logodds, ob.logodds)
+            and np.array_equal(oa.observed, ob.observed)
+            and np.array_equal(oa.solid, ob.solid)
+            and np.array_equal(ma.distance_grid, mb.distance_grid)
+        ):
+            return False
+    return True
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=150)
@@ -261,10 +290,13 @@ def main(argv=None) -> int:
     no_reading = float(np.mean([np.mean(~np.isfinite(d)) for d in depths]))
 
     results = {name: run_config(CONFIGS[name], scene, camera, depths, poses, args) for name in args.configs}
+    if "after" in args.configs and "after, no cull" in args.configs:
+        results["after"]["same_map_as_no_cull"] = same_map(CONFIGS["after, no cull"], CONFIGS["after"], camera, depths, poses)
     rows = [
         ("unknown policy / no-reading clear m / body m", lambda r: f"{r['config']['unknown_policy']} / {r['config']['no_reading_clear_m']} / {r['config']['body_clear_radius_m']}"),
         ("window m / grid", lambda r: f"{tuple(r['config']['size_m'])} / {tuple(r['grid_shape'])}"),
         ("update ms (median / p95 / max)", lambda r: f"{r['update_ms_median']:.1f} / {r['update_ms_p95']:.1f} / {r['update_ms_max']:.1f}"),
+        ("update CPU ms (median / mean)", lambda r: f"{r['update_cpu_ms_median']:.1f} / {r['update_cpu_ms_mean']:.1f}"),
         ("  shift / backproject / occupancy / esdf ms", lambda r: " / ".join(f"{v:.1f}" for v in r["stage_ms_median"].values())),
         ("  voxels rewritten per frame (median)", lambda r: f"{r['esdf_voxels_median']:.0f}"),
         ("reference full recompute ms (median)", lambda r: f"{r['reference_ms_median']:.1f}"),
@@ -276,6 +308,8 @@ def main(argv=None) -> int:
         ("known share of the last view cone (0.5-7 m)", lambda r: f"{100 * r['known_fraction_of_view_cone']:.1f} %"),
         ("query of 40 points us", lambda r: f"{r['query_us_40_points']:.1f}"),
     ]
+    if "same_map_as_no_cull" in results.get("after", {}):
+        rows.append(("same map as 'after, no cull' (every frame)", lambda r: str(r.get("same_map_as_no_cull", "-"))))
     width = max(len(r[0]) for r in rows)
     names = list(results)
     print(f"ESDF benchmark: {args.frames - 1} frames 640x480 ({100 * no_reading:.1f} % pixels without a reading), seed {args.seed}")

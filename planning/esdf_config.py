@@ -111,6 +111,17 @@ class EsdfConfig:
         clearance along a straight start stays above ~0.6 m, more than the planner's
         ``d_safe_m`` (0.45 m), while at the 1.5 m flight height the sphere stays clear of the
         ground. 0 turns it off.
+
+    Speed
+    -----
+    reach_cull : before projecting voxels to clear them, drop every 8^3-voxel block none of whose
+        voxel centres can be passed through: its nearest centre (z-depth) is at or beyond the
+        largest clearing reach (:func:`planning.esdf_occupancy.free_reach`) over the image
+        rectangle its centres project into (a max over 8 x 8-pixel tiles, looked up in a sparse
+        table). A cull only, so the map is the same with it off; it removes the unknown space
+        behind surfaces and beyond the no-reading bound, which the ``"occupied"`` policy would
+        otherwise re-project every frame. False = project every candidate of the frustum
+        (kept for comparisons: ``experiments/bench_esdf.py``).
     """
 
     voxel_m: float = 0.1
@@ -130,6 +141,7 @@ class EsdfConfig:
     unknown_policy: Literal["free", "occupied"] = "occupied"
     no_reading_clear_m: float = 4.5
     body_clear_radius_m: float = 1.2
+    reach_cull: bool = True
 
     def __post_init__(self) -> None:
         def positive(name: str) -> None:
@@ -167,6 +179,8 @@ class EsdfConfig:
             raise EsdfConfigError(
                 f"hit_logodds ({self.hit_logodds}) must exceed occupied_logodds ({self.occupied_logodds})"
             )
+        if not isinstance(self.reach_cull, bool):
+            raise EsdfConfigError(f"reach_cull must be true or false, got {self.reach_cull!r}")
         if self.unknown_policy not in UNKNOWN_POLICIES:
             raise EsdfConfigError(f"unknown_policy must be one of {UNKNOWN_POLICIES}, got {self.unknown_policy!r}")
         for name in ("max_distance_m", "max_inside_distance_m"):

@@ -132,6 +132,57 @@ def free_reach(depth_m: np.ndarray, config: EsdfConfig) -> tuple[np.ndarray, np.
     return reach, valid
 
 
+def _reach_upper(depth_m: np.ndarray, config: EsdfConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """An upper bound of :func:`free_reach` that needs no scans: exact on pixels with a reading,
+    ``no_reading_clear_m - clear_margin_m`` on the others (their exact reach is that or less).
+
+    Returns ``(upper (h, w) float32, valid (h, w) bool, clipped (h, w) float32)`` where
+    ``clipped`` holds the readings clipped to ``max_range_m`` (inf without a reading); where
+    the exact reach of a pixel without a reading is ``-inf`` for the whole frame (the rule off,
+    or no reading at all) ``upper`` says so.
+    """
+    cfg = config
+    with np.errstate(invalid="ignore"):
+        valid = (depth_m >= np.float32(cfg.min_range_m)) & (depth_m < np.inf)
+    clipped = np.where(valid, np.minimum(depth_m, np.float32(cfg.max_range_m)), np.float32(np.inf)).astype(np.float32)
+    margin = np.float32(cfg.clear_margin_m)
+    upper = clipped - margin
+    if not valid.all():
+        if cfg.no_reading_clear_m <= 0 or not valid.any():
+            upper[~valid] = -np.inf
+        else:
+            upper[~valid] = np.float32(cfg.no_reading_clear_m) - margin
+    return upper, valid, clipped
+
+
+def _hole_reach(clipped: np.ndarray, valid: np.ndarray, rows: np.ndarray, cols: np.ndarray, config: EsdfConfig) -> np.ndarray:
+    """:func:`free_reach` at the pixels ``(rows, cols)`` (k,) without a reading, computed for
+    those pixels only: the first reading left and right of each is found by a binary search in
+    the row-major list of reading pixels, up and down in the column-major one. (k,) float32.
+    """
+    h, w = valid.shape
+    best = np.full(rows.shape, np.inf, dtype=np.float32)
+    for flat_valid, key, line_start, line_len, to_rc in (
+        (np.flatnonzero(valid), rows * w + cols, rows * w, w, lambda f: (f // w, f % w)),
+        (np.flatnonzero(valid.T), cols * h + rows, cols * h, h, lambda f: (f % h, f // h)),
+    ):
+        if flat_valid.size == 0:
+            continue
+        i = np.searchsorted(flat_valid, key)
+        for j, ok in (
+            (i - 1, i - 1 >= 0),
+            (i, i < flat_valid.size),
+        ):
+            jj = np.clip(j, 0, flat_valid.size - 1)
+            f = flat_valid[jj]
+            ok = ok & (f >= line_start) & (f < line_start + line_len)
+            rr, cc = to_rc(f[ok])
+            sel = np.flatnonzero(ok)
+            best[sel] = np.minimum(best[sel], clipped[rr, cc])
+    margin = np.float32(config.clear_margin_m)
+    return np.where(np.isfinite(best), np.minimum(best, np.float32(config.no_reading_clear_m)) - margin, np.float32(-np.inf)).astype(np.float32)
+
+
 class RollingOccupancy:
     """Log-odds occupancy in a window that moves with the vehicle by whole voxels.
 
@@ -381,11 +432,18 @@ class RollingOccupancy:
             return None
         return tuple(int(v) for v in lo), tuple(int(v) for v in hi)
 
-    def _frustum_blocks(self, camera: PinholeCamera, T_world_cam: np.ndarray, box: IndexBox) -> np.ndarray:
+    def _frustum_blocks(
+        self, camera: PinholeCamera, T_world_cam: np.ndarray, box: IndexBox, reach_img: np.ndarray | None = None
+    ) -> np.ndarray:
         """Bool mask over ``box``: False on blocks of ``_BLOCK``^3 voxels lying wholly outside the
         view frustum (beyond one of its four side planes, nearer than ``min_range_m`` or beyond
         ``max_range_m``, each by more than the block's half-diagonal). A cull only: every voxel
-        it drops projects outside the image or out of range."""
+        it drops projects outside the image or out of range.
+
+        With ``reach_img`` (h, w) (:func:`free_reach`) also False on blocks wholly in front of the
+        camera whose nearest voxel centre is at or beyond the largest reach over the pixel
+        rectangle the block's centres project into (see :meth:`_beyond_reach`): none of their
+        voxels can be passed through."""
         cfg = self.config
         lo, hi = np.asarray(box[0]), np.asarray(box[1])
         nb = (hi - lo + _BLOCK - 1) // _BLOCK
@@ -404,10 +462,55 @@ class RollingOccupancy:
         keep &= (xl * z - x) / np.hypot(1.0, xl) < r
         keep &= (y - yb * z) / np.hypot(1.0, yb) < r
         keep &= (yt * z - y) / np.hypot(1.0, yt) < r
+        if reach_img is not None and keep.any():
+            k = np.flatnonzero(keep)
+            keep[k] = ~self._beyond_reach(camera, T_world_cam, C[k], reach_img)
         mask = keep.reshape(tuple(nb))
         for axis in range(3):
             mask = np.repeat(mask, _BLOCK, axis=axis)
         return mask[: hi[0] - lo[0], : hi[1] - lo[1], : hi[2] - lo[2]]
+
+    def _beyond_reach(
+        self, camera: PinholeCamera, T_world_cam: np.ndarray, centers: np.ndarray, reach_img: np.ndarray
+    ) -> np.ndarray:
+        """Bool (k,): True where no voxel centre of the ``_BLOCK``^3 block centred at
+        ``centers`` (k, 3) world can be passed through this frame.
+
+        The block's voxel centres fill the box ``center +- (_BLOCK - 1) / 2 voxels``. When all
+        of its corners lie beyond ``min_range_m`` in front of the camera, the centres project
+        (convexity of the perspective image of a box in front of the camera) into the pixel
+        rectangle spanned by the corners' pixels, rounded as :meth:`_miss_voxels` rounds, and
+        every centre's z-depth is at least the corners' least. If that least depth is at or
+        beyond the largest reach over the rectangle (a superset: its 8 x 8-pixel tiles), no
+        centre satisfies ``z < reach[pixel]``. A block partly near or behind the camera is
+        never culled; one whose rectangle misses the image is culled (no centre projects in).
+        """
+        cfg = self.config
+        half = 0.5 * (_BLOCK - 1) * cfg.voxel_m
+        signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
+        corners = centers[:, None, :] + half * signs[None, :, :]  # (k, 8, 3)
+        P = (corners - T_world_cam[:3, 3]) @ T_world_cam[:3, :3]
+        z = P[..., 2]
+        zmin = z.min(axis=1)
+        ahead = zmin > cfg.min_range_m
+        out = np.zeros(len(centers), dtype=bool)
+        if not ahead.any():
+            return out
+        P, z, zmin = P[ahead], z[ahead], zmin[ahead]
+        u = camera.fx * P[..., 0] / z + camera.cx + 0.5
+        v = camera.fy * P[..., 1] / z + camera.cy + 0.5
+        # one pixel of slack on each side and 1 mm in depth: the clearing projects in float32
+        u0 = np.maximum(np.floor(u.min(axis=1)) - 1, 0).astype(np.int64)
+        u1 = np.minimum(np.floor(u.max(axis=1)) + 1, camera.width - 1).astype(np.int64)
+        v0 = np.maximum(np.floor(v.min(axis=1)) - 1, 0).astype(np.int64)
+        v1 = np.minimum(np.floor(v.max(axis=1)) + 1, camera.height - 1).astype(np.int64)
+        outside = (u1 < u0) | (v1 < v0)
+        table = _TileMax(reach_img)
+        top = np.full(len(zmin), np.inf)
+        inside = ~outside
+        top[inside] = table.query(v0[inside], v1[inside], u0[inside], u1[inside])
+        out[ahead] = outside | (zmin >= top + 1e-3)
+        return out
 
     def _miss_voxels(
         self, depth_m: np.ndarray, camera: PinholeCamera, T_world_cam: np.ndarray, flags: np.ndarray
@@ -426,8 +529,16 @@ class RollingOccupancy:
         (x0, y0, z0), (x1, y1, z1) = box
         window = (slice(x0, x1), slice(y0, y1), slice(z0, z1))
         cand = self.solid[window] & ~flags.reshape(self.shape)[window]
+        if cfg.reach_cull:
+            # scans only where a voxel needs them: a cheap upper bound culls blocks and voxels,
+            # the exact reach of a pixel without a reading is computed for the survivors only
+            reach_img, valid_img, clipped = _reach_upper(depth_m, cfg)
+            lazy = not valid_img.all() and cfg.no_reading_clear_m > 0 and valid_img.any()
+        else:
+            reach_img, valid_img = free_reach(depth_m, cfg)
+            lazy = False
         if cand.size >= 8 * _BLOCK**3:
-            cand &= self._frustum_blocks(camera, T_world_cam, box)
+            cand &= self._frustum_blocks(camera, T_world_cam, box, reach_img if cfg.reach_cull else None)
         ix, iy, iz = np.nonzero(cand)  # C-level unravel: no integer division in numpy
         if ix.size == 0:
             return np.zeros(0, dtype=np.int64)
@@ -452,13 +563,68 @@ class RollingOccupancy:
         inside = (u >= 0) & (u < camera.width) & (vv >= 0) & (vv < camera.height)
         flat, zc = flat[inside], zc[inside]
         vv, u = vv[inside], u[inside]
-        reach_img, valid_img = free_reach(depth_m, cfg)
         miss = zc < reach_img[vv, u]
+        if lazy:
+            # the upper bound let these through; pixels without a reading get their exact reach
+            m = np.flatnonzero(miss & ~valid_img[vv, u])
+            if m.size:
+                pix = vv[m] * camera.width + u[m]
+                uniq, inv = np.unique(pix, return_inverse=True)
+                exact = _hole_reach(clipped, valid_img, uniq // camera.width, uniq % camera.width, cfg)
+                miss[m] = zc[m] < exact[inv]
         if not valid_img.all():
             # a pixel without a reading never clears an observed obstacle
             occupied = self.observed.reshape(-1)[flat] & (self.logodds.reshape(-1)[flat] > np.float32(cfg.occupied_logodds))
             miss &= valid_img[vv, u] | ~occupied
         return flat[miss]
+
+
+#: Tile edge, in pixels, of the range-maximum table over the reach image.
+_TILE = 8
+
+
+class _TileMax:
+    """Maximum of an image over pixel rectangles, rounded out to ``_TILE`` x ``_TILE`` tiles: a
+    2-D sparse table of tile maxima (``levels[a][b][i, j]`` = max over tiles ``[i, i + 2^a) x
+    [j, j + 2^b)``), so one query costs four lookups whatever the rectangle's size."""
+
+    def __init__(self, image: np.ndarray) -> None:
+        h, w = image.shape
+        th, tw = -(-h // _TILE), -(-w // _TILE)
+        if h % _TILE or w % _TILE:
+            padded = np.full((th * _TILE, tw * _TILE), -np.inf, dtype=np.float32)
+            padded[:h, :w] = image
+        else:
+            padded = np.asarray(image, dtype=np.float32)
+        tiles = padded.reshape(th, _TILE, tw, _TILE).max(axis=3).max(axis=1)
+        rows = [tiles]
+        while (1 << len(rows)) <= th:
+            prev, s = rows[-1], 1 << (len(rows) - 1)
+            rows.append(np.maximum(prev[:-s], prev[s:]))
+        self.levels = []
+        for r in rows:
+            cols = [r]
+            while (1 << len(cols)) <= tw:
+                prev, s = cols[-1], 1 << (len(cols) - 1)
+                cols.append(np.maximum(prev[:, :-s], prev[:, s:]))
+            self.levels.append(cols)
+
+    def query(self, r0: np.ndarray, r1: np.ndarray, c0: np.ndarray, c1: np.ndarray) -> np.ndarray:
+        """Max over pixel rows ``r0..r1`` and columns ``c0..c1`` (inclusive, int arrays (k,))
+        of the tiles they touch, (k,)."""
+        t0, t1 = r0 // _TILE, r1 // _TILE
+        s0, s1 = c0 // _TILE, c1 // _TILE
+        a = np.floor(np.log2(t1 - t0 + 1)).astype(np.int64)
+        b = np.floor(np.log2(s1 - s0 + 1)).astype(np.int64)
+        out = np.empty(len(r0))
+        for ai in np.unique(a):
+            for bi in np.unique(b[a == ai]):
+                m = (a == ai) & (b == bi)
+                L = self.levels[ai][bi]
+                i0, i1 = t0[m], t1[m] - (1 << ai) + 1
+                j0, j1 = s0[m], s1[m] - (1 << bi) + 1
+                out[m] = np.maximum(np.maximum(L[i0, j0], L[i0, j1]), np.maximum(L[i1, j0], L[i1, j1]))
+        return out
 
 
 def shift_array(a: np.ndarray, shift: np.ndarray, fill) -> np.ndarray:

@@ -160,7 +160,7 @@ def test_frustum_block_cull_never_drops_a_voxel_that_would_be_cleared(monkeypatc
         occ.shift_to(occ.origin_for_center(T[:3, 3]))
         culled = np.sort(occ._miss_voxels(depth, cam, T, occ._scratch))
         with monkeypatch.context() as m:
-            m.setattr(RollingOccupancy, "_frustum_blocks", lambda self, c, t, box: np.ones(tuple(np.subtract(box[1], box[0])), bool))
+            m.setattr(RollingOccupancy, "_frustum_blocks", lambda self, c, t, box, reach=None: np.ones(tuple(np.subtract(box[1], box[0])), bool))
             full = np.sort(occ._miss_voxels(depth, cam, T, occ._scratch))
         assert culled.size > 100
         np.testing.assert_array_equal(culled, full)
