@@ -262,6 +262,7 @@ class OnFlyPilot:
         self._recovery_start_s = 0.0
         self._hold_p: np.ndarray | None = None
         self._last_plan: PlanResult | None = None
+        self._straight_ref: Trajectory | None = None  # the last straight-line plan (use_planner=False)
         self.planner_fallbacks: dict[str, int] = {}
         self.events: list[PilotEvent] = []
         self.volume = volume
@@ -561,7 +562,9 @@ class OnFlyPilot:
                 dt_s=cfg.planner.dt_s,
                 steps=cfg.planner.horizon_steps,
                 yaw_ref=yaw_ref,
+                reference=self._straight_ref,  # start from the plan being flown (planner's rule)
             )
+            self._straight_ref = traj
         self._last_plan = plan
         if plan is not None and not plan.ok:
             key = plan.fallback.value

@@ -31,16 +31,30 @@ def straight_line_plan(
     yaw_tolerance_rad: float = 0.15,
     bearing_min_dist_m: float = 0.3,
     yaw_ref: float | None = None,
+    reference: Trajectory | None = None,
+    reference_reset_m: float = 1.5,
+    reference_max_age_s: float = 0.5,
 ) -> Trajectory:
     """A ``steps``-interval plan from ``state`` straight at ``goal`` (3,), world ENU metres.
 
     Every interval's acceleration has norm <= ``a_max_mps2``; velocities stay within
     ``v_max_mps`` when the start does; yaw rate within ``yaw_rate_max_rps``. ``yaw_ref``
     (radians) overrides the goal bearing as the heading to turn to.
+
+    ``reference`` (optional): the plan the vehicle has been flying. When it is at most
+    ``reference_max_age_s`` old and the measured position lies within ``reference_reset_m`` of
+    its position at ``state.t_s``, the new plan starts from that reference position and
+    velocity (yaw from the measurement), so the vehicle's position controller corrects a
+    tracking error (a gust) instead of every plan restarting wherever the vehicle was pushed;
+    the same rule as :class:`planning.planner.Planner` (``reference_start``).
     """
     goal = np.asarray(goal, float).reshape(3)
     if not np.all(np.isfinite(goal)):
         raise ValueError(f"goal must be finite, got {goal}")
+    if reference is not None and 0.0 <= state.t_s - reference.t0_s <= reference_max_age_s:
+        p_r, v_r = reference.sample(state.t_s)[0:2]
+        if np.linalg.norm(p_r - state.p) <= reference_reset_m:
+            state = VehicleState(state.t_s, p_r, v_r, state.yaw, state.yaw_rate, state.a)
     p = np.zeros((steps + 1, 3))
     v = np.zeros((steps + 1, 3))
     yaw = np.zeros(steps + 1)

@@ -206,3 +206,20 @@ def test_plans_rebased_on_the_measurement_lose_to_the_gusts():
         least, fastest, farthest = _hover_by_a_wall(old, seed)
         runaways += fastest > 2.0 and (least < BODY_RADIUS_M or farthest > 5.0)
     assert runaways == 2
+
+
+def test_straight_line_plans_start_from_their_reference():
+    from planning.straight_line import straight_line_plan
+
+    kw = dict(v_max_mps=0.6, a_max_mps2=0.6, yaw_rate_max_rps=0.4)
+    goal = np.array([5.0, 0.0, 1.5])
+    first = straight_line_plan(_state(0.0, [0.0, 0.0, 1.5]), goal, **kw)
+    p_ref, v_ref = first.sample(0.1)[0:2]
+    pushed = _state(0.1, p_ref + [0.0, 0.4, 0.0], v_ref + [0.0, 0.5, 0.0])
+    r = straight_line_plan(pushed, goal, reference=first, **kw)
+    np.testing.assert_allclose(r.p[0], p_ref, atol=1e-12)
+    np.testing.assert_allclose(r.v[0], v_ref, atol=1e-12)
+    # without a reference, beyond the reset distance or with a stale one: the measurement
+    for ref, t, off in ((None, 0.1, 0.4), (first, 0.1, 1.6), (first, 0.7, 0.4)):
+        s = _state(t, first.sample(t)[0] + [0.0, off, 0.0])
+        np.testing.assert_allclose(straight_line_plan(s, goal, reference=ref, **kw).p[0], s.p, atol=1e-12)

@@ -90,11 +90,28 @@ def shared_planner(config: PlannerConfig) -> Planner:
     return planner
 
 
+class PlanMemory:
+    """The last straight-line plan a method handed the vehicle: the next plan starts from its
+    reference state while the vehicle tracks it (``straight_line_plan(reference=...)``, the
+    planner's ``reference_start`` rule), so a gust is corrected by the position controller
+    instead of moving every later plan. One per method instance, cleared at ``reset``."""
+
+    def __init__(self) -> None:
+        self.last: Trajectory | None = None
+
+
 def straight_plan(
-    state: VehicleState, goal, limits: FlightLimits, *, yaw_first: bool = False, yaw_ref: float | None = None
+    state: VehicleState,
+    goal,
+    limits: FlightLimits,
+    *,
+    yaw_first: bool = False,
+    yaw_ref: float | None = None,
+    memory: PlanMemory | None = None,
 ) -> Trajectory:
-    """Map-free straight-line plan to ``goal`` (3,), world ENU metres, under ``limits``."""
-    return straight_line_plan(
+    """Map-free straight-line plan to ``goal`` (3,), world ENU metres, under ``limits``; with
+    ``memory`` it starts from the last plan's reference and is remembered."""
+    traj = straight_line_plan(
         state,
         np.asarray(goal, float),
         v_max_mps=limits.v_max_mps,
@@ -104,7 +121,11 @@ def straight_plan(
         steps=limits.steps,
         yaw_first=yaw_first,
         yaw_ref=yaw_ref,
+        reference=None if memory is None else memory.last,
     )
+    if memory is not None:
+        memory.last = traj
+    return traj
 
 
 def arrived(state: VehicleState, goal) -> bool:

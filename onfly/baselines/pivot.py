@@ -38,6 +38,7 @@ from onfly.baselines.common import (
     BaselineOptionError,
     CallOutcome,
     FlightLimits,
+    PlanMemory,
     arrived,
     split_options,
     straight_plan,
@@ -233,6 +234,7 @@ class PivotMethod:
         self.limits = limits
 
     def reset(self, spec: EpisodeSpec) -> None:
+        self.plans = PlanMemory()  # straight-line plans start from the last one's reference
         self.spec = spec
         self.backend = self._backend if self._backend is not None else make_backend(self.vlm_spec, seed=spec.seed)
         self.runtime = spec.runtime
@@ -268,12 +270,12 @@ class PivotMethod:
                 self.goal = None
                 self.next_after_s = t_s
             else:
-                return MethodStep(straight_plan(state, self.goal, self.limits), False)
+                return MethodStep(straight_plan(state, self.goal, self.limits, memory=self.plans), False)
         if self.frame is None and not self.runtime.busy(PIVOT):
             obs = self.latest
             if obs is not None and obs.t_s >= self.next_after_s - 1e-9:
                 self._begin(obs)
-        return MethodStep(straight_plan(state, self.hold_p, self.limits, yaw_ref=self.hold_yaw), False)
+        return MethodStep(straight_plan(state, self.hold_p, self.limits, yaw_ref=self.hold_yaw, memory=self.plans), False)
 
     def _begin(self, obs: Observation) -> None:
         self.frame = obs

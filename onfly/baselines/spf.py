@@ -32,6 +32,7 @@ from onfly.baselines.common import (
     BaselineOptionError,
     CallOutcome,
     FlightLimits,
+    PlanMemory,
     shared_planner,
     split_options,
     straight_plan,
@@ -129,6 +130,7 @@ class SpfMethod:
         self.esdf: EsdfMap | None = None
 
     def reset(self, spec: EpisodeSpec) -> None:
+        self.plans = PlanMemory()  # straight-line plans start from the last one's reference
         self.spec = spec
         self.backend = self._backend if self._backend is not None else make_backend(self.vlm_spec, seed=spec.seed)
         self.runtime = spec.runtime
@@ -163,7 +165,7 @@ class SpfMethod:
             if not plan.ok:
                 self.fallbacks[plan.fallback.value] += 1
             return MethodStep(plan.trajectory, False)
-        return MethodStep(straight_plan(state, goal, self.limits, yaw_first=True), False)
+        return MethodStep(straight_plan(state, goal, self.limits, yaw_first=True, memory=self.plans), False)
 
     def _ask(self, obs: Observation) -> None:
         self._asked_frame = obs.frame_id

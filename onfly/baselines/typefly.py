@@ -36,6 +36,7 @@ from onfly.baselines.common import (
     BaselineOptionError,
     CallOutcome,
     FlightLimits,
+    PlanMemory,
     arrived,
     ray_world,
     split_options,
@@ -206,6 +207,7 @@ class TypeflyMethod:
 
     # -- lifecycle --------------------------------------------------------------------------------
     def reset(self, spec: EpisodeSpec) -> None:
+        self.plans = PlanMemory()  # straight-line plans start from the last one's reference
         self.spec = spec
         self.backend = self._backend if self._backend is not None else make_backend(self.vlm_spec, seed=spec.seed)
         self.runtime = spec.runtime
@@ -246,7 +248,7 @@ class TypeflyMethod:
         idle = not self.queue and not self.runtime.busy(PLAN)
         if idle and self.latest is not None and self.latest.frame_id != self._planned_frame:
             self._plan(self.latest)
-        return MethodStep(straight_plan(state, self.hold_p, self.limits, yaw_ref=self.hold_yaw), False)
+        return MethodStep(straight_plan(state, self.hold_p, self.limits, yaw_ref=self.hold_yaw, memory=self.plans), False)
 
     def _plan(self, obs: Observation) -> None:
         self._planned_frame = obs.frame_id
@@ -308,11 +310,11 @@ class TypeflyMethod:
         if a.skill.name == "turn":
             if yaw_settled(state, a.yaw) or timed_out:
                 return self._finish(f"turn {a.skill.arg:g}: done", state)
-            return straight_plan(state, a.p, self.limits, yaw_ref=a.yaw)
+            return straight_plan(state, a.p, self.limits, yaw_ref=a.yaw, memory=self.plans)
         if a.skill.name in ("move_forward", "approach"):
             if arrived(state, a.p) or timed_out:
                 return self._finish(f"{a.skill.text()}: done", state)
-            return straight_plan(state, a.p, self.limits, yaw_first=True)
+            return straight_plan(state, a.p, self.limits, yaw_first=True, memory=self.plans)
         # find: after each settled turn, look at a frame taken after it settled
         if yaw_settled(state, a.yaw) or timed_out:
             if a.check_after_s is None:
@@ -329,7 +331,7 @@ class TypeflyMethod:
                 a.yaw = float(wrap_angle(a.yaw + FIND_STEP_RAD))
                 a.t0_s = t_s
                 a.check_after_s = None
-        return straight_plan(state, a.p, self.limits, yaw_ref=a.yaw)
+        return straight_plan(state, a.p, self.limits, yaw_ref=a.yaw, memory=self.plans)
 
     def _finish(self, item: str, state: VehicleState):
         self._log(item)
