@@ -150,7 +150,8 @@ class PlannerConfig:
         ``body_radius_m`` grows with the *measured* tracking error (``|plan(t) - measured
         position|``, the error the vehicle's own estimate shows against the plan it was
         flying): the largest error of the last ``tracking_window_s`` seconds, capped at this
-        value, metres (0 = no margin). Under perfect tracking the margin is 0
+        value, metres (0 = no margin). Errors under 5 cm (half a voxel of the map) give no
+        margin, so under perfect tracking it is 0
     tracking_window_s : how long a measured tracking error keeps the margin up, seconds
     """
 
