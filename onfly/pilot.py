@@ -688,10 +688,13 @@ class OnFlyPilot:
 
         self.search.start(t_s, state.p, state.yaw, trigger, toward_yaw=toward, worth_scanning=worth_scanning)
         if fresh:
-            # keep going the way the vehicle was going (its heading when it was not moving),
-            # unless that way is closed
-            ahead = travel if travel is not None else state.yaw
-            self.search.heading0 = open_heading(state.p, ahead, self.esdf, clearance_m=self.config.search.explore_clearance_m)
+            # keep going the way the vehicle was going, unless that way is closed (a dead end:
+            # its heading when it stalled); a vehicle that was not under way (the start, a
+            # hover) has no way to keep: a heading chosen at take-off says nothing of the route
+            ahead = travel if travel is not None else (state.yaw if trigger is SearchTrigger.STALL else None)
+            self.search.heading0 = (
+                None if ahead is None else open_heading(state.p, ahead, self.esdf, clearance_m=self.config.search.explore_clearance_m)
+            )
         self.search.reset_stall()
         self._no_goal_streak = self._not_visible_streak = self._rejected_streak = 0
         self.goal_world = None
@@ -722,6 +725,10 @@ class OnFlyPilot:
         if target is None:
             target = explore_target(state.p, self.search.heading0, self.esdf, prefer_yaw=self._last_seen_yaw(state), **common)
             how = "ring"
+        if target is not None and self.search.heading0 is None:
+            # the first leg of a search with no way to keep sets it: later legs go on from there
+            # rather than zig-zag between frontiers on either side
+            self.search.heading0 = float(np.arctan2(target[1] - state.p[1], target[0] - state.p[0]))
         self.search.explore_from(t_s, target, state.p, state.yaw)
         self._event(t_s, "search_explore", {"target": target, "position": state.p, "how": how})
 
