@@ -114,6 +114,11 @@ class DecisionOutcome:
         rejected candidate still says which way the target is
     not_visible : the model answered that the target is not visible in this frame (no goal;
         the pilot's search counts these)
+    target_world : (3,) metres, world ENU, or None: the pointed object itself, the goal's pixel
+        (the verifier's refined pixel; the raw one without verification) lifted at the median
+        depth reading of the 5 x 5 px window around it. None when there is no goal or no
+        reading. A follower (:mod:`onfly.follow`) tracks a moving person with it
+    frame_t_s : capture time of the frame the decision was made on, seconds (NaN if unknown)
     """
 
     frame_id: str
@@ -126,10 +131,28 @@ class DecisionOutcome:
     reason: str = ""
     pixel_yaw: float | None = None
     not_visible: bool = False
+    target_world: np.ndarray | None = None
+    frame_t_s: float = float("nan")
 
     @property
     def latency_s(self) -> float:
         return self.response.latency_s
+
+
+def pointed_point(uv, obs: Observation, half_px: int = 2) -> np.ndarray | None:
+    """The point a pixel ``uv`` of ``obs`` shows: the median valid z-depth of the
+    ``(2 half_px + 1)^2`` window around it, lifted to (3,) metres, world ENU; None when the
+    window has no reading or the pixel is outside the image."""
+    h, w = obs.depth_m.shape
+    u, v = int(round(uv[0])), int(round(uv[1]))
+    if not (0 <= u < w and 0 <= v < h):
+        return None
+    win = np.asarray(obs.depth_m[max(v - half_px, 0) : v + half_px + 1, max(u - half_px, 0) : u + half_px + 1], float)
+    vals = win[np.isfinite(win) & (win > 0)]
+    if vals.size == 0:
+        return None
+    p_cam = obs.camera.back_project(np.array([float(uv[0]), float(uv[1])]), float(np.median(vals)))
+    return transform_points(obs.T_world_cam, p_cam)
 
 
 def pixel_yaw(uv, obs: Observation) -> float:
@@ -206,7 +229,12 @@ class DecisionAgent:
 
         def out(parse=None, verified=None, goal=None, reason="", not_visible=False):
             yaw = pixel_yaw(parse.uv, obs) if parse is not None and parse.ok else None
-            return DecisionOutcome(obs.frame_id, subtask, response, hist, parse, verified, goal, reason, yaw, not_visible)
+            target = None
+            if goal is not None:
+                refined = verified.record.refined_uv if verified is not None else None
+                target = pointed_point(refined if refined is not None else parse.uv, obs)
+            return DecisionOutcome(obs.frame_id, subtask, response, hist, parse, verified, goal, reason, yaw, not_visible,
+                                   target, float(obs.t_s))
 
         if response.status is not CallStatus.OK:
             log.info("decision call %s: %s", response.status.value, response.error)
