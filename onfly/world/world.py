@@ -232,8 +232,17 @@ class World:
             camera=renderer.camera,
             frame_id=f"{self.scene.name}/{index:06d}",
             T_body_cam=self.T_body_cam,
-            annotation=renderer.annotate(r),
+            annotation=self._annotate_motion(renderer.annotate(r)),
         )
+
+    def _annotate_motion(self, ann):
+        """Mark the visible actors that are moving now (``VisibleObject.moving``: what the
+        simulated VLM sees of a walking person; ``vlm.sim.error_model``, Following)."""
+        moving = {iid for iid in self.actor_ids if iid in ann.objects and self.actor_pose(iid).moving}
+        if not moving:
+            return ann
+        objects = {i: (replace(o, moving=True) if i in moving else o) for i, o in ann.objects.items()}
+        return replace(ann, objects=objects)
 
     # -- frame delivery (drops and latency of a realism profile) ---------------------------------
 
