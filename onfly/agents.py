@@ -114,10 +114,11 @@ class DecisionOutcome:
         rejected candidate still says which way the target is
     not_visible : the model answered that the target is not visible in this frame (no goal;
         the pilot's search counts these)
-    target_world : (3,) metres, world ENU, or None: the pointed object itself, the goal's pixel
-        (the verifier's refined pixel; the raw one without verification) lifted at the median
-        depth reading of the 5 x 5 px window around it. None when there is no goal or no
-        reading. A follower (:mod:`onfly.follow`) tracks a moving person with it
+    target_world : (3,) metres, world ENU, or None: the pointed object itself, the model's
+        pixel lifted at its depth (:func:`pointed_point`; the verifier's refined pixel may lie
+        beside the object, where the goal is safe). None when there is no goal (the verifier
+        rejected the pixel) or no reading. A follower (:mod:`onfly.follow`) tracks a moving
+        person with it
     frame_t_s : capture time of the frame the decision was made on, seconds (NaN if unknown)
     """
 
@@ -139,10 +140,12 @@ class DecisionOutcome:
         return self.response.latency_s
 
 
-def pointed_point(uv, obs: Observation, half_px: int = 2) -> np.ndarray | None:
-    """The point a pixel ``uv`` of ``obs`` shows: the median valid z-depth of the
-    ``(2 half_px + 1)^2`` window around it, lifted to (3,) metres, world ENU; None when the
-    window has no reading or the pixel is outside the image."""
+def pointed_point(uv, obs: Observation, half_px: int = 3, percentile: float = 20.0) -> np.ndarray | None:
+    """The point a pixel ``uv`` of ``obs`` shows: the ``percentile`` of the valid z-depths of the
+    ``(2 half_px + 1)^2`` window around it (a low percentile: a pointed person stands in front
+    of the background, and a pixel near their outline must not take the background's depth),
+    lifted to (3,) metres, world ENU; None when the window has no reading or the pixel is
+    outside the image."""
     h, w = obs.depth_m.shape
     u, v = int(round(uv[0])), int(round(uv[1]))
     if not (0 <= u < w and 0 <= v < h):
@@ -151,7 +154,7 @@ def pointed_point(uv, obs: Observation, half_px: int = 2) -> np.ndarray | None:
     vals = win[np.isfinite(win) & (win > 0)]
     if vals.size == 0:
         return None
-    p_cam = obs.camera.back_project(np.array([float(uv[0]), float(uv[1])]), float(np.median(vals)))
+    p_cam = obs.camera.back_project(np.array([float(uv[0]), float(uv[1])]), float(np.percentile(vals, percentile)))
     return transform_points(obs.T_world_cam, p_cam)
 
 
@@ -229,10 +232,7 @@ class DecisionAgent:
 
         def out(parse=None, verified=None, goal=None, reason="", not_visible=False):
             yaw = pixel_yaw(parse.uv, obs) if parse is not None and parse.ok else None
-            target = None
-            if goal is not None:
-                refined = verified.record.refined_uv if verified is not None else None
-                target = pointed_point(refined if refined is not None else parse.uv, obs)
+            target = pointed_point(parse.uv, obs) if goal is not None else None
             return DecisionOutcome(obs.frame_id, subtask, response, hist, parse, verified, goal, reason, yaw, not_visible,
                                    target, float(obs.t_s))
 

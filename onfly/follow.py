@@ -19,9 +19,11 @@ What changes (:class:`Follower`):
 - **STOP**: a following subtask without an end ignores the monitor's STOP (being near the
   person is not completion); one that follows *until the person stops* takes it as usual.
 
-A sighting farther from the prediction than ``max_speed_mps`` allows (a look-alike the model
-confused, a pixel on the background) is dropped; two such in a row restart the track from the
-newest one (the person really is there). The planner keeps its clearance from every person,
+A sighting farther from the prediction than ``jump_slack_m + max_speed_change_mps * dt``
+(``dt`` since the last sighting: a walker changes speed and heading gradually) is dropped (a
+look-alike the model confused, a pixel on the background); two such in a row that agree with
+each other (within the same reach) restart the track from the newest one (the person really
+is there). The planner keeps its clearance from every person,
 the followed one included: they are in the ESDF like any obstacle, and the standoff goal is
 ``standoff_m`` from them.
 """
@@ -57,22 +59,28 @@ class FollowConfig:
         no number)
     lead_s : the person is predicted this far ahead of now for the standoff goal, seconds
         (about one decision latency, 0.81 s on the paper's Orin NX, plus half a frame period)
-    window_s : sightings older than this are not used for the velocity fit, seconds
-    max_speed_mps : a sighting that would need the person to move faster than this (plus
-        ``jump_slack_m``) from the prediction is dropped. Fast walking is about 2 m/s
+    window_s : sightings older than this are not used for the velocity fit, seconds (decisions
+        land about every 2.5 s when they share the accelerator with the monitor: two to three
+        sightings)
+    max_speed_mps : the velocity estimate is capped at this, m/s. Fast walking is about 2 m/s
         (Bohannon 1997, "Comfortable and maximum walking speed of adults aged 20-79 years",
         Age and Ageing 26(1): maximum gait speeds 1.75-2.53 m/s)
+    max_speed_change_mps : how far the person may depart from the constant-velocity prediction
+        per second since the last sighting (setting off from standing, turning), m/s
     jump_slack_m : position noise allowed on top of that, metres
-    max_extrapolation_s : the prediction never runs further than this past the last sighting
+    max_extrapolation_s : the prediction never runs further than this past the last sighting,
+        seconds (decisions share the accelerator with the monitor and land about every 2.5 s;
+        a walker keeps their course over a few seconds)
     """
 
     enabled: bool = True
     standoff_m: float = 2.75
     lead_s: float = 1.0
-    window_s: float = 3.0
+    window_s: float = 6.0
     max_speed_mps: float = 2.5
+    max_speed_change_mps: float = 1.0
     jump_slack_m: float = 1.0
-    max_extrapolation_s: float = 3.0
+    max_extrapolation_s: float = 4.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -98,7 +106,7 @@ class Follower:
         self._subtask: str | None = None
         self._intent: FollowIntent | None = None
         self._sightings: list[tuple[float, np.ndarray]] = []
-        self._rejected = 0
+        self._rejected: tuple[float, np.ndarray] | None = None
         self.stops_ignored = 0
         self.sightings_dropped = 0
 
@@ -112,7 +120,7 @@ class Follower:
             self._subtask = subtask
             self._intent = follow_intent(subtask)
             self._sightings = []
-            self._rejected = 0
+            self._rejected = None
         return self._intent
 
     @property
@@ -138,25 +146,32 @@ class Follower:
         if self._sightings:
             last_t = self._sightings[-1][0]
             pred = self.predict(t_s)
-            reach = c.max_speed_mps * max(t_s - last_t, 0.0) + c.jump_slack_m
+            reach = c.max_speed_change_mps * max(t_s - last_t, 0.0) + c.jump_slack_m
             if pred is not None and np.linalg.norm(p[:2] - pred[:2]) > reach:
-                self._rejected += 1
+                prev = self._rejected
+                self._rejected = (float(t_s), p)
                 self.sightings_dropped += 1
-                if self._rejected < 2:
+                agree = prev is not None and np.linalg.norm(p[:2] - prev[1][:2]) <= c.max_speed_change_mps * max(t_s - prev[0], 0.0) + c.jump_slack_m
+                if not agree:
                     return False
-                self._sightings = []  # two in a row: the person is there, restart the track
-        self._rejected = 0
+                self._sightings = [prev]  # two in a row that agree: the person is there, restart the track
+        self._rejected = None
         self._sightings.append((float(t_s), p))
-        self._sightings = [(ts, q) for ts, q in self._sightings if ts >= t_s - c.window_s]
+        self._sightings = [(ts, q) for ts, q in self._sightings if ts >= t_s - 2 * c.window_s]
         return True
 
     def velocity(self) -> np.ndarray:
         """Horizontal velocity (3,) m/s (z = 0) of a least-squares line through the sightings of
-        the window; zeros with fewer than two sightings or no time spread."""
+        the last ``window_s`` (the last two within ``2 window_s`` when the window holds fewer);
+        zeros with fewer than two sightings or no time spread."""
         if len(self._sightings) < 2:
             return np.zeros(3)
-        t = np.array([s[0] for s in self._sightings])
-        P = np.array([s[1] for s in self._sightings])
+        t_last = self._sightings[-1][0]
+        recent = [s for s in self._sightings if s[0] >= t_last - self.config.window_s]
+        if len(recent) < 2:
+            recent = self._sightings[-2:]
+        t = np.array([s[0] for s in recent])
+        P = np.array([s[1] for s in recent])
         dt = t - t.mean()
         den = float(np.sum(dt * dt))
         if den < 1e-6:

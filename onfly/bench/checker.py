@@ -38,7 +38,7 @@ A tracking task (``kind = "track"``) is proved differently (:meth:`TaskChecker.c
    middle of the band from the actor (``track_lead_s`` ahead) on the line toward it, with the
    vehicle's speed and acceleration limits (``track_v_max_mps``, ``track_a_max_mps2``, the
    paper's 0.6 m/s and 0.6 m/s^2), at the start's altitude; where the task asks for a stop, it
-   closes to ``stop_radius_m - 0.5`` once the actor stands;
+   closes to ``stop_radius_m - 0.5`` once the actor has walked and stands again;
 3. **proof**: that flight keeps ``>= body_radius_m + proof_margin_m`` from the scene and from
    every actor at each instant, stays in the bounds, is in the band for at least the task's
    ``in_band_frac`` of ``duration_s``, and, for a stop task, ends within the stop radius of the
@@ -498,7 +498,7 @@ class TaskChecker:
         stopped_at = None
         for k in range(n):
             standoff = tr.standoff_m
-            if tr.stop_radius_m is not None and not moving[k]:
+            if tr.stop_radius_m is not None and not moving[k] and moving[:k].any():
                 standoff = min(standoff, tr.stop_radius_m - 0.5)
                 if float(np.hypot(*(p[:2] - P_now[k, :2]))) <= tr.stop_radius_m - 0.3 and np.linalg.norm(v) <= 0.15:
                     stopped_at = k

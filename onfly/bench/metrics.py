@@ -32,7 +32,8 @@ the *horizontal* distance from the vehicle to the actor's centre and the task's 
   counts as *lost*; it is *re-found* when the vehicle gets back into the band. A stretch
   before the vehicle first enters the band is the acquisition, not a loss;
 - **stop** (tasks with ``stop_radius_m``): the method declared its stop, the actor was not
-  moving at that moment, and ``d <= stop_radius_m`` then;
+  moving at that moment but had moved before (it *has stopped*; a person who has not set off
+  yet has not), and ``d <= stop_radius_m`` then;
 - **success**: time in band ``>= in_band_frac``, no collision, and the stop where asked.
   The classic SR of a tracking episode is this success; OSR is the time-in-band condition
   alone (collision-free up to then), SPL is SR (no reference path applies).
@@ -281,7 +282,7 @@ def track_metrics(
         i = j
     stop_ok = None
     if stop_radius_m is not None:
-        stop_ok = bool(trace.stopped_by_method and not moving[-1] and d[-1] <= stop_radius_m)
+        stop_ok = bool(trace.stopped_by_method and not moving[-1] and bool(moving[:-1].any()) and d[-1] <= stop_radius_m)
     band_ok = bool(frac >= in_band_frac - 1e-12)
     ok = band_ok and not trace.collided and (stop_ok is None or stop_ok)
     return TrackMetrics(
@@ -308,7 +309,7 @@ def as_track_episode(m: EpisodeMetrics, tm: TrackMetrics) -> EpisodeMetrics:
 
 def summarize_track(metrics: Iterable[TrackMetrics]) -> dict[str, float]:
     """Means over tracking episodes: time in band, band error, lost and re-found counts, and the
-    share of stop episodes whose stop held (NaN when none asked for one)."""
+    share of stop episodes whose stop held (None when none asked for one)."""
     ms = list(metrics)
     if not ms:
         raise MetricsError("no tracking episodes to summarize")
@@ -319,5 +320,5 @@ def summarize_track(metrics: Iterable[TrackMetrics]) -> dict[str, float]:
         "band_error_m": float(np.mean([m.band_error_m for m in ms])),
         "lost": float(np.mean([m.times_lost for m in ms])),
         "refound": float(np.mean([m.times_refound for m in ms])),
-        "stop_ok": float(np.mean(stops)) if stops else float("nan"),
+        "stop_ok": float(np.mean(stops)) if stops else None,
     }

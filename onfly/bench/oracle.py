@@ -21,8 +21,8 @@ actor's *true* position instead: each control period the goal is the point at th
 the task's distance band from the actor (predicted ``track_lead_s`` ahead) on the line toward
 the vehicle, at the start's altitude, with the yaw reference facing the actor; the same ESDF and
 MPC fly it, so every person (the followed one included) is avoided from the camera's map. Where
-the task asks for a stop, it declares done once the actor stands and the vehicle is within the
-stop radius (less ``0.3`` m) and slower than ``done_speed_mps``.
+the task asks for a stop, it declares done once the actor has walked and stands again and the
+vehicle is within the stop radius (less ``0.3`` m) and slower than ``done_speed_mps``.
 """
 
 from __future__ import annotations
@@ -146,6 +146,7 @@ class OraclePilot:
         if self.track is not None and self.actor_motion is None:
             raise OracleError("the oracle needs the followed actor's motion on a tracking task (PrivilegedGoal.actor_motion is None)")
         self._z_m = float(spec.start_state.p[2])
+        self._actor_moved = False
         start = spec.start_state.p.astype(float)
         if np.linalg.norm(wp[0] - start) > 1e-6:
             wp = np.vstack([start, wp])
@@ -200,7 +201,8 @@ class OraclePilot:
         d_now = float(np.hypot(*(state.p[:2] - now.position_m[:2])))
         speed = float(np.linalg.norm(state.v))
         standoff = tr.standoff_m
-        if tr.stop_radius_m is not None and not now.moving:
+        self._actor_moved = self._actor_moved or bool(now.moving)
+        if tr.stop_radius_m is not None and not now.moving and self._actor_moved:
             standoff = min(standoff, tr.stop_radius_m - 0.5)
             if d_now <= tr.stop_radius_m - 0.3 and speed <= self.config.done_speed_mps:
                 return MethodStep(None, True, {"actor_distance_m": d_now})

@@ -348,7 +348,7 @@ class SimulatedVlm:
         seen = [self._leg_perceptions(legs, img)[-1] for img in images]
         latest = seen[-1]
         window = m.lost_window_frames
-        if self._complete(prompt.subtask, latest, jitter):
+        if self._complete(prompt.subtask, latest, jitter, seen[:-1]):
             status = "STOP"
         elif len(seen) > window and not any(p.perceived for p in seen[-window:]) and any(p.perceived for p in seen[:-window]):
             status = "LOST"
@@ -375,16 +375,19 @@ class SimulatedVlm:
             per is not None and per.perceived and per.region.median_depth_m < m.stop_distance_m + m.stop_offset_m + jitter_m
         )
 
-    def _complete(self, text: str, per: Perception | None, jitter_m: float) -> bool:
+    def _complete(self, text: str, per: Perception | None, jitter_m: float, earlier: Sequence[Perception] = ()) -> bool:
         """The completion rule of a text's last leg (monitoring STOP and every baseline's stop
         interface): the stop rule (:meth:`_close`); for a following text
-        (:func:`vlm.following.follow_intent`) only when it follows *until the target stops*
-        and the target stands still in this frame. A following task without an end is never
-        complete."""
+        (:func:`vlm.following.follow_intent`) only when it follows *until the target stops*,
+        the target stands still in this frame and was seen walking in an ``earlier`` frame of
+        the same prompt (a prompt with one image cannot tell that a standing person has
+        stopped). A following task without an end is never complete."""
         if not self._close(per, jitter_m):
             return False
         intent = follow_intent(text)
-        return intent is None or (intent.until_stop and not per.moving)
+        if intent is None:
+            return True
+        return intent.until_stop and not per.moving and any(p.perceived and p.moving for p in earlier)
 
     @staticmethod
     def _legs(instruction: str) -> list[str]:
