@@ -1040,9 +1040,10 @@ def station_concourse(rng) -> SceneBuilder:
     """Issue 19: a station concourse whose crowd crosses the routes. Passengers stream between the
     street doors (south wall) and the platform gates (north wall) on two two-way lanes (x = 12 and
     x = 22.5), so every flight from the west entrance to the east half crosses them; a man pushes a
-    luggage cart and stops at the information desk, a traveller paces round a column."""
+    luggage cart and stops at the information desk, a traveller paces round a column. The drone
+    starts (and the tasks fly) at 2.5 m, above head height."""
     b = SceneBuilder("station_concourse", "Station concourse: columns, ticket machines, an information desk, kiosks, platform gates and a crowd crossing the hall.",
-                     (0.3, 0.3, 0.2), (37.7, 27.7, 8.7), (3.0, 14.0, 1.5), 0.0, light=(0.25, 0.3, 0.92), ambient=0.5, indoor=True)
+                     (0.3, 0.3, 0.2), (37.7, 27.7, 8.7), (3.0, 14.0, 2.5), 0.0, light=(0.25, 0.3, 0.92), ambient=0.5, indoor=True)
     walls(b, "concourse walls", 0, 38, 0, 28, 9.0, color="#CFC8BA", floor_color="#9C968C")
     cols = [(x, y) for x in (7.0, 17.5, 28.0) for y in (7.0, 21.0)]
     b.add("columns", "column", "#B8B2A6", [box((x, y, 4.5), (0.8, 0.8, 9.0)) for x, y in cols], target=False)
