@@ -163,6 +163,9 @@ def test_actor_in_front_of_a_wall_occludes_it_and_behind_it_is_hidden():
     r = Renderer(SceneGeometry(scene_of([GROUND, wall, walker(size=(1.0, 1.0, 2.0), motion=motion)])), CAM)
     T = cam_transform_from_body(body_transform([0.0, 0.0, 1.0], 0.0))
     cv, cu = CAM.height // 2, CAM.width // 2
+    near = r.render(T, t_s=0.0)  # centre at x = 2: the camera is inside its bounding sphere
+    assert near.instance_ids[cv, cu] == 5
+    assert near.depth_m[cv, cu] == pytest.approx(1.5, abs=1e-5)
     front = r.render(T, t_s=2.0)  # actor centre at x = 4: front face at 3.5
     assert front.instance_ids[cv, cu] == 5
     assert front.depth_m[cv, cu] == pytest.approx(3.5, abs=1e-5)

@@ -53,6 +53,7 @@ The scene format (``docs/scene_format.md``) writes a motion as a table under the
 from __future__ import annotations
 
 import math
+from bisect import bisect_right
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Any, Union
@@ -196,6 +197,7 @@ class PathMotion:
             if nz:
                 heading[: nz[0]] = heading[nz[0]]
         return {
+            "starts_list": (seg_start.tolist(), heading.tolist()),
             "p0": p0,
             "p1": p1,
             "dir": direction,
@@ -362,10 +364,53 @@ def positions_at(motion: Motion, t_s) -> np.ndarray:
     return poses_at(motion, t_s)[0]
 
 
+def _wrap1(a: float) -> float:
+    w = (a + math.pi) % (2.0 * math.pi) - math.pi
+    return w + 2.0 * math.pi if w <= -math.pi else w
+
+
+def _path_pose1(m: PathMotion, t: float) -> ActorPose:
+    """Scalar :func:`_path_poses` (the renderer asks once per actor per frame: no array setup)."""
+    tl = m._timeline
+    starts = tl["starts_list"]
+    tau = t - m.start_s
+    if tau < 0:
+        return ActorPose(tl["p0"][0].copy(), _wrap1(starts[1][0]), np.zeros(3), False)
+    cycle = tl["cycle_s"]
+    ended = False
+    if m.loop:
+        tau = tau % cycle
+    elif tau >= cycle:
+        ended, tau = True, cycle
+    k = max(0, min(bisect_right(starts[0], tau) - 1, len(starts[0]) - 1))
+    local = tau - starts[0][k]
+    dur = float(tl["duration"][k])
+    yaw = _wrap1(starts[1][k])
+    if ended or local >= dur:
+        return ActorPose(tl["p1"][k].copy(), yaw, np.zeros(3), False)
+    d = tl["dir"][k]
+    v = float(tl["speed"][k])
+    return ActorPose(tl["p0"][k] + d * (local * v), yaw, d * v, True)
+
+
 def pose_at(motion: Motion, t_s: float) -> ActorPose:
-    """The actor's :class:`ActorPose` at ``t_s`` seconds on the world clock."""
-    pos, yaw, vel, moving = poses_at(motion, [float(t_s)])
-    return ActorPose(pos[0], float(yaw[0]), vel[0], bool(moving[0]))
+    """The actor's :class:`ActorPose` at ``t_s`` seconds on the world clock (the same values as
+    :func:`poses_at`, computed without array setup)."""
+    t = float(t_s)
+    if not math.isfinite(t):
+        raise ValueError(f"t_s must be finite, got {t_s!r}")
+    if isinstance(motion, PathMotion):
+        return _path_pose1(motion, t)
+    if isinstance(motion, CircleMotion):
+        sign = -1.0 if motion.clockwise else 1.0
+        walking = t >= motion.start_s
+        theta = motion.phase_rad + sign * (motion.speed_mps / motion.radius_m) * max(t - motion.start_s, 0.0)
+        c, s_ = math.cos(theta), math.sin(theta)
+        cx, cy, cz = motion.center_m
+        pos = np.array([cx + motion.radius_m * c, cy + motion.radius_m * s_, cz])
+        vel = np.array([-s_ * sign * motion.speed_mps, c * sign * motion.speed_mps, 0.0]) if walking else np.zeros(3)
+        return ActorPose(pos, _wrap1(theta + sign * 0.5 * math.pi), vel, walking)
+    raise TypeError(f"expected a PathMotion or CircleMotion, got {type(motion).__name__}")
 
 
 # -- the scene-format table --------------------------------------------------------------------

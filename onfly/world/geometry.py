@@ -97,8 +97,8 @@ class ActorGeometry:
     triangles : uint32 (m, 3)
     tri_offset : index of this actor's first triangle in the renderer's combined tables
         (static triangles first, then the actors in scene order)
-    radius_m : distance from the actor-frame origin to its farthest vertex (a bounding sphere
-        about the pose's position)
+    center_local_m : (3,) centre of the mesh's bounding box in the actor frame
+    radius_m : distance from ``center_local_m`` to the farthest vertex (a bounding sphere)
     raycasting : open3d.t.geometry.RaycastingScene over ``vertices``, ``triangles``
     tables : per-triangle tables as :class:`SceneGeometry` has them (``tri_normal``, ``tri_v0``
         in the actor frame)
@@ -108,6 +108,7 @@ class ActorGeometry:
     vertices: np.ndarray
     triangles: np.ndarray
     tri_offset: int
+    center_local_m: np.ndarray
     radius_m: float
     raycasting: o3d.t.geometry.RaycastingScene
     tables: dict
@@ -119,6 +120,11 @@ class ActorGeometry:
     def pose(self, t_s: float) -> ActorPose:
         """The actor's pose at ``t_s`` (world clock), see :func:`onfly.world.actors.pose_at`."""
         return pose_at(self.obj.motion, t_s)
+
+    def bounding_sphere(self, t_s: float) -> tuple[np.ndarray, float]:
+        """World centre (3,) and radius (m) of a sphere holding the actor at ``t_s``."""
+        T = self.pose(t_s).T_world_actor
+        return T[:3, :3] @ self.center_local_m + T[:3, 3], self.radius_m
 
     def local_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Axis-aligned bounds (min (3,), max (3,)) of the mesh in the actor frame, metres."""
@@ -164,8 +170,10 @@ class SceneGeometry:
         offset = len(self.triangles)
         for obj in scene.actors:
             t = _compile([obj], label_ids)
-            radius = float(np.linalg.norm(t["vertices"], axis=1).max())
-            actors.append(ActorGeometry(obj, t["vertices"], t["triangles"], offset, radius, _raycasting(t["vertices"], t["triangles"]), t))
+            V = t["vertices"].astype(float)
+            centre = (V.min(axis=0) + V.max(axis=0)) / 2
+            radius = float(np.linalg.norm(V - centre, axis=1).max()) + 1e-3
+            actors.append(ActorGeometry(obj, t["vertices"], t["triangles"], offset, centre, radius, _raycasting(t["vertices"], t["triangles"]), t))
             offset += len(t["triangles"])
         self.actors: tuple[ActorGeometry, ...] = tuple(actors)
         self._actor_by_id = {a.instance_id: a for a in self.actors}
@@ -218,33 +226,49 @@ class SceneGeometry:
         out = self.raycasting.cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=threads)
         return {k: out[k].numpy() for k in ("t_hit", "primitive_ids", "primitive_normals")}
 
-    def cast_actors(self, rays: np.ndarray, t_hit: np.ndarray, tri: np.ndarray, t_s: float, threads: int = 1) -> None:
+    def cast_actors(self, rays: np.ndarray, t_hit: np.ndarray, tri: np.ndarray, t_s: float, threads: int = 1,
+                    candidates=None) -> None:
         """Let the actors at their poses at ``t_s`` occlude the hits of ``rays`` (n, 6) float32,
         world ENU: where an actor is nearer, ``t_hit`` (n,) float32 and ``tri`` (n,) (indices in
         the combined tables, :meth:`combined_table`) are overwritten in place.
 
         Each actor's rays are moved into its frame (``T_actor_world``, a rigid transform, so
         the ray parameter ``t`` is unchanged) and cast against its own structure; only rays
-        that pass within the actor's bounding sphere are cast.
+        that pass within the actor's bounding sphere, ahead of their current hit, are cast.
+
+        ``candidates`` (optional): ``f(centre_m (3,), radius_m) -> int array or None``, a
+        superset of the ray indices that can meet that sphere (a camera's pixel rectangle), or
+        None for "all rays"; the renderer passes one so the sphere test runs on a few pixels.
         """
         if not self.actors:
             return
         origin = rays[0, :3].astype(float)
-        same_origin = bool(np.all(rays[:, :3] == rays[0, :3]))
+        same_origin = candidates is not None or bool(np.all(rays[:, :3] == rays[0, :3]))
         for a in self.actors:
             pose = a.pose(t_s)
             c = pose.position_m
+            R = pose.T_world_actor[:3, :3]
+            centre = R @ a.center_local_m + c
+            sub = None if candidates is None else candidates(centre, a.radius_m)
+            if sub is not None and len(sub) == 0:
+                continue
             if same_origin:
                 # rays from one point (a camera): the sphere's angular cone, then the nearer check
-                idx = _cone_rays(rays[:, 3:6], c - origin, a.radius_m, t_hit)
+                if sub is None:
+                    idx = _cone_rays(rays[:, 3:6], centre - origin, a.radius_m, t_hit)
+                else:
+                    idx = sub[_cone_rays(rays[sub, 3:6], centre - origin, a.radius_m, t_hit[sub])]
             else:
-                idx = _sphere_rays(rays, c, a.radius_m, t_hit)
+                idx = _sphere_rays(rays, centre, a.radius_m, t_hit)
             if len(idx) == 0:
                 continue
-            R = pose.T_world_actor[:3, :3]
             sub = np.empty((len(idx), 6), dtype=np.float32)
-            sub[:, :3] = (rays[idx, :3].astype(float) - c) @ R
-            sub[:, 3:6] = rays[idx, 3:6].astype(float) @ R
+            if same_origin:  # one origin: move it once; directions rotate in float32
+                sub[:, :3] = (origin - c) @ R
+                np.matmul(rays[idx, 3:6], R.astype(np.float32), out=sub[:, 3:6])
+            else:
+                sub[:, :3] = (rays[idx, :3].astype(float) - c) @ R
+                sub[:, 3:6] = rays[idx, 3:6].astype(float) @ R
             out = a.raycasting.cast_rays(o3d.core.Tensor.from_numpy(sub), nthreads=threads)
             th = out["t_hit"].numpy()
             nearer = th < t_hit[idx]
@@ -283,8 +307,10 @@ class SceneGeometry:
         for a in self.actors:
             pos, yaw, _, _ = poses_at(a.obj.motion, t)
             rel = Pd - pos
-            # only points whose sphere-bound distance could beat the current nearest surface
-            near = np.flatnonzero(np.linalg.norm(rel, axis=1) - a.radius_m < d)
+            # only points whose bounding-sphere distance could beat the current nearest surface
+            cl = a.center_local_m
+            cw = np.stack([np.cos(yaw) * cl[0] - np.sin(yaw) * cl[1], np.sin(yaw) * cl[0] + np.cos(yaw) * cl[1], np.full(len(yaw), cl[2])], axis=1)
+            near = np.flatnonzero(np.linalg.norm(rel - cw, axis=1) - a.radius_m < d)
             if len(near) == 0:
                 continue
             c, s = np.cos(yaw[near]), np.sin(yaw[near])

@@ -218,7 +218,8 @@ class Renderer:
         t_hit = hits["t_hit"]
         if self.geometry.actors:
             # each actor is cast in its own frame against its own structure; nearest hit wins
-            self.geometry.cast_actors(buf, t_hit, tri, float(t_s), threads=self.config.threads)
+            self.geometry.cast_actors(buf, t_hit, tri, float(t_s), threads=self.config.threads,
+                                      candidates=self._sphere_pixels(T))
         depth = t_hit.copy()  # rays have unit optical z: t is the z-depth
         depth[tri == m] = 0.0
         inst = np.take(self._tri_instance, tri)
@@ -256,6 +257,38 @@ class Renderer:
         if self.config.depth_noise.enabled:
             depth = self.config.depth_noise.apply(depth, noise_key)
         return RenderResult(rgb.reshape(H, W, 3), depth, inst.reshape(H, W), sem.reshape(H, W), T, exact)
+
+    def _sphere_pixels(self, T_world_cam: np.ndarray):
+        """``f(centre_m, radius_m)`` -> row-major pixel indices of a rectangle that holds the
+        image of a world sphere: the range of ``x / z`` and ``y / z`` (optical frame) over the
+        sphere's bounding cube cut to ``z > 0`` (every camera ray has optical ``z`` = 1), one
+        pixel of margin; empty when the sphere is behind the camera or outside the image."""
+        cam = self.camera
+        R, p = T_world_cam[:3, :3], T_world_cam[:3, 3]
+        H, W = cam.height, cam.width
+        fx, fy, cx, cy = cam.fx, cam.fy, cam.cx, cam.cy
+        empty = np.zeros(0, dtype=np.intp)
+
+        def pixels(centre_m: np.ndarray, radius_m: float):
+            c = R.T @ (np.asarray(centre_m, float) - p)  # camera optical frame
+            z1 = c[2] + radius_m
+            if z1 <= 0:
+                return empty
+            z0 = max(c[2] - radius_m, 1e-6)
+            # x / z and y / z are monotonic in each variable on the cube: extremes at its corners
+            xs = ((c[0] - radius_m) / z0, (c[0] - radius_m) / z1, (c[0] + radius_m) / z0, (c[0] + radius_m) / z1)
+            ys = ((c[1] - radius_m) / z0, (c[1] - radius_m) / z1, (c[1] + radius_m) / z0, (c[1] + radius_m) / z1)
+            u_lo, u_hi = fx * min(xs) + cx, fx * max(xs) + cx
+            v_lo, v_hi = fy * min(ys) + cy, fy * max(ys) + cy
+            if u_hi < -1 or v_hi < -1 or u_lo > W or v_lo > H:
+                return empty
+            u0, u1 = max(int(np.floor(u_lo)) - 1, 0), min(int(np.ceil(u_hi)) + 1, W - 1)
+            v0, v1 = max(int(np.floor(v_lo)) - 1, 0), min(int(np.ceil(v_hi)) + 1, H - 1)
+            if u0 > u1 or v0 > v1:
+                return empty
+            return (np.arange(v0, v1 + 1, dtype=np.intp)[:, None] * W + np.arange(u0, u1 + 1, dtype=np.intp)[None, :]).ravel()
+
+        return pixels
 
     def _colour_table(self, camera_m: np.ndarray, t_s: float = 0.0) -> np.ndarray:
         """uint8 RGB of every triangle at every texture level seen from ``camera_m`` (3,):
