@@ -270,10 +270,59 @@ def path(points, speed, loop=True, pauses=None, start_s=0.0):
     return m
 
 
-def circle(center, radius, speed, phase_deg=0.0, clockwise=False):
+def circle(center, radius, speed, phase_deg=0.0, clockwise=False, start_s=0.0):
     """A ``circle`` motion table about (x, y[, z])."""
     c = [center[0], center[1], center[2] if len(center) > 2 else 0.0]
-    return {"type": "circle", "center_m": c, "radius_m": radius, "speed_mps": speed, "phase_deg": phase_deg, "clockwise": clockwise}
+    m = {"type": "circle", "center_m": c, "radius_m": radius, "speed_mps": speed, "phase_deg": phase_deg, "clockwise": clockwise}
+    if start_s:
+        m["start_s"] = start_s
+    return m
+
+
+# Followed walkers of the tracking tasks (issue 19, onfly/data/tasks/track/): the vehicle's speed
+# limit is the paper's 0.6 m/s (its real pedestrian-tracking flight used the same limit), so a
+# person it follows walks slower: 0.40-0.45 m/s, within measured adult gait speeds (0.4-0.6 m/s
+# among older adults: S. Studenski et al., "Gait speed and survival in older adults", JAMA 305(1),
+# 2011); a wheelbarrow or a stroller slows a walker further. Each stands for the first
+# FOLLOWED_START_S (the operator designates them while they stand), then walks.
+FOLLOWED_MPS = 0.45
+FOLLOWED_PUSH_MPS = 0.4
+FOLLOWED_START_S = 6.0
+
+
+def _stroller():
+    """Parts of a stroller pushed in front of a walker (walker frame: x forward)."""
+    return (box((0.7, 0.0, 0.6), (0.6, 0.45, 0.45), color="#37474F"), box((0.7, 0.0, 0.2), (0.5, 0.4, 0.1), color=DARK))
+
+
+def _wheelbarrow():
+    """Parts of a wheelbarrow pushed in front of a walker (walker frame: x forward)."""
+    return (box((0.75, 0.0, 0.55), (0.7, 0.5, 0.5), color="#9E9E9E"), box((0.75, 0.0, 0.15), (0.6, 0.4, 0.1), color=DARK))
+
+
+def followed_walkers_plaza(b) -> None:
+    """The plaza's followed walkers (tracking tasks)."""
+    s0 = FOLLOWED_START_S
+    person(b, "woman in the yellow coat", "#F2C12E", 0.0, 0.0, aliases=["woman in yellow", "person in the yellow coat", "yellow coat"],
+           motion=circle((0.0, 4.0), 6.5, FOLLOWED_MPS, phase_deg=-90.0, start_s=s0))
+    person(b, "man in the green hoodie", "#2E8B57", 0.0, 0.0, aliases=["man in green", "person in the green hoodie", "green hoodie"],
+           motion=path([(-17.0, -1.0), (-7.0, -1.0), (-7.0, 7.0), (-17.0, 7.0)], FOLLOWED_MPS, start_s=s0))
+    person(b, "man with the wheelbarrow", "#8D6E63", 0.0, 0.0, aliases=["man pushing the wheelbarrow", "person with the wheelbarrow"],
+           extra=_wheelbarrow(), motion=path([(-16.0, -13.5), (-6.0, -13.5)], FOLLOWED_PUSH_MPS, loop=False, start_s=s0))
+    person(b, "woman with the stroller", "#EC407A", 0.0, 0.0, aliases=["woman pushing the stroller", "person with the stroller"],
+           extra=_stroller(), motion=path([(16.8, -18.0), (16.8, -4.0)], FOLLOWED_PUSH_MPS, loop=False, start_s=s0))
+    person(b, "woman in the purple dress", "#8E24AA", 0.0, 0.0, aliases=["woman in purple", "person in the purple dress", "purple dress"],
+           motion=path([(-3.0, -8.0), (5.0, -8.0), (5.0, -14.0), (-3.0, -14.0)], FOLLOWED_MPS, start_s=s0))
+
+
+def followed_walkers_duplex(b) -> None:
+    """The duplex's followed walkers (tracking tasks)."""
+    s0 = FOLLOWED_START_S
+    person(b, "man in the orange vest", "#FB8C00", 0.0, 0.0, aliases=["man in orange", "person in the orange vest", "orange vest"],
+           motion=path([(0.0, -4.0), (16.0, -4.0), (16.0, -12.0), (0.0, -12.0)], FOLLOWED_MPS, start_s=s0))
+    person(b, "woman with the shopping bag", "#00897B", 0.0, 0.0, aliases=["woman carrying a shopping bag", "person with the shopping bag"],
+           extra=(box((0.0, -0.33, 0.75), (0.3, 0.12, 0.35), color="#FFFFFF"),),
+           motion=path([(2.0, -8.0), (14.0, -8.0)], FOLLOWED_PUSH_MPS, loop=False, start_s=s0))
 
 
 def cart(length=0.8, width=0.55, height=0.95, color="#9E9E9E"):
@@ -474,6 +523,7 @@ def duplex(rng) -> SceneBuilder:
            motion=path([(23.2, -15.0), (23.2, 11.0), (24.6, 11.0), (24.6, -15.0)], WALK_MPS, start_s=-8.0))
     person(b, "person on the phone", "#6A1B9A", 0.0, 0.0, aliases=["person pacing", "person in purple"],
            motion=circle((-5.5, -11.0), 2.5, STROLL_MPS, phase_deg=90.0, clockwise=True))
+    followed_walkers_duplex(b)
     return b
 
 
@@ -667,6 +717,7 @@ def plaza(rng) -> SceneBuilder:
            motion=path([(-20.0, -14.0), (-20.0, 12.0), (-21.5, 12.0), (-21.5, -14.0)], WALK_MPS))
     person(b, "woman in green", "#43A047", 0.0, 0.0, aliases=["woman in a green dress", "person in green dress"], height=1.65,
            motion=path([(19.5, -19.0), (19.5, -1.0), (21.0, -1.0), (21.0, -19.0)], 1.2, start_s=-6.0))
+    followed_walkers_plaza(b)
     return b
 
 
