@@ -306,7 +306,7 @@ def followed_walkers_plaza(b) -> None:
     person(b, "woman in the yellow coat", "#F2C12E", 0.0, 0.0, aliases=["woman in yellow", "person in the yellow coat", "yellow coat"],
            motion=circle((0.0, 4.0), 6.5, FOLLOWED_MPS, phase_deg=-90.0, start_s=s0))
     person(b, "man in the green hoodie", "#2E8B57", 0.0, 0.0, aliases=["man in green", "person in the green hoodie", "green hoodie"],
-           motion=path([(-17.0, -1.0), (-7.0, -1.0), (-7.0, 7.0), (-17.0, 7.0)], FOLLOWED_MPS, start_s=s0))
+           motion=path([(-7.0, 7.0), (-17.0, 7.0), (-17.0, -1.0), (-7.0, -1.0)], FOLLOWED_MPS, start_s=s0))
     person(b, "man with the wheelbarrow", "#8D6E63", 0.0, 0.0, aliases=["man pushing the wheelbarrow", "person with the wheelbarrow"],
            extra=_wheelbarrow(), motion=path([(-16.0, -13.5), (-6.0, -13.5)], FOLLOWED_PUSH_MPS, loop=False, start_s=s0))
     person(b, "woman with the stroller", "#EC407A", 0.0, 0.0, aliases=["woman pushing the stroller", "person with the stroller"],
