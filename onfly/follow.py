@@ -13,9 +13,12 @@ What changes (:class:`Follower`):
   answer lands, from a constant-velocity fit over the sightings of the last ``window_s``;
 - **the vehicle flies to a standoff, not onto the person**: every control period the planner's
   goal is the point ``standoff_m`` from the person (predicted ``lead_s`` ahead, which covers
-  the decision latency) on the line toward the vehicle, at the vehicle's altitude, and the yaw
+  the decision latency) on the line toward the vehicle, at the altitude the vehicle had when
+  the following began, and the yaw
   reference faces the person, so the camera keeps them in view even while the vehicle backs
   away from a person walking toward it;
+- **LOST**: the recovery turns toward where the person is predicted to be now, not where
+  they were last seen;
 - **STOP**: a following subtask without an end ignores the monitor's STOP (being near the
   person is not completion); one that follows *until the person stops* takes it as usual.
 
@@ -107,6 +110,7 @@ class Follower:
         self._intent: FollowIntent | None = None
         self._sightings: list[tuple[float, np.ndarray]] = []
         self._rejected: tuple[float, np.ndarray] | None = None
+        self._z_m: float | None = None  # the following altitude (set on the first control)
         self.stops_ignored = 0
         self.sightings_dropped = 0
 
@@ -121,6 +125,7 @@ class Follower:
             self._intent = follow_intent(subtask)
             self._sightings = []
             self._rejected = None
+            self._z_m = None
         return self._intent
 
     @property
@@ -206,11 +211,16 @@ class Follower:
 
     def control(self, t_s: float, position, z_m: float) -> tuple[np.ndarray, float] | None:
         """The standoff goal (3,) and the yaw (radians) facing the person for this control
-        period, or None when not following. ``position`` (3,): the vehicle; ``z_m``: the
-        altitude to fly at."""
+        period, or None when not following. ``position`` (3,): the vehicle; ``z_m``: its
+        altitude floor now. The goal keeps the altitude the vehicle had when the following
+        began (raised to ``z_m``): a goal at the current altitude would ratchet down with every
+        dip the planner takes to keep its clearance."""
         if not self.active:
             return None
         c = self.config
+        if self._z_m is None:
+            self._z_m = float(np.asarray(position, float)[2])
+        z_m = max(self._z_m, float(z_m))
         p = np.asarray(position, float)
         q = self.predict(t_s + c.lead_s)
         now = self.predict(t_s)
@@ -224,6 +234,13 @@ class Follower:
         face = now[:2] - p[:2]
         yaw = float(np.arctan2(face[1], face[0])) if np.hypot(*face) > 1e-6 else float(np.arctan2(-away[1], -away[0]))
         return goal, yaw
+
+    def where_now(self, t_s: float, fallback):
+        """Where to look for the person now (LOST recovery): the prediction on a following
+        subtask with sightings, else ``fallback`` (the last verified goal)."""
+        if not self.active:
+            return fallback
+        return self.predict(t_s)
 
     def summary(self) -> dict:
         return {"stops_ignored": self.stops_ignored, "sightings_dropped": self.sightings_dropped}

@@ -497,7 +497,7 @@ class OnFlyPilot:
             self.goal_world = None
             self._face_yaw = None
             self._hold_p = state.p.copy()
-            seen = self._last_seen
+            seen = self.follow.where_now(t_s, self._last_seen)  # following: where the person is now
             if self.config.search.enabled and seen is not None and np.linalg.norm(seen[:2] - state.p[:2]) > 0.5:
                 # turn toward where the target was last seen (ours; the paper turns to the
                 # last normal point's heading, which after a detour can face away from it)
@@ -548,7 +548,7 @@ class OnFlyPilot:
         elif self.mode is PilotMode.NAVIGATING and self.goal_world is not None:
             goal = self.goal_world
             self._hold_p = None
-            follow = self.follow.control(t_s, state.p, max(float(state.p[2]), cfg.goal_min_z_m or 0.0))
+            follow = self.follow.control(t_s, state.p, cfg.goal_min_z_m or 0.0)
             if follow is not None:  # following: the standoff point, facing the person
                 goal, yaw_ref = follow
         else:
