@@ -72,8 +72,10 @@ class FollowConfig:
         per second since the last sighting (setting off from standing, turning), m/s
     jump_slack_m : position noise allowed on top of that, metres
     max_extrapolation_s : the prediction never runs further than this past the last sighting,
-        seconds (decisions share the accelerator with the monitor and land about every 2.5 s;
-        a walker keeps their course over a few seconds)
+        seconds. Decisions land about every 2.5 s (they share the accelerator with the monitor);
+        when the person is out of view (behind a kiosk) the vehicle keeps following where they
+        are predicted to walk, which brings them back into view, until the pilot's goal timeout
+        (8 s) hands over to its search
     """
 
     enabled: bool = True
@@ -83,7 +85,7 @@ class FollowConfig:
     max_speed_mps: float = 2.5
     max_speed_change_mps: float = 1.0
     jump_slack_m: float = 1.0
-    max_extrapolation_s: float = 4.0
+    max_extrapolation_s: float = 8.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -116,16 +118,20 @@ class Follower:
 
     # -- which subtask follows ---------------------------------------------------------------
     def intent(self, subtask: str | None) -> FollowIntent | None:
-        """The following intent of ``subtask`` (None: not following, or the mode is off). A new
-        subtask forgets the sightings of the previous one."""
+        """The following intent of ``subtask`` (None: not following, or the mode is off). A
+        subtask that does not follow forgets the sightings."""
         if not self.config.enabled or subtask is None:
             return None
         if subtask != self._subtask:
+            was = self._intent
             self._subtask = subtask
             self._intent = follow_intent(subtask)
-            self._sightings = []
-            self._rejected = None
-            self._z_m = None
+            if self._intent is None or was is None:
+                # the sightings of a following subtask carry over to the next following one (the
+                # early decisions on the whole instruction, then its decomposition)
+                self._sightings = []
+                self._rejected = None
+                self._z_m = None
         return self._intent
 
     @property

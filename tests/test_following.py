@@ -153,7 +153,7 @@ def test_a_stop_is_ignored_only_on_an_endless_following_subtask():
     assert not Follower(FollowConfig(enabled=False)).ignores_stop("Follow the woman in the purple dress")
 
 
-def test_a_new_subtask_forgets_the_sightings_and_control_needs_one():
+def test_a_subtask_that_does_not_follow_forgets_the_sightings():
     f = Follower()
     f.intent("Follow the man in the green hoodie")
     f.sighting(0.0, [1.0, 2.0, 1.0])
