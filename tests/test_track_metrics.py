@@ -108,3 +108,24 @@ def test_malformed_actor_arrays_are_refused():
         track_metrics(tr, A[:1], np.ones(2, bool), band_m=BAND, in_band_frac=0.5, duration_s=1.0, lost_after_s=1.0)
     with pytest.raises(MetricsError, match="bad tracking spec"):
         track_metrics(tr, A, np.ones(2, bool), band_m=(4.0, 1.0), in_band_frac=0.5, duration_s=1.0, lost_after_s=1.0)
+
+
+def test_a_stop_before_the_actor_ever_walked_is_not_the_stop_asked_for():
+    tr, A = _trace([3.0, 3.0, 3.0], stopped=True)
+    m = track_metrics(tr, A, np.zeros(3, bool), band_m=BAND, in_band_frac=0.5, duration_s=60.0, lost_after_s=3.0, stop_radius_m=3.0)
+    assert m.stop_ok is False and not m.success
+
+
+def test_the_summary_has_a_tracking_table():
+    from dataclasses import asdict
+
+    from onfly.bench.runner import format_summary, summarize_records
+
+    tr, A = _trace([2.0, 2.0, 2.0])
+    tm = track_metrics(tr, A, np.ones(3, bool), band_m=BAND, in_band_frac=0.9, duration_s=2.0, lost_after_s=3.0)
+    em = as_track_episode(EpisodeMetrics(False, False, False, 2.0, 1.0, 0.0, 0.0), tm)
+    rec = {"method": "oracle", "kind": "track", "metrics": asdict(em), "sim_s": 2.0, "wall_s": 1.0, "failure": "", "track": asdict(tm)}
+    summary = summarize_records([rec], error_model="nominal", name="t")
+    assert summary["methods"]["oracle"]["by_kind"]["track"]["track"]["in_band"] == 1.0
+    text = format_summary(summary)
+    assert "time in band %" in text and "| oracle | 1 |" in text

@@ -104,3 +104,19 @@ def test_the_checker_proves_a_committed_task_and_refuses_a_start_out_of_band():
     far = replace(t, start=StartPose(t.start.position_m + np.array([-6.0, 0.0, 0.0]), t.start.yaw_rad))
     bad = checker.check(far)
     assert not bad.ok and any("outside the band" in p for p in bad.problems)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("task_id", ["plaza-t01", "plaza-t07"])
+def test_the_oracle_follows_the_true_position_in_band(task_id):
+    from onfly.bench.runner import fly_task
+
+    t = {t.task_id: t for t in load_tasks(TRACK_FILES)}[task_id]
+    result, extras = fly_task(t, "oracle", world={"width_px": 320, "height_px": 214})
+    tr = extras["track"]
+    assert result.collision is None and tr["in_band_frac"] >= 0.95 and tr["success"]
+    assert extras["min_clearance_m"] > 0.25  # from the scene and every person, the followed one included
+    if t.track.stop_radius_m is not None:
+        assert result.end_reason == "stopped" and tr["stop_ok"]
+    else:
+        assert result.end_reason == "time_limit" and result.sim_s == pytest.approx(t.track.duration_s, abs=0.2)
