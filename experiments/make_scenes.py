@@ -301,28 +301,27 @@ def _wheelbarrow():
 
 
 def followed_walkers_plaza(b) -> None:
-    """The plaza's followed walkers (tracking tasks)."""
+    """The plaza's followed walkers (tracking tasks), in corners no route of the static tasks
+    passes within 2.5 m of (walkers there would walk into their flights)."""
     s0 = FOLLOWED_START_S
     person(b, "woman in the yellow coat", "#F2C12E", 0.0, 0.0, aliases=["woman in yellow", "person in the yellow coat", "yellow coat"],
-           motion=circle((0.0, 4.0), 6.5, FOLLOWED_MPS, phase_deg=-90.0, start_s=s0))
-    person(b, "man in the green hoodie", "#2E8B57", 0.0, 0.0, aliases=["man in green", "person in the green hoodie", "green hoodie"],
-           motion=path([(-7.0, 7.0), (-17.0, 7.0), (-17.0, -1.0), (-7.0, -1.0)], FOLLOWED_MPS, start_s=s0))
-    person(b, "man with the wheelbarrow", "#8D6E63", 0.0, 0.0, aliases=["man pushing the wheelbarrow", "person with the wheelbarrow"],
-           extra=_wheelbarrow(), motion=path([(-16.0, -13.5), (-6.0, -13.5)], FOLLOWED_PUSH_MPS, loop=False, start_s=s0))
+           motion=path([(-17.0, -17.5), (-7.0, -17.5), (-7.0, -20.5), (-17.0, -20.5)], FOLLOWED_MPS, start_s=s0))
     person(b, "woman with the stroller", "#EC407A", 0.0, 0.0, aliases=["woman pushing the stroller", "person with the stroller"],
-           extra=_stroller(), motion=path([(16.8, -18.0), (16.8, -4.0)], FOLLOWED_PUSH_MPS, loop=False, start_s=s0))
+           extra=_stroller(), motion=path([(9.5, -17.5), (16.5, -17.5), (16.5, -20.5)], FOLLOWED_PUSH_MPS, loop=False, start_s=s0))
+    person(b, "man with the wheelbarrow", "#8D6E63", 0.0, 0.0, aliases=["man pushing the wheelbarrow", "person with the wheelbarrow"],
+           extra=_wheelbarrow(), motion=path([(-17.5, 14.5), (-10.5, 14.5)], FOLLOWED_PUSH_MPS, loop=False, start_s=s0))
     person(b, "woman in the purple dress", "#8E24AA", 0.0, 0.0, aliases=["woman in purple", "person in the purple dress", "purple dress"],
-           motion=path([(-3.0, -8.0), (5.0, -8.0), (5.0, -14.0), (-3.0, -14.0)], FOLLOWED_MPS, start_s=s0))
+           motion=path([(17.0, 17.5), (22.5, 17.5), (22.5, 20.5), (17.0, 20.5)], FOLLOWED_MPS, start_s=s0))
 
 
 def followed_walkers_duplex(b) -> None:
-    """The duplex's followed walkers (tracking tasks)."""
+    """The duplex's followed walkers (tracking tasks), off the static tasks' routes."""
     s0 = FOLLOWED_START_S
     person(b, "man in the orange vest", "#FB8C00", 0.0, 0.0, aliases=["man in orange", "person in the orange vest", "orange vest"],
-           motion=path([(0.0, -4.0), (16.0, -4.0), (16.0, -12.0), (0.0, -12.0)], FOLLOWED_MPS, start_s=s0))
+           motion=path([(-7.5, 6.0), (-3.0, 6.0), (-3.0, 12.5), (-7.5, 12.5)], FOLLOWED_MPS, start_s=s0))
     person(b, "woman with the shopping bag", "#00897B", 0.0, 0.0, aliases=["woman carrying a shopping bag", "person with the shopping bag"],
            extra=(box((0.0, -0.33, 0.75), (0.3, 0.12, 0.35), color="#FFFFFF"),),
-           motion=path([(2.0, -8.0), (14.0, -8.0)], FOLLOWED_PUSH_MPS, loop=False, start_s=s0))
+           motion=path([(2.0, 12.8), (12.0, 12.8)], FOLLOWED_PUSH_MPS, loop=False, start_s=s0))
 
 
 def cart(length=0.8, width=0.55, height=0.95, color="#9E9E9E"):
