@@ -42,7 +42,9 @@ def test_render_rejects_a_bad_pose_and_an_unknown_scene(tmp_path, capsys):
 def test_scenes_lists_all_committed_scenes(capsys):
     assert main(["scenes", "--json"]) == 0
     rows = json.loads(capsys.readouterr().out)
-    assert len(rows) == 13  # the paper's ten and the three harder scenes of issue 16
+    assert len(rows) == 14  # the paper's ten, the three harder scenes of issue 16, the crowd scene of issue 19
+    assert next(r for r in rows if r["name"] == "station_concourse")["actors"] == 8
+    assert next(r for r in rows if r["name"] == "villa")["actors"] == 0
     villa = next(r for r in rows if r["name"] == "villa")
     assert villa["objects"] == len(World.from_scene("villa").scene.objects)
     assert "pool edge" in villa["target_names"] and villa["bounds_max_m"] == [19.0, 19.0, 10.0]
