@@ -122,17 +122,6 @@ class SceneBuilder:
         self.ambient = ambient
         self.objects: list[dict] = []
 
-    def add_object(self, obj: dict, comment: str | None = None) -> int:
-        """Append an object table as given (its own ``instance_id``; e.g. the tracking walkers of
-        issue 19, whose ids 61+ the tracking tasks rely on), optionally after a comment block."""
-        if any(o["instance_id"] == obj["instance_id"] for o in self.objects):
-            raise ValueError(f"{self.name}: duplicate instance id {obj['instance_id']}")
-        o = dict(obj)
-        if comment:
-            o["_comment"] = comment
-        self.objects.append(o)
-        return o["instance_id"]
-
     def add(self, name, label, color, parts, aliases=(), target=True, texture=None, material=None, motion=None) -> int:
         iid = len(self.objects) + 1
         o = {"name": name, "label": label, "instance_id": iid, "color": color, "aliases": list(aliases), "target": target}
@@ -172,10 +161,7 @@ class SceneBuilder:
             f"ambient = {_num(self.ambient)}",
         ]
         for o in self.objects:
-            out.append("")
-            if "_comment" in o:
-                out += [f"# {line}".rstrip() for line in o["_comment"].splitlines()]
-            out.append("[[objects]]")
+            out += ["", "[[objects]]"]
             for k in ("name", "label", "instance_id", "color", "aliases", "target", "texture", "material"):
                 if k in o:
                     out.append(f"{k} = {_val(o[k])}")
@@ -487,9 +473,7 @@ def duplex(rng) -> SceneBuilder:
     person(b, "person in green jacket", "#2E7D32", 0.0, 0.0, aliases=["person in green"],
            motion=path([(23.2, -15.0), (23.2, 11.0), (24.6, 11.0), (24.6, -15.0)], WALK_MPS, start_s=-8.0))
     person(b, "person on the phone", "#6A1B9A", 0.0, 0.0, aliases=["person pacing", "person in purple"],
-           motion=circle((-6.0, 9.0), 1.5, STROLL_MPS, phase_deg=90.0, clockwise=True))
-    for i, o in enumerate(TRACKING_WALKERS["duplex"]):
-        b.add_object(o, TRACKING_COMMENT if i == 0 else None)
+           motion=circle((-5.5, -11.0), 2.5, STROLL_MPS, phase_deg=90.0, clockwise=True))
     return b
 
 
@@ -636,137 +620,6 @@ def warehouse(rng) -> SceneBuilder:
     return b
 
 
-# The tracking walkers of issue 19 (h19t's tracking tasks follow them: onfly/data/tasks/track/).
-# Their ids (61+) and names are what those tasks use; change them together.
-TRACKING_COMMENT = """-- Tracking walkers (issue 19, h19t): followed people walk slowly (0.40-0.45 m/s) because the
-vehicle's speed limit is the paper's 0.6 m/s (its real pedestrian-tracking flight used the same
-limit). Such gait speeds are within the range measured in adults (0.4-0.6 m/s among older adults:
-S. Studenski et al., "Gait speed and survival in older adults", JAMA 305(1), 2011); a cart or a
-stroller slows a walker further. Each stands for the first 6 s (start_s: the operator designates
-them while they stand), then walks. Parts are in the actor's frame (x forward, z up)."""
-TRACKING_WALKERS = {'plaza': [{'name': 'woman in the yellow coat',
-            'label': 'person',
-            'instance_id': 61,
-            'color': '#F2C12E',
-            'aliases': ['woman in yellow', 'person in the yellow coat', 'yellow coat'],
-            'target': True,
-            'parts': [{'type': 'cylinder', 'base_m': [0.0, 0.0, 0.0], 'radius_m': 0.2, 'height_m': 0.85, 'segments': 8, 'color': '#2F3A56'},
-                      {'type': 'cylinder', 'base_m': [0.0, 0.0, 0.85], 'radius_m': 0.24, 'height_m': 0.62, 'segments': 8},
-                      {'type': 'sphere', 'center_m': [0.0, 0.0, 1.6], 'radius_m': 0.13, 'rings': 4, 'color': '#D8A47F'}],
-            'motion': {'type': 'circle',
-                       'start_s': 6.0,
-                       'center_m': [0.0, 4.0, 0.0],
-                       'radius_m': 6.5,
-                       'speed_mps': 0.45,
-                       'phase_deg': -90.0,
-                       'clockwise': False}},
-           {'name': 'man in the green hoodie',
-            'label': 'person',
-            'instance_id': 62,
-            'color': '#2E8B57',
-            'aliases': ['man in green', 'person in the green hoodie', 'green hoodie'],
-            'target': True,
-            'parts': [{'type': 'cylinder', 'base_m': [0.0, 0.0, 0.0], 'radius_m': 0.2, 'height_m': 0.85, 'segments': 8, 'color': '#2F3A56'},
-                      {'type': 'cylinder', 'base_m': [0.0, 0.0, 0.85], 'radius_m': 0.24, 'height_m': 0.62, 'segments': 8},
-                      {'type': 'sphere', 'center_m': [0.0, 0.0, 1.6], 'radius_m': 0.13, 'rings': 4, 'color': '#D8A47F'}],
-            'motion': {'type': 'path',
-                       'start_s': 6.0,
-                       'loop': True,
-                       'waypoints': [{'position_m': [-17.0, -1.0, 0.0], 'speed_mps': 0.45},
-                                     {'position_m': [-7.0, -1.0, 0.0], 'speed_mps': 0.45},
-                                     {'position_m': [-7.0, 7.0, 0.0], 'speed_mps': 0.45},
-                                     {'position_m': [-17.0, 7.0, 0.0], 'speed_mps': 0.45}]}},
-           {'name': 'man with the cart',
-            'label': 'person',
-            'instance_id': 63,
-            'color': '#8D6E63',
-            'aliases': ['man pushing the cart', 'person with the cart'],
-            'target': True,
-            'parts': [{'type': 'cylinder', 'base_m': [0.0, 0.0, 0.0], 'radius_m': 0.2, 'height_m': 0.85, 'segments': 8, 'color': '#2F3A56'},
-                      {'type': 'cylinder', 'base_m': [0.0, 0.0, 0.85], 'radius_m': 0.24, 'height_m': 0.62, 'segments': 8},
-                      {'type': 'sphere', 'center_m': [0.0, 0.0, 1.6], 'radius_m': 0.13, 'rings': 4, 'color': '#D8A47F'},
-                      {'type': 'box', 'center_m': [0.75, 0.0, 0.55], 'size_m': [0.7, 0.5, 0.5], 'color': '#9E9E9E'},
-                      {'type': 'box', 'center_m': [0.75, 0.0, 0.15], 'size_m': [0.6, 0.4, 0.1], 'color': '#2A2A2E', 'material': 'dark'}],
-            'motion': {'type': 'path',
-                       'start_s': 6.0,
-                       'loop': False,
-                       'waypoints': [{'position_m': [-20.0, -14.0, 0.0], 'speed_mps': 0.4},
-                                     {'position_m': [-6.0, -14.0, 0.0], 'speed_mps': 0.4}]}},
-           {'name': 'woman with the stroller',
-            'label': 'person',
-            'instance_id': 64,
-            'color': '#EC407A',
-            'aliases': ['woman pushing the stroller', 'person with the stroller'],
-            'target': True,
-            'parts': [{'type': 'cylinder', 'base_m': [0.0, 0.0, 0.0], 'radius_m': 0.2, 'height_m': 0.85, 'segments': 8, 'color': '#2F3A56'},
-                      {'type': 'cylinder', 'base_m': [0.0, 0.0, 0.85], 'radius_m': 0.24, 'height_m': 0.62, 'segments': 8},
-                      {'type': 'sphere', 'center_m': [0.0, 0.0, 1.6], 'radius_m': 0.13, 'rings': 4, 'color': '#D8A47F'},
-                      {'type': 'box', 'center_m': [0.7, 0.0, 0.6], 'size_m': [0.6, 0.45, 0.45], 'color': '#37474F'},
-                      {'type': 'box', 'center_m': [0.7, 0.0, 0.2], 'size_m': [0.5, 0.4, 0.1], 'color': '#2A2A2E', 'material': 'dark'}],
-            'motion': {'type': 'path',
-                       'start_s': 6.0,
-                       'loop': False,
-                       'waypoints': [{'position_m': [18.0, -18.0, 0.0], 'speed_mps': 0.4},
-                                     {'position_m': [18.0, -4.0, 0.0], 'speed_mps': 0.4}]}},
-           {'name': 'woman in the purple dress',
-            'label': 'person',
-            'instance_id': 65,
-            'color': '#8E24AA',
-            'aliases': ['woman in purple', 'person in the purple dress', 'purple dress'],
-            'target': True,
-            'parts': [{'type': 'cylinder', 'base_m': [0.0, 0.0, 0.0], 'radius_m': 0.2, 'height_m': 0.85, 'segments': 8, 'color': '#2F3A56'},
-                      {'type': 'cylinder', 'base_m': [0.0, 0.0, 0.85], 'radius_m': 0.24, 'height_m': 0.62, 'segments': 8},
-                      {'type': 'sphere', 'center_m': [0.0, 0.0, 1.6], 'radius_m': 0.13, 'rings': 4, 'color': '#D8A47F'}],
-            'motion': {'type': 'path',
-                       'start_s': 6.0,
-                       'loop': True,
-                       'waypoints': [{'position_m': [-3.0, -8.0, 0.0], 'speed_mps': 0.45},
-                                     {'position_m': [5.0, -8.0, 0.0], 'speed_mps': 0.45},
-                                     {'position_m': [5.0, -14.0, 0.0], 'speed_mps': 0.45},
-                                     {'position_m': [-3.0, -14.0, 0.0], 'speed_mps': 0.45}]}}],
- 'duplex': [{'name': 'man in the orange vest',
-             'label': 'person',
-             'instance_id': 61,
-             'color': '#FB8C00',
-             'aliases': ['man in orange', 'person in the orange vest', 'orange vest'],
-             'target': True,
-             'parts': [{'type': 'cylinder',
-                        'base_m': [0.0, 0.0, 0.0],
-                        'radius_m': 0.2,
-                        'height_m': 0.85,
-                        'segments': 8,
-                        'color': '#2F3A56'},
-                       {'type': 'cylinder', 'base_m': [0.0, 0.0, 0.85], 'radius_m': 0.24, 'height_m': 0.62, 'segments': 8},
-                       {'type': 'sphere', 'center_m': [0.0, 0.0, 1.6], 'radius_m': 0.13, 'rings': 4, 'color': '#D8A47F'}],
-             'motion': {'type': 'path',
-                        'start_s': 6.0,
-                        'loop': True,
-                        'waypoints': [{'position_m': [-4.0, -5.0, 0.0], 'speed_mps': 0.45},
-                                      {'position_m': [16.0, -5.0, 0.0], 'speed_mps': 0.45},
-                                      {'position_m': [16.0, -13.0, 0.0], 'speed_mps': 0.45},
-                                      {'position_m': [-4.0, -13.0, 0.0], 'speed_mps': 0.45}]}},
-            {'name': 'woman with the shopping bag',
-             'label': 'person',
-             'instance_id': 62,
-             'color': '#00897B',
-             'aliases': ['woman carrying a shopping bag', 'person with the shopping bag'],
-             'target': True,
-             'parts': [{'type': 'cylinder',
-                        'base_m': [0.0, 0.0, 0.0],
-                        'radius_m': 0.2,
-                        'height_m': 0.85,
-                        'segments': 8,
-                        'color': '#2F3A56'},
-                       {'type': 'cylinder', 'base_m': [0.0, 0.0, 0.85], 'radius_m': 0.24, 'height_m': 0.62, 'segments': 8},
-                       {'type': 'sphere', 'center_m': [0.0, 0.0, 1.6], 'radius_m': 0.13, 'rings': 4, 'color': '#D8A47F'},
-                       {'type': 'box', 'center_m': [0.0, -0.33, 0.75], 'size_m': [0.3, 0.12, 0.35], 'color': '#FFFFFF'}],
-             'motion': {'type': 'path',
-                        'start_s': 6.0,
-                        'loop': False,
-                        'waypoints': [{'position_m': [-4.0, -15.5, 0.0], 'speed_mps': 0.4},
-                                      {'position_m': [10.0, -15.5, 0.0], 'speed_mps': 0.4}]}}]}
-
-
 def plaza(rng) -> SceneBuilder:
     b = SceneBuilder("plaza", "Paved city plaza with a fountain, statue, flagpole, cafe tables, a kiosk, a railing and many people.",
                      (-24, -22, 0), (24, 22, 10), (0.0, -18.0, 1.5), 90.0)
@@ -806,12 +659,14 @@ def plaza(rng) -> SceneBuilder:
     # the paper's static tasks and stay put; the walkers keep off those tasks' routes.
     b.add("round flower bed", "flower bed", "#C2185B", [cyl((16.0, 11.5, 0), 1.6, 0.45, 16, color="#6D4C41"), cyl((16.0, 11.5, 0.45), 1.4, 0.15, 16)],
           ["flower bed", "flowers"])
+    b.add("flower stall", "stall", "#8E24AA", [box((14.5, 20.3, 1.1), (2.5, 1.4, 2.2)), box((14.5, 19.5, 2.3), (2.9, 0.6, 0.1), color="#F3E5F5")],
+          ["flower stand", "purple stall"], target=False)
+    person(b, "man with a cart", "#5D4037", 0.0, 0.0, aliases=["man pushing a cart", "man with the cart"], extra=cart(),
+           motion=path([(-19.0, 18.6), (-5.0, 18.6), (12.0, 18.6)], CART_MPS, loop=False, pauses={1: 5.0}))
     person(b, "person in grey coat", "#757575", 0.0, 0.0, aliases=["person in grey", "man in grey"],
-           motion=path([(-20.0, -10.0), (-20.0, 12.0), (-21.5, 12.0), (-21.5, -10.0)], WALK_MPS))
+           motion=path([(-20.0, -14.0), (-20.0, 12.0), (-21.5, 12.0), (-21.5, -14.0)], WALK_MPS))
     person(b, "woman in green", "#43A047", 0.0, 0.0, aliases=["woman in a green dress", "person in green dress"], height=1.65,
            motion=path([(19.5, -19.0), (19.5, -1.0), (21.0, -1.0), (21.0, -19.0)], 1.2, start_s=-6.0))
-    for i, o in enumerate(TRACKING_WALKERS["plaza"]):
-        b.add_object(o, TRACKING_COMMENT if i == 0 else None)
     return b
 
 
