@@ -53,7 +53,9 @@ from onfly.search import (
     explore_target,
     frontier_target,
     open_heading,
+    open_ray_target,
     side_to_look,
+    unknown_fraction,
 )
 from onfly.serialize import config_from_tables, to_jsonable
 from onfly.task_manager import Status, TaskEvent, TaskManager
@@ -94,9 +96,17 @@ class PilotConfig:
     control_period_s : planner period (10 Hz)
     monitor_period_s : monitoring-agent period (paper: 2 s)
     stop_confirmations : consecutive STOPs that make a STOP stable. After a STOP that is not
-        yet stable the vehicle hovers where it heard it (mode ``CONFIRMING``) and the monitor is
-        asked again as soon as a new frame arrives, so confirming costs one call, not a flight
-        of ``monitor_period_s`` past a target beside the path
+        yet stable (mode ``CONFIRMING``) the monitor is asked again as soon as a new frame
+        arrives, so confirming costs one call, not a flight of ``monitor_period_s`` past a
+        target beside the path; meanwhile the vehicle hovers where it heard the STOP, or keeps
+        approaching its goal when that is within ``confirm_approach_m``
+    confirm_approach_m : while confirming, a goal this close (metres) is still flown to (ours):
+        the STOP was heard at the edge of the monitor's "close enough", where the next answer
+        is a coin toss; a step closer makes a true STOP stable and costs nothing if it was false.
+        0 = always hover
+    intermediate_stop_confirmations : consecutive STOPs that advance past a subtask that is not
+        the last (None = ``stop_confirmations``; ours: a false STOP there only starts the next
+        subtask early, while confirming costs a monitoring call at every subtask)
     goal_timeout_s : a goal not refreshed by a successful decision for this long is dropped
         and the vehicle holds (VLM timeouts or garbage)
     recovery_yaw_tolerance_rad : LOST recovery is over once the heading is this close
@@ -123,6 +133,8 @@ class PilotConfig:
     control_period_s: float = 0.1
     monitor_period_s: float = 2.0
     stop_confirmations: int = 2
+    intermediate_stop_confirmations: int | None = 1
+    confirm_approach_m: float = 3.0
     goal_timeout_s: float = 8.0
     recovery_yaw_tolerance_rad: float = 0.1
     recovery_timeout_s: float = 10.0
@@ -144,10 +156,16 @@ class PilotConfig:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise PilotConfigError(f"PilotConfig.{name} must be positive, got {v}")
+        if not (np.isfinite(self.confirm_approach_m) and self.confirm_approach_m >= 0):
+            raise PilotConfigError(f"PilotConfig.confirm_approach_m must be >= 0, got {self.confirm_approach_m}")
         if self.goal_min_z_m is not None and not np.isfinite(self.goal_min_z_m):
             raise PilotConfigError(f"PilotConfig.goal_min_z_m must be finite or None, got {self.goal_min_z_m}")
         if self.stop_confirmations < 1:
             raise PilotConfigError(f"PilotConfig.stop_confirmations must be >= 1, got {self.stop_confirmations}")
+        if self.intermediate_stop_confirmations is not None and self.intermediate_stop_confirmations < 1:
+            raise PilotConfigError(
+                f"PilotConfig.intermediate_stop_confirmations must be >= 1 or None, got {self.intermediate_stop_confirmations}"
+            )
         try:
             CoordFormat(self.coord_format)
         except ValueError:
@@ -182,7 +200,7 @@ class PilotMode(str, Enum):
     NAVIGATING = "navigating"
     HOLDING = "holding"  # no valid goal: hover in place
     RECOVERING = "recovering"  # LOST: stopped, turning to the last normal heading
-    CONFIRMING = "confirming"  # a STOP heard, not yet stable: hover, ask again on the next frame
+    CONFIRMING = "confirming"  # a STOP heard, not yet stable: ask again on the next frame
     SEARCHING = "searching"  # the target is not being found: scan in place, then explore
     FINISHED = "finished"
 
@@ -271,13 +289,19 @@ class OnFlyPilot:
         self._rejected_streak = 0  # of the decisions without a goal, those the verifier rejected
         self._answered_s = -np.inf  # when the decision agent last gave a parseable answer
         self._last_seen: np.ndarray | None = None  # last verified goal of the current subtask
+        self._start_z: float | None = None  # altitude at the first tick (the search's cruise default)
+        self._search_paused = False  # a STOP heard while searching: resume if it is withdrawn
+        self._pending_decomposition = None  # the decomposition call, until it is submitted
 
     # -- lifecycle ------------------------------------------------------------------------------
     def begin(self, instruction: str, t_s: float) -> None:
         """Start the task: one decomposition call (deterministic fallback on failure).
 
         The call goes through the runtime like any other, so its latency passes before the
-        agents start (the vehicle holds meanwhile).
+        subtask agents start. With ``early_start`` it is submitted on the first tick, right
+        after the first decision on the whole instruction: on one inference engine calls run
+        in submission order, and a decomposition first would hold the vehicle for its whole
+        latency (about 3 s) before any goal.
         """
         self.instruction = instruction
 
@@ -285,7 +309,14 @@ class OnFlyPilot:
             dec = decompose_detailed(instruction, self.backend, deadline_s=self.config.vlm_deadline_s)
             return _Decomposed(dec, dec.response.latency_s if dec.response is not None else 0.0)
 
-        self.runtime.submit(DECOMPOSE, call)
+        self._pending_decomposition = call
+        if not self.config.early_start:
+            self._submit_decomposition()
+
+    def _submit_decomposition(self) -> None:
+        call, self._pending_decomposition = self._pending_decomposition, None
+        if call is not None:
+            self.runtime.submit(DECOMPOSE, call)
 
     @property
     def finished(self) -> bool:
@@ -299,12 +330,15 @@ class OnFlyPilot:
         """One control period. ``obs`` is a new camera frame, or None when none arrived."""
         if self.instruction is None:
             raise RuntimeError("call begin(instruction) before tick()")
+        if self._start_z is None:
+            self._start_z = float(state.p[2])
         if obs is not None:
             self._on_frame(obs)
         for landed in self.runtime.poll():
             self._apply(landed, state)
         if self.mode is not PilotMode.FINISHED:
             self._start_agents(t_s)
+        self._submit_decomposition()  # after the first decision (``begin``)
         return self._control(t_s, state)
 
     def _on_frame(self, obs: Observation) -> None:
@@ -333,7 +367,8 @@ class OnFlyPilot:
             goal = self.goal_world
             self.runtime.submit(DECISION, lambda: self.decision.decide(obs, subtask, goal))
         confirm_now = self.mode is PilotMode.CONFIRMING and obs.frame_id != self._confirm_frame
-        if not self.runtime.busy(MONITORING) and (confirm_now or t_s - self._last_monitor_s >= self.config.monitor_period_s):
+        period = self.config.search.monitor_period_s if self.mode is PilotMode.SEARCHING else self.config.monitor_period_s
+        if not self.runtime.busy(MONITORING) and (confirm_now or t_s - self._last_monitor_s >= period):
             self._last_monitor_s = t_s
             self._confirm_frame = obs.frame_id
             snap = self.monitor.snapshot()  # taken here, on the control thread
@@ -353,7 +388,7 @@ class OnFlyPilot:
         out = landed.outcome
         if isinstance(out, _Decomposed):
             dec = out.decomposition
-            self.tasks = TaskManager(list(dec.subtasks), self.config.stop_confirmations)
+            self.tasks = TaskManager(list(dec.subtasks), self.config.stop_confirmations, self.config.intermediate_stop_confirmations)
             self._last_seen = None  # sightings on the whole instruction belong to no subtask
             self._no_goal_streak = self._not_visible_streak = self._rejected_streak = 0
             self._event(
@@ -418,9 +453,7 @@ class OnFlyPilot:
             if self.mode is not PilotMode.SEARCHING:
                 self._face_yaw = out.pixel_yaw
             return
-        if self.search.active:
-            self._event(t_s, "search_end", {"reason": "target_pointed", "duration_s": t_s - self.search.started_s})
-            self.search.stop()
+        self._end_search(t_s, "target_pointed")
         self._face_yaw = None
         self._speculative = speculative
         self.goal_world = np.asarray(out.goal_world, float)
@@ -455,9 +488,8 @@ class OnFlyPilot:
             event = self.tasks.on_status(status, t_s, state.p, state.yaw)
         if event is TaskEvent.NONE and status is Status.STOP:
             if self.mode is not PilotMode.CONFIRMING:
-                if self.search.active:
-                    self._event(t_s, "search_end", {"reason": "stop_heard", "duration_s": t_s - self.search.started_s})
-                    self.search.stop()
+                # a search is paused, not ended: a STOP that is withdrawn resumes it where it was
+                self._search_paused = self.search.active
                 self.mode = PilotMode.CONFIRMING
                 self._hold_p = state.p.copy()
                 self._face_yaw = None
@@ -467,12 +499,21 @@ class OnFlyPilot:
                 self._event(t_s, "lost_repeated", {"position": state.p})
             if self.mode is PilotMode.CONFIRMING:
                 # CONTINUE (or a repeated LOST) after an unconfirmed STOP: carry on toward the
-                # freshest goal
-                self.mode = PilotMode.NAVIGATING if self.goal_world is not None else PilotMode.HOLDING
+                # freshest goal, or with the search the STOP interrupted
+                if self._search_paused and self.search.active and self.goal_world is None:
+                    self.mode = PilotMode.SEARCHING
+                else:
+                    self._end_search(t_s, "stop_withdrawn")
+                    self.mode = PilotMode.NAVIGATING if self.goal_world is not None else PilotMode.HOLDING
+                self._search_paused = False
                 self._event(t_s, "stop_withdrawn", {"position": state.p})
-        if event is not TaskEvent.NONE and self.search.active:
-            self._event(t_s, "search_end", {"reason": event.value, "duration_s": t_s - self.search.started_s})
-            self.search.stop()
+        if event is TaskEvent.LOST and self.search.active and self._last_seen is None:
+            # the search is already the recovery, and there is no sighting to turn back to
+            self._event(t_s, "lost", {"recovery": "searching", "position": state.p})
+            return
+        if event is not TaskEvent.NONE:
+            self._search_paused = False
+            self._end_search(t_s, event.value)
         if event is TaskEvent.FINISHED:
             self.mode = PilotMode.FINISHED
             self._hold_p = state.p.copy()
@@ -539,6 +580,13 @@ class OnFlyPilot:
         elif self.mode is PilotMode.NAVIGATING and self.goal_world is not None:
             goal = self.goal_world
             self._hold_p = None
+        elif (
+            self.mode is PilotMode.CONFIRMING
+            and self.goal_world is not None
+            and float(np.linalg.norm(self.goal_world - state.p)) <= cfg.confirm_approach_m
+        ):
+            goal = self.goal_world  # a step closer while the STOP is confirmed
+            self._hold_p = None
         else:
             if self._hold_p is None:
                 self._hold_p = state.p.copy()
@@ -582,6 +630,20 @@ class OnFlyPilot:
         self._event(t_s, "goal_clamped", {"source": source, "from": g, "to": clamped})
         return clamped
 
+    def _end_search(self, t_s: float, reason: str) -> None:
+        if self.search.active:
+            self._event(t_s, "search_end", {"reason": reason, "duration_s": t_s - self.search.started_s})
+            self.search.stop()
+
+    @property
+    def _cruise_z(self) -> float | None:
+        """Altitude of the search's legs: the configured one, else the task's start altitude,
+        never below the goal floor."""
+        z = self.config.search.cruise_z_m if self.config.search.cruise_z_m is not None else self._start_z
+        if z is not None and self.config.goal_min_z_m is not None:
+            z = max(z, self.config.goal_min_z_m)
+        return z
+
     def _count_decision(self, t_s: float, out: DecisionOutcome, state: VehicleState) -> None:
         """Streaks of decisions without a goal; start a search when one is long enough."""
         if out.goal_world is not None:
@@ -619,7 +681,12 @@ class OnFlyPilot:
         toward = self._last_seen_yaw(state)
         fresh = not self.search.active
         travel = self.search.travel_heading(t_s)
-        self.search.start(t_s, state.p, state.yaw, trigger, toward_yaw=toward)
+        scfg = self.config.search
+
+        def worth_scanning(yaw: float) -> bool:
+            return unknown_fraction(state.p, yaw, self.esdf, self.volume, scfg.gain_lookahead_m) >= scfg.scan_gain_min
+
+        self.search.start(t_s, state.p, state.yaw, trigger, toward_yaw=toward, worth_scanning=worth_scanning)
         if fresh:
             # keep going the way the vehicle was going (its heading when it was not moving),
             # unless that way is closed
@@ -641,16 +708,17 @@ class OnFlyPilot:
 
     def _explore(self, t_s: float, state: VehicleState) -> None:
         """Pick the next exploration point and fly toward it (or scan again if none)."""
-        z = float(state.p[2])
-        if self.config.goal_min_z_m is not None:
-            z = max(z, self.config.goal_min_z_m)
+        z = self._cruise_z if self._cruise_z is not None else float(state.p[2])
         common = dict(
             config=self.config.search, volume=self.volume, volume_margin_m=self._volume_margin_m, visited=self.search.visited, z_m=z
         )
         # the most promising frontier of the map first; the ring of straight legs where the map
         # has no reachable frontier at this height
-        target = frontier_target(state.p, self.search.heading0, self.esdf, **common)
-        how = "frontier"
+        target, how = None, "frontier"
+        if self.config.search.explore_policy == "open_ray":
+            target, how = open_ray_target(state.p, self.search.heading0, self.esdf, **common), "open_ray"
+        if target is None:
+            target, how = frontier_target(state.p, self.search.heading0, self.esdf, **common), "frontier"
         if target is None:
             target = explore_target(state.p, self.search.heading0, self.esdf, prefer_yaw=self._last_seen_yaw(state), **common)
             how = "ring"
@@ -663,11 +731,11 @@ class OnFlyPilot:
             self._explore(t_s, state)
             point, yaw_ref, _ = self.search.control(t_s, state.p, state.yaw)
         elif ev == "explore_done":
-            # the camera faced forward all the leg: look to the side with the most unknown
-            # space, then the next leg (the turn onto it sweeps more sectors)
+            # without a weave the camera faced forward all the leg: look to the side with the
+            # most unknown space, then the next leg (the turn onto it sweeps more sectors)
             leg = self.search.leg_length_m(state.p)
             side = None
-            if leg >= self.config.search.min_leg_m:
+            if leg >= self.config.search.min_leg_m and self.config.search.weave_rad <= 0.0:
                 side = side_to_look(state.p, state.yaw, self.esdf, config=self.config.search, volume=self.volume)
             if side is None:
                 self._explore(t_s, state)

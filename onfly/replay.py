@@ -135,7 +135,9 @@ class ReplayConfig:
         the future pose, and skipped)
     max_frames : stop after this many processed frames (None: the whole source)
     monitor_period_s : monitoring-agent period, seconds of log time (paper: 2 s)
-    stop_confirmations : consecutive STOPs that advance a subtask
+    stop_confirmations : consecutive STOPs that finish the last subtask
+    intermediate_stop_confirmations : consecutive STOPs that advance past an earlier subtask
+        (None = ``stop_confirmations``; the pilot's rule, :class:`onfly.pilot.PilotConfig`)
     coord_format : how the backend writes points (:class:`vlm.parsing.CoordFormat` value)
     vlm_deadline_s : per-call deadline handed to the backend (None: the backend's default)
     slack_tolerance_m : a planner step "needed slack" when its largest clearance slack exceeds
@@ -160,6 +162,7 @@ class ReplayConfig:
     max_frames: int | None = None
     monitor_period_s: float = 2.0
     stop_confirmations: int = 2
+    intermediate_stop_confirmations: int | None = 1
     coord_format: str = CoordFormat.PIXEL.value
     vlm_deadline_s: float | None = None
     slack_tolerance_m: float = 1e-3
@@ -187,7 +190,8 @@ class ReplayConfig:
             raise ReplayConfigError(f"ReplayConfig.moved_min_px must be >= 0, got {self.moved_min_px!r}")
         if not (0 < self.range_gated_below <= 1):
             raise ReplayConfigError(f"ReplayConfig.range_gated_below must be in (0, 1], got {self.range_gated_below!r}")
-        for name in ("every_n", "stop_confirmations", "seed") + (("max_frames",) if self.max_frames is not None else ()):
+        optional = tuple(n for n in ("max_frames", "intermediate_stop_confirmations") if getattr(self, n) is not None)
+        for name in ("every_n", "stop_confirmations", "seed") + optional:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or (v < 1 and name != "seed"):
                 raise ReplayConfigError(f"ReplayConfig.{name} must be an integer{' >= 1' if name != 'seed' else ''}, got {v!r}")
@@ -573,7 +577,7 @@ class _Agents:
         dec = decompose_detailed(config.instruction, backend, deadline_s=config.vlm_deadline_s)
         self.subtasks = tuple(dec.subtasks)
         self.decomposition_source = dec.source
-        self.tasks = TaskManager(list(dec.subtasks), config.stop_confirmations)
+        self.tasks = TaskManager(list(dec.subtasks), config.stop_confirmations, config.intermediate_stop_confirmations)
         self.goal_world: np.ndarray | None = None
         self.finished_frame: int | None = None
         self.last_monitor_s = -math.inf

@@ -17,17 +17,28 @@ Policy (parameters in :class:`SearchConfig`):
    travel in ``stall_window_s``) while the task is not finished (a dead end).
 2. **Scan**: turn in place through the field of regard, ``scan_step_rad`` at a time, so each new
    frame shows the decision agent a new sector; first toward where the target was last seen
-   when that is known. Three quarter turns cover the rest of the horizon with a 90 deg camera.
-3. **Explore**: fly toward the reachable point whose view holds the most unknown space (a
-   frontier of the map's known space), inside the flight volume, away from places already
-   visited; the camera faces the direction of travel, so the flight itself looks for the
-   target. On arrival (or after ``explore_timeout_s``) the vehicle looks a quarter turn to the
-   side with the most unknown space (the camera faced forward all the leg), then the next leg
-   starts (the turn onto it sweeps more sectors past the camera); a full scan in place only
-   when nothing is reachable. Legs prefer the heading the search began with when the way ahead
-   was open then (a route goes on), and its reverse when it was not (a dead end: back out).
+   when that is known. Three quarter turns cover the rest of the horizon with a 90 deg camera;
+   a heading whose sector the camera has already seen from here (unknown fraction below
+   ``scan_gain_min``) is skipped, so a second search nearby goes straight to exploring.
+3. **Explore**: legs at the cruise altitude (``cruise_z_m``, default the task's start
+   altitude), inside the flight volume, away from places already visited: to the reachable
+   place next to the most promising frontier of the map's known space (``explore_policy =
+   "frontier"``, the default) or down the longest line of sight through seen free space
+   (``"open_ray"``); the ring of straight legs when neither finds one. On a leg the camera
+   weaves ``weave_rad`` either side of the leg's bearing (a triangle wave inside the yaw-rate
+   limit), so the flight itself looks for the target over a wider field of regard than the
+   camera's; without a weave (``weave_rad = 0``) the vehicle looks a quarter turn to the side
+   with the most unknown space after each leg. Legs prefer the heading the search began with
+   when the way ahead was open then (a route goes on), and its reverse when it was not (a dead
+   end: back out).
 4. **Hand back**: any decision that yields a verified goal for the current subtask ends the
-   search (the pilot flies that goal). A STOP from the monitor is handled as always.
+   search (the pilot flies that goal). A STOP from the monitor pauses it (the vehicle hovers
+   while the STOP is confirmed) and a withdrawn STOP resumes it where it was; a LOST while
+   searching, with no sighting to turn back to, does not interrupt it (the search is already
+   the recovery).
+5. **One engine**: while searching the monitoring agent runs every ``monitor_period_s`` (6 s,
+   not the pilot's 2 s): on one inference engine each monitoring call delays the next
+   decision, and the decision stream is the one that finds the target.
 
 Candidate exploration points are sampled on a ring of headings at a few ranges around the
 vehicle at its altitude; a candidate is *reachable* when the straight segment to it keeps the
@@ -57,9 +68,15 @@ __all__ = [
     "frontier_target",
     "known_mask",
     "open_heading",
+    "open_ray_target",
     "seen_obstacle_near",
     "side_to_look",
+    "unknown_fraction",
 ]
+
+
+#: how exploration legs are chosen (:class:`SearchConfig`.explore_policy)
+EXPLORE_POLICIES = ("frontier", "open_ray")
 
 
 class SearchConfigError(ValueError):
@@ -105,6 +122,30 @@ class SearchConfig:
     min_leg_m : frontiers nearer than this (path metres) are taken only when no farther one is
         reachable, and a leg shorter than this ends without a side look: short hops spend the
         time on turning, not on seeing new space
+    scan_gain_min : a scan turns to a heading only when the unknown fraction of its fan (see
+        :func:`unknown_fraction`) is at least this: a sector the camera has already seen from
+        here was already shown to the decision agent (0 = every heading; the heading toward the
+        last sighting is always turned to)
+    weave_rad : amplitude of the yaw weave on exploration legs, radians: the camera swings this
+        far either side of the leg's bearing (a triangle wave, so the turn rate is constant), and
+        a 90 deg camera sweeps 90 deg + twice this of the way past it; targets beside the route
+        come into view without stopping to look. 0 = face the way of travel. The bearing itself
+        stays inside the camera's field of view as long as this is below half of it, so the
+        vehicle never flies into space its camera does not see
+    weave_period_s : period of the weave, seconds (a sweep of ``4 weave_rad`` per period: 0.3
+        rad/s at the defaults, inside the paper's 0.4 rad/s yaw rate)
+    cruise_z_m : altitude of exploration legs, metres (world ENU z); None = the altitude the
+        task began at. A search at the height of the last low goal sees less over furniture
+        and machines than one at flight height
+    monitor_period_s : the monitoring agent's period while searching, seconds (the pilot's
+        ``monitor_period_s`` otherwise). On one inference engine every monitoring call delays
+        the next decision by its latency; while the target is not found, the decision stream is
+        the one that finds it (and ends the search), and the monitor has nothing to stop at
+    explore_policy : how legs are chosen: ``"frontier"`` (the reachable place next to the most
+        promising frontier group, :func:`frontier_target`) or ``"open_ray"`` (down the longest
+        line of sight through seen free space, :func:`open_ray_target`, the frontier choice
+        when no ray is long enough); the ring of straight legs when neither finds a leg
+    open_ray_max_m : the longest leg down a line of sight, metres
     """
 
     enabled: bool = True
@@ -128,6 +169,13 @@ class SearchConfig:
     forward_weight: float = 0.8
     side_gain_min: float = 0.25
     min_leg_m: float = 2.5
+    scan_gain_min: float = 0.3
+    weave_rad: float = 0.6
+    weave_period_s: float = 8.0
+    cruise_z_m: float | None = None
+    monitor_period_s: float = 6.0
+    explore_policy: str = "frontier"
+    open_ray_max_m: float = 6.0
 
     def __post_init__(self) -> None:
         for name in ("not_visible_streak", "fail_streak", "reject_streak", "explore_headings"):
@@ -145,12 +193,23 @@ class SearchConfig:
             "stall_window_s",
             "stall_distance_m",
             "gain_lookahead_m",
+            "weave_period_s",
+            "monitor_period_s",
+            "open_ray_max_m",
         ):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise SearchConfigError(f"SearchConfig.{name} must be positive, got {v}")
         if not (np.isfinite(self.scan_dwell_s) and self.scan_dwell_s >= 0):
             raise SearchConfigError(f"SearchConfig.scan_dwell_s must be >= 0, got {self.scan_dwell_s}")
+        if not (np.isfinite(self.weave_rad) and 0.0 <= self.weave_rad < math.pi / 4):
+            raise SearchConfigError(f"SearchConfig.weave_rad must be in [0, pi/4), got {self.weave_rad}")
+        if self.cruise_z_m is not None and not np.isfinite(self.cruise_z_m):
+            raise SearchConfigError(f"SearchConfig.cruise_z_m must be finite or None, got {self.cruise_z_m}")
+        if self.explore_policy not in EXPLORE_POLICIES:
+            raise SearchConfigError(f"SearchConfig.explore_policy must be one of {EXPLORE_POLICIES}, got {self.explore_policy!r}")
+        if not (0.0 <= self.scan_gain_min <= 1.0):
+            raise SearchConfigError(f"SearchConfig.scan_gain_min must be in [0, 1], got {self.scan_gain_min}")
         if not (0.0 <= self.side_gain_min <= 1.0):
             raise SearchConfigError(f"SearchConfig.side_gain_min must be in [0, 1], got {self.side_gain_min}")
         if not (0.0 <= self.forward_weight <= 1.0):
@@ -235,7 +294,7 @@ def explore_target(
             dist, _ = field_map.query(seg)
             if np.min(dist) < cfg.explore_clearance_m or not bool(np.all(known_mask(field_map, seg[-1:]))):
                 continue
-            gain = _fan_gain(cand, th, field_map, volume, cfg.gain_lookahead_m)
+            gain = unknown_fraction(cand, th, field_map, volume, cfg.gain_lookahead_m)
             # a longer leg is worth a little even into known space (progress along the route)
             value = gain + 0.1 * r / max(cfg.explore_ranges_m)
             ahead = 0.5 * (1.0 + np.cos(wrap_angle(th - yaw)))  # 1 straight on ... 0 behind
@@ -247,6 +306,62 @@ def explore_target(
                 score -= 0.3 * abs(wrap_angle(th - prefer_yaw)) / np.pi
             if score > best_score:
                 best, best_score = cand, score
+    return best
+
+
+def open_ray_target(
+    position: np.ndarray,
+    yaw: float,
+    field_map,
+    *,
+    config: SearchConfig,
+    volume: FlightVolume | None,
+    volume_margin_m: float,
+    visited: np.ndarray,
+    z_m: float,
+) -> np.ndarray | None:
+    """Down the longest line of sight: the point on the horizontal ray (of
+    ``explore_headings`` around the vehicle, at ``z_m``) that runs furthest through seen free
+    space before it meets an obstacle or unknown space, or None when no ray runs
+    ``min_leg_m``.
+
+    A corridor, a hall or a doorway with open space behind it is a long free ray; a wall or a
+    cluttered corner is a short one. The ray is scored by its free run (up to
+    ``open_ray_max_m``), its direction (as in :func:`explore_target`) and the places already
+    visited near its end; the point is ``leg_margin`` short of where the run ends, at most
+    ``open_ray_max_m`` away. With a map that treats unknown space as occupied (the default),
+    a ray ends where the camera stopped seeing, so its end is a frontier the camera looked
+    down, not one beside it.
+    """
+    cfg = config
+    p0 = np.array([position[0], position[1], z_m], dtype=float)
+    step = 0.25
+    steps = np.arange(step, cfg.open_ray_max_m + 1e-9, step)
+    headings = yaw + np.linspace(0.0, 2 * np.pi, cfg.explore_headings, endpoint=False)
+    dirs = np.stack([np.cos(headings), np.sin(headings), np.zeros_like(headings)], axis=-1)
+    pts = p0[None, None, :] + steps[None, :, None] * dirs[:, None, :]  # (headings, steps, 3)
+    dist, _ = field_map.query(pts.reshape(-1, 3))
+    ok = (np.asarray(dist).reshape(len(headings), len(steps)) >= cfg.explore_clearance_m) & known_mask(
+        field_map, pts.reshape(-1, 3)
+    ).reshape(len(headings), len(steps))
+    if volume is not None:
+        ok &= volume.contains(pts.reshape(-1, 3), margin_m=volume_margin_m).reshape(ok.shape)
+    blocked = ~ok
+    run = np.where(blocked.any(axis=1), np.argmax(blocked, axis=1), len(steps))  # free steps
+    vis = np.asarray(visited, dtype=float).reshape(-1, 3)
+    best, best_score = None, -np.inf
+    for k, th in enumerate(headings):
+        reach = run[k] * step - (0.5 if run[k] < len(steps) else 0.0)  # stop short of where it ends
+        if reach < cfg.min_leg_m:
+            continue
+        tgt = p0 + min(reach, cfg.open_ray_max_m) * dirs[k]
+        ahead = 0.5 * (1.0 + np.cos(wrap_angle(th - yaw)))
+        score = (reach / cfg.open_ray_max_m) * ((1.0 - cfg.forward_weight) + cfg.forward_weight * ahead)
+        if len(vis):
+            d = np.linalg.norm(vis[:, :2] - tgt[None, :2], axis=1)
+            score -= 0.3 * float(np.sum(np.clip(1.0 - d / cfg.visit_radius_m, 0.0, 1.0)))
+        if score > best_score:
+            best, best_score = tgt, score
     return best
 
 
@@ -352,9 +467,10 @@ def frontier_target(
     return best if best is not None else best_near
 
 
-def _fan_gain(p: np.ndarray, heading: float, field_map, volume: FlightVolume | None, reach_m: float) -> float:
-    """Unknown fraction of a fan of points (+-30 deg, 1 m to ``reach_m``) from ``p`` along
-    ``heading``; points outside the volume count as known (nothing to find there)."""
+def unknown_fraction(p: np.ndarray, heading: float, field_map, volume: FlightVolume | None, reach_m: float) -> float:
+    """Unknown fraction of a fan of points (+-30 deg, 1 m to ``reach_m`` metres) from ``p`` (3,)
+    along ``heading`` (radians, world ENU), in [0, 1]; points outside the volume count as known
+    (nothing to find there)."""
     fan = heading + np.deg2rad([-30.0, 0.0, 30.0])
     steps = np.linspace(1.0, reach_m, 4)
     dirs = np.stack([np.cos(fan), np.sin(fan), np.zeros(3)], axis=-1)
@@ -372,7 +488,7 @@ def side_to_look(
     p = np.asarray(position, dtype=float)
     best, best_gain = None, config.side_gain_min
     for side in (yaw + np.pi / 2, yaw - np.pi / 2):
-        g = _fan_gain(p, side, field_map, volume, config.gain_lookahead_m)
+        g = unknown_fraction(p, side, field_map, volume, config.gain_lookahead_m)
         if g >= best_gain:
             best, best_gain = float(wrap_angle(side)), g
     return best
@@ -489,10 +605,13 @@ class Search:
         trigger: SearchTrigger,
         toward_yaw: float | None = None,
         total_rad: float | None = None,
+        worth_scanning: Callable[[float], bool] | None = None,
     ) -> None:
         """Begin with a scan: first toward ``toward_yaw`` when given, then on through
         ``total_rad`` (default ``scan_total_rad``) in steps of ``scan_step_rad``. Without a
-        preferred heading, successive scans alternate their direction."""
+        preferred heading, successive scans alternate their direction. ``worth_scanning(yaw)``
+        drops headings not worth turning to (the toward heading is always kept); with none
+        left the scan is over at once (the pilot explores)."""
         if self.phase is None:
             self.heading0 = float(yaw)  # the direction of travel when this search began (the
             # pilot replaces it with its reverse in a dead end, see ``open_heading``)
@@ -512,6 +631,8 @@ class Search:
         else:
             sign = 1.0 if self.searches % 2 == 1 else -1.0
             yaws = [float(wrap_angle(yaw + sign * step * (k + 1))) for k in range(n)]
+        if worth_scanning is not None:
+            yaws = [y for k, y in enumerate(yaws) if (k == 0 and toward_yaw is not None) or worth_scanning(y)]
         self._scan_yaws = yaws
 
     def leg_length_m(self, position: np.ndarray) -> float:
@@ -526,6 +647,18 @@ class Search:
         self._hold_p = np.asarray(position, dtype=float).copy()
         self._scan_reached_s = None
         self._scan_yaws = [float(y) for y in yaws]
+
+    def _weave_yaw(self, t_s: float, to_go: np.ndarray) -> float | None:
+        """Yaw reference on a leg: the bearing to the exploration point plus a triangle wave of
+        amplitude ``weave_rad`` (starting at 0, first to the left); None (face the way of
+        travel) without a weave or in the last ``2 weave_rad / yaw rate`` of the leg, roughly
+        1.5 m, where the camera should face what the vehicle arrives at."""
+        cfg = self.config
+        if cfg.weave_rad <= 0.0 or float(np.hypot(*to_go)) < 1.5:
+            return None
+        phase = ((t_s - self._explore_start_s) / cfg.weave_period_s) % 1.0  # 0 ... 1
+        tri = 4.0 * phase if phase < 0.25 else (2.0 - 4.0 * phase if phase < 0.75 else 4.0 * phase - 4.0)
+        return float(wrap_angle(np.arctan2(to_go[1], to_go[0]) + cfg.weave_rad * tri))
 
     def stop(self) -> None:
         self.phase = None
@@ -568,8 +701,9 @@ class Search:
                 self._scan_reached_s = None
             return self._hold_p, None, "scan_done"
         if self.phase is SearchPhase.EXPLORE and self._explore_p is not None:
-            near = np.linalg.norm(np.asarray(position)[:2] - self._explore_p[:2]) <= cfg.explore_arrive_m
+            to_go = self._explore_p[:2] - np.asarray(position, float)[:2]
+            near = float(np.hypot(*to_go)) <= cfg.explore_arrive_m
             if near or t_s - self._explore_start_s > cfg.explore_timeout_s:
                 return np.asarray(position, float).copy(), None, "explore_done"
-            return self._explore_p, None, None
+            return self._explore_p, self._weave_yaw(t_s, to_go), None
         return np.asarray(position, float).copy(), None, None

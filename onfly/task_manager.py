@@ -58,16 +58,23 @@ class TaskManager:
     ----------
     subtasks : non-empty ordered list of non-empty strings
     stop_confirmations : consecutive STOPs that make a STOP stable (1 = act on the first)
+    intermediate_confirmations : consecutive STOPs that advance past a subtask that is not the
+        last (None = ``stop_confirmations``). The costs are not the same: a false STOP on the
+        last subtask ends the task where it is, a false STOP on an earlier one only starts the
+        next subtask early, and each confirmation costs a monitoring call (1-2 s) per subtask
     """
 
-    def __init__(self, subtasks: list[str], stop_confirmations: int = 2) -> None:
+    def __init__(self, subtasks: list[str], stop_confirmations: int = 2, intermediate_confirmations: int | None = None) -> None:
         subtasks = [s.strip() for s in subtasks]
         if not subtasks or any(not s for s in subtasks):
             raise TaskManagerError(f"subtasks must be a non-empty list of non-empty strings, got {subtasks!r}")
         if stop_confirmations < 1:
             raise TaskManagerError(f"stop_confirmations must be >= 1, got {stop_confirmations}")
+        if intermediate_confirmations is not None and intermediate_confirmations < 1:
+            raise TaskManagerError(f"intermediate_confirmations must be >= 1, got {intermediate_confirmations}")
         self.subtasks = subtasks
         self.stop_confirmations = stop_confirmations
+        self.intermediate_confirmations = stop_confirmations if intermediate_confirmations is None else intermediate_confirmations
         self.index = 0
         self.finished = False
         self._stops = 0
@@ -102,7 +109,7 @@ class TaskManager:
             self.last_normal = _NormalPoint(float(t_s), np.asarray(position, float).copy(), float(yaw))
         elif status is Status.STOP:
             self._stops += 1
-            if self._stops >= self.stop_confirmations:
+            if self._stops >= (self.stop_confirmations if self.is_last else self.intermediate_confirmations):
                 self._stops = 0
                 if self.is_last:
                     self.finished = True

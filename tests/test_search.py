@@ -22,6 +22,7 @@ from onfly.search import (
     SearchTrigger,
     explore_target,
     open_heading,
+    open_ray_target,
     side_to_look,
 )
 from onfly.world.scene import parse_scene
@@ -102,13 +103,48 @@ def test_stall_needs_the_whole_window_and_little_travel():
 
 
 def test_exploration_arrival_and_timeout_end_the_leg():
-    s = Search(SearchConfig(explore_arrive_m=0.5, explore_timeout_s=3.0))
+    s = Search(SearchConfig(explore_arrive_m=0.5, explore_timeout_s=3.0, weave_rad=0.0))
     s.start(0.0, np.zeros(3), 0.0, SearchTrigger.STALL)
     s.explore_from(0.0, np.array([4.0, 0.0, 1.0]), np.zeros(3), 0.0)
     point, yaw_ref, ev = s.control(1.0, np.array([1.0, 0.0, 1.0]), 0.0)
     assert ev is None and yaw_ref is None and point.tolist() == [4.0, 0.0, 1.0]
     assert s.control(1.5, np.array([3.7, 0.1, 1.0]), 0.0)[2] == "explore_done"
     assert s.control(3.5, np.array([1.0, 0.0, 1.0]), 0.0)[2] == "explore_done"
+
+
+def test_the_weave_swings_the_camera_about_the_leg_bearing_within_the_yaw_rate():
+    cfg = SearchConfig(weave_rad=0.6, weave_period_s=8.0, explore_timeout_s=100.0)
+    s = Search(cfg)
+    s.start(0.0, np.zeros(3), 0.0, SearchTrigger.STALL)
+    s.explore_from(0.0, np.array([0.0, 10.0, 1.0]), np.zeros(3), 0.0)  # bearing +90 deg
+    here = np.array([0.0, 0.0, 1.0])
+    yaws = np.array([s.control(t, here, 0.0)[1] for t in np.arange(0.0, 8.0, 0.1)])
+    off = yaws - np.pi / 2
+    # a triangle wave: 0 at the start, +A at a quarter period, -A at three quarters
+    assert off[0] == pytest.approx(0.0, abs=1e-9)
+    assert off[20] == pytest.approx(0.6) and off[60] == pytest.approx(-0.6)
+    assert np.max(np.abs(off)) <= 0.6 + 1e-9
+    # constant turn rate 4 A / T = 0.3 rad/s, inside the paper's 0.4 rad/s
+    assert np.max(np.abs(np.diff(off))) / 0.1 == pytest.approx(0.3, abs=1e-6)
+    # the last 1.5 m of a leg face the way of travel (what the vehicle arrives at)
+    assert s.control(3.0, np.array([0.0, 9.0, 1.0]), 0.0)[1] is None
+
+
+def test_a_scan_skips_headings_the_camera_has_already_seen():
+    s = Search(SearchConfig())
+    # the sector at +90 deg is already known: not worth turning to
+    s.start(0.0, np.zeros(3), 0.0, SearchTrigger.NOT_VISIBLE, worth_scanning=lambda y: abs(wrap_angle(y - np.pi / 2)) > 0.1)
+    # three quarter turns from yaw 0 would be +90, 180, -90 deg
+    assert [abs(round(float(np.rad2deg(y)))) for y in s._scan_yaws] == [180, 90]
+    assert s._scan_yaws[1] < 0
+    # the heading toward the last sighting is always turned to, however well known
+    t = Search(SearchConfig())
+    t.start(0.0, np.zeros(3), 0.0, SearchTrigger.LOST, toward_yaw=1.0, worth_scanning=lambda y: False)
+    assert t._scan_yaws == [1.0]
+    # nothing worth turning to: the scan is over at once
+    u = Search(SearchConfig())
+    u.start(0.0, np.zeros(3), 0.0, SearchTrigger.NOT_VISIBLE, worth_scanning=lambda y: False)
+    assert u.control(0.0, np.zeros(3), 0.0)[2] == "scan_done"
 
 
 # -- the exploration choice on exact geometry -------------------------------------------------
@@ -147,6 +183,36 @@ def test_from_a_dead_end_the_only_reachable_way_out_is_chosen():
     # the straight segment to it keeps the clearance
     seg = np.linspace([3.0, 0.0, 1.5], target, 50)
     assert f.field.distance(seg).min() >= SearchConfig().explore_clearance_m
+
+
+def test_the_open_ray_leg_goes_down_the_longest_line_of_sight_and_stops_short_of_its_end():
+    # a corridor along +x (walls at y = +-1.0, from x = -1 to 20), the vehicle at its mouth; the
+    # camera has seen it to x = 9 and a little beyond the mouth
+    boxes = [
+        Box(center=[9.5, 1.1, 1.5], half_extents=[10.5, 0.1, 1.5]),
+        Box(center=[9.5, -1.1, 1.5], half_extents=[10.5, 0.1, 1.5]),
+    ]
+    corridor = AnalyticField(boxes=boxes, half_spaces=[HalfSpace(point=[0, 0, 0], normal=[0, 0, 1])])
+    f = KnownField(corridor, [-1.0, -1.0, 0.0], [9.0, 1.0, 3.0])
+    cfg = SearchConfig(open_ray_max_m=6.0)
+    p = np.array([0.0, 0.0, 1.5])
+    # heading kept: the reverse (-x): a short run (1 m of seen space behind): still down the corridor
+    target = open_ray_target(p, math.pi, f, config=cfg, volume=None, volume_margin_m=0.45, visited=np.zeros((0, 3)), z_m=1.5)
+    assert target is not None
+    assert target[0] == pytest.approx(6.0) and abs(target[1]) < 1e-9  # capped at open_ray_max_m, on the axis
+    # a shorter cap: still along the corridor; a seen end at x = 4: 0.5 m short of the run's end
+    f_short = KnownField(corridor, [-1.0, -1.0, 0.0], [4.0, 1.0, 3.0])
+    t2 = open_ray_target(p, 0.0, f_short, config=cfg, volume=None, volume_margin_m=0.45, visited=np.zeros((0, 3)), z_m=1.5)
+    assert t2 is not None and 3.0 <= t2[0] <= 3.75 + 1e-9 and abs(t2[1]) < 1e-9
+    # the straight segment keeps the clearance, and the volume is respected
+    seg = np.linspace(p, target, 60)
+    assert corridor.distance(seg).min() >= cfg.explore_clearance_m
+    vol = FlightVolume(np.array([-5.0, -5.0, 0.0]), np.array([3.0, 5.0, 5.0]))
+    t3 = open_ray_target(p, 0.0, f, config=cfg, volume=vol, volume_margin_m=0.45, visited=np.zeros((0, 3)), z_m=1.5)
+    assert t3 is None or bool(vol.contains(t3, margin_m=0.45)[0])
+    # nothing runs min_leg_m: no leg
+    f_tiny = KnownField(corridor, [-0.5, -1.0, 0.0], [1.0, 1.0, 3.0])
+    assert open_ray_target(p, 0.0, f_tiny, config=cfg, volume=None, volume_margin_m=0.45, visited=np.zeros((0, 3)), z_m=1.5) is None
 
 
 def test_exploration_prefers_unknown_space_and_never_leaves_the_volume():
@@ -385,3 +451,54 @@ def test_the_frontier_target_is_the_reachable_doorway_not_the_frontier_behind_a_
     m.field = AnalyticField(boxes=[*m.field.boxes, Box(center=[2.0, 1.5, 1.5], half_extents=[0.1, 1.1, 2.0])])
     assert frontier_target(np.array([-2.0, -3.0, 1.5]), 0.0, m, config=SearchConfig(), volume=None, volume_margin_m=0.45,
                            visited=np.zeros((0, 3)), z_m=1.5) is None
+
+
+def test_a_withdrawn_stop_resumes_the_search_and_a_lost_without_a_sighting_does_not_end_it(planner):
+    # the target is behind: every decision says "not visible" until the scan shows it. The
+    # monitor (scripted) answers STOP once, then CONTINUE (the STOP is withdrawn), then LOST
+    # (nothing was ever pointed at: no sighting to turn back to), then the simulated answers.
+    script = {2: "STOP", 3: "CONTINUE", 4: "LOST"}  # calls 0, 1 (before the search): CONTINUE
+
+    def monitor(i, resp):
+        return text(script.get(i, "CONTINUE"), 1.15) if i <= 4 else None
+
+    class BlindUntilScripted(SeeingVlm):
+        """Decisions say "not visible" until the monitor's script has played out."""
+
+        def complete(self, messages, images=(), **kw):
+            if isinstance(parse_prompt(messages), DecisionPrompt) and self.counts["monitor"] <= 4:
+                self.counts["decision"] += 1
+                return text(NOT_VISIBLE, 0.81)
+            return super().complete(messages, images, **kw)
+
+    world0 = World.from_scene("urban_block", camera=CAM)
+    van = next(o for o in world0.scene.objects if o.name == "red van")
+    s = world0.scene.start
+    start = VehicleState(0.0, s.position_m, np.zeros(3), float(wrap_angle(s.yaw_rad + math.pi)))
+    world = World(world0.scene, camera=CAM, initial_state=start)
+    backend = BlindUntilScripted(van.instance_id, monitor=monitor)
+    m = PilotMethod(backend, planner=planner)
+    region = GoalRegion([4.3, -15.0, 1.3], [1.0, 2.3, 0.95])
+    modes = []
+    r = run_episode(
+        world, m, instruction="Fly over to the red van and stop right next to it.", goal=region, reference_path_m=10.0,
+        seed=0, error_model="test", config=EpisodeConfig(time_limit_s=70.0, frame_period_s=0.5),
+        observer=lambda st: modes.append((st.t_s, st.method.pilot.mode)),
+    )
+    ev = m.pilot.events
+    kinds = [e.kind for e in ev]
+    heard = next(e.t_s for e in ev if e.kind == "stop_heard")
+    withdrawn = next(e.t_s for e in ev if e.kind == "stop_withdrawn")
+    started = [e.t_s for e in ev if e.kind == "search_start"]
+    assert started and started[0] < heard < withdrawn
+    # the STOP paused the search: hover while confirming, then the same search goes on (no new
+    # start, no end until the target is pointed at)
+    assert all(mode is PilotMode.CONFIRMING for t, mode in modes if heard + 0.15 < t < withdrawn - 1e-9)
+    assert [mode for t, mode in modes if t > withdrawn + 0.15][0] is PilotMode.SEARCHING
+    lost = next(e for e in ev if e.kind == "lost")
+    assert lost.data["recovery"] == "searching"
+    assert "recovering" not in [mo.value for _, mo in modes]
+    ends = [e for e in ev if e.kind == "search_end"]
+    assert ends[0].data["reason"] == "target_pointed" and ends[0].t_s > lost.t_s
+    assert len([t for t in started if t < ends[0].t_s]) == 1
+    assert r.end_reason == "stopped" and r.metrics.success and not r.metrics.collided

@@ -79,3 +79,20 @@ def test_invalid_input():
         TaskManager(["a", "  "])
     with pytest.raises(ValueError):
         TaskManager(["a"]).on_status("MAYBE", 0, [0, 0, 0], 0)
+
+
+def test_an_intermediate_subtask_advances_on_fewer_stops_than_the_last_one_finishes():
+    tm = TaskManager(["fly to the gate", "fly to the tree", "stop at the van"], stop_confirmations=2, intermediate_confirmations=1)
+    assert tm.on_status("STOP", 1, [0, 0, 1], 0.0) is TaskEvent.ADVANCED  # one STOP past "the gate"
+    assert tm.on_status("STOP", 2, [1, 0, 1], 0.0) is TaskEvent.ADVANCED
+    assert tm.is_last
+    assert tm.on_status("STOP", 3, [2, 0, 1], 0.0) is TaskEvent.NONE  # the last needs two
+    assert tm.on_status("CONTINUE", 4, [2, 0, 1], 0.0) is TaskEvent.NONE
+    assert tm.on_status("STOP", 5, [2, 0, 1], 0.0) is TaskEvent.NONE  # interrupted: counts from one again
+    assert tm.on_status("STOP", 6, [2, 0, 1], 0.0) is TaskEvent.FINISHED
+    # the default: every subtask needs stop_confirmations
+    same = TaskManager(["a", "b"], stop_confirmations=2)
+    assert same.on_status("STOP", 1, [0, 0, 1], 0.0) is TaskEvent.NONE
+    assert same.on_status("STOP", 2, [0, 0, 1], 0.0) is TaskEvent.ADVANCED
+    with pytest.raises(TaskManagerError):
+        TaskManager(["a"], intermediate_confirmations=0)
