@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from onfly.agents import DecisionAgent, DecisionOutcome, MonitoringAgent, MonitorOutcome
+from onfly.follow import FollowConfig, Follower
 from onfly.memory import MemoryConfig, make_memory
 from onfly.observation import Observation
 from onfly.runtime import AgentRuntime, Landed
@@ -128,6 +129,7 @@ class PilotConfig:
         body radius 0.25 m + the planner's 0.45 m safety distance. None disables it.
     search : the pilot's own search when the target is not being found (``onfly.search``;
         ours, not the paper's). ``SearchConfig(enabled=False)`` is the paper's pilot.
+    follow : the follow mode for a subtask that follows a moving person (``onfly.follow``)
     """
 
     control_period_s: float = 0.1
@@ -150,6 +152,7 @@ class PilotConfig:
     esdf: EsdfConfig = field(default_factory=EsdfConfig)
     memory: MemoryConfig = field(default_factory=MemoryConfig)
     search: SearchConfig = field(default_factory=SearchConfig)
+    follow: FollowConfig = field(default_factory=FollowConfig)
 
     def __post_init__(self) -> None:
         for name in ("control_period_s", "monitor_period_s", "goal_timeout_s", "recovery_timeout_s"):
@@ -185,6 +188,7 @@ class PilotConfig:
             "esdf": EsdfConfig,
             "memory": MemoryConfig,
             "search": SearchConfig,
+            "follow": FollowConfig,
         }
         return config_from_tables(cls, data, nested, PilotConfigError, "pilot")
 
@@ -284,6 +288,7 @@ class OnFlyPilot:
         self.events: list[PilotEvent] = []
         self.volume = volume
         self.search = Search(config.search)
+        self.follow = Follower(config.follow)  # follow mode (onfly.follow)
         self._no_goal_streak = 0  # decisions in a row without a goal (current subtask)
         self._not_visible_streak = 0  # "target not visible" answers in a row
         self._rejected_streak = 0  # of the decisions without a goal, those the verifier rejected
@@ -434,6 +439,7 @@ class OnFlyPilot:
             return
         if not speculative and out.subtask != self.tasks.current:
             return  # answered about a subtask that has since advanced
+        out = self.follow.on_decision(t_s, out)  # following: the goal is the person, predicted to now
         if out.goal_world is not None and self.config.goal_min_z_m is not None and out.goal_world[2] < self.config.goal_min_z_m:
             raised = np.array(out.goal_world, float)
             raised[2] = self.config.goal_min_z_m
@@ -479,6 +485,9 @@ class OnFlyPilot:
         if out.subtask != self.tasks.current:
             return
         if self.mode is PilotMode.RECOVERING and out.status.value != Status.STOP.value:
+            return
+        if out.status.value == Status.STOP.value and self.follow.ignores_stop(out.subtask):
+            self._event(t_s, "stop_ignored", {"reason": "following without an end", "position": state.p})
             return
         status = Status(out.status.value)
         if out.judged_position is not None:
@@ -529,7 +538,7 @@ class OnFlyPilot:
             self.goal_world = None
             self._face_yaw = None
             self._hold_p = state.p.copy()
-            seen = self._last_seen
+            seen = self.follow.where_now(t_s, self._last_seen)  # following: where the person is now
             if self.config.search.enabled and seen is not None and np.linalg.norm(seen[:2] - state.p[:2]) > 0.5:
                 # turn toward where the target was last seen (ours; the paper turns to the
                 # last normal point's heading, which after a detour can face away from it)
@@ -580,6 +589,9 @@ class OnFlyPilot:
         elif self.mode is PilotMode.NAVIGATING and self.goal_world is not None:
             goal = self.goal_world
             self._hold_p = None
+            follow = self.follow.control(t_s, state.p, cfg.goal_min_z_m or 0.0)
+            if follow is not None:  # following: the standoff point, facing the person
+                goal, yaw_ref = follow
         elif (
             self.mode is PilotMode.CONFIRMING
             and self.goal_world is not None
@@ -587,6 +599,9 @@ class OnFlyPilot:
         ):
             goal = self.goal_world  # a step closer while the STOP is confirmed
             self._hold_p = None
+            follow = self.follow.control(t_s, state.p, cfg.goal_min_z_m or 0.0)
+            if follow is not None:  # following: the standoff point, facing the person
+                goal, yaw_ref = follow
         else:
             if self._hold_p is None:
                 self._hold_p = state.p.copy()
