@@ -17,6 +17,14 @@ Measured in the same run, per committed scene (or ``--scenes``), at the benchmar
 - ``naive_ms_median`` (reference): the same frame when nothing is kept between frames (meshes,
   ``RaycastingScene`` and camera rays rebuilt each frame), measured on ``--naive-frames`` frames.
 
+Actors (``actors``, issue 19): for each scene with walkers, the same seeded poses rendered
+(:meth:`Renderer.render` + :meth:`Renderer.annotate`) at the same instants (0.5 s apart) by two
+renderers built in this run: the scene as committed (walkers cast in their own frames and
+composited, ``with_actors_ms_median``) and the same scene without its actor objects
+(``static_ms_median``); ``ratio`` is with / without (the target: at most 1.2), and
+``actor_px_mean`` how many pixels per frame show a walker. Poses alternate between the seeded
+free poses and poses looking at a walker from 4-8 m, so walkers are in view in half the frames.
+
 Tracking (``tracking``): how far the executed (true) path lies from a straight 0.6 m/s plan
 over 25 s, and how far the pilot's estimate lies from the truth, under each profile, five seeds,
 in an outdoor scene (``park``, gusts) and an indoor one (``corridor``, lag and drift only).
@@ -119,6 +127,58 @@ def bench_scene(name: str, frames: int, naive_frames: int, threads: int, seed: i
     }
 
 
+def bench_actors(name: str, frames: int, threads: int, seed: int) -> dict | None:
+    """Render cost with and without the scene's actors (same poses, same times, same run)."""
+    from dataclasses import replace
+
+    scene = load_scene(resolve_scene(name))
+    if not scene.actors:
+        return None
+    cfg = RenderConfig(threads=threads)
+    world = World(scene, render_config=cfg)
+    rng = np.random.default_rng(seed)
+    poses = free_poses(world, frames, rng)
+    times = 0.5 * np.arange(frames)
+    # every other frame looks at a walker from 4-8 m at flight height
+    g = world.geometry
+    for k in range(1, frames, 2):
+        a = g.actors[(k // 2) % len(g.actors)]
+        c = a.pose(times[k]).position_m
+        for _ in range(50):
+            ang, dist = rng.uniform(-np.pi, np.pi), rng.uniform(4.0, 8.0)
+            p = c + np.array([dist * np.cos(ang), dist * np.sin(ang), 1.5])
+            if world.scene.bounds.contains(p[None])[0] and world.collision.clearance(p[None], times[k])[0] >= 0.5:
+                poses[k] = cam_transform_from_body(body_transform(p, ang + np.pi))
+                break
+    static = Renderer(SceneGeometry(replace(scene, objects=scene.static_objects)), world.camera, cfg)
+    moving = world.renderer
+    for r in (static, moving):
+        r.render(poses[0], t_s=0.0)  # build Embree's BVHs outside the timings
+    t_static, t_moving, c_static, c_moving, px = [], [], [], [], []
+    for T, t in zip(poses, times):
+        for r, wall, cpu in ((static, t_static, c_static), (moving, t_moving, c_moving)):
+            t0, c0 = time.perf_counter(), time.process_time()
+            out = r.render(T, t_s=float(t))
+            r.annotate(out)
+            wall.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
+            if r is moving:
+                px.append(int(np.isin(out.instance_ids, [a.instance_id for a in g.actors]).sum()))
+    return {
+        "scene": name,
+        "actors": len(g.actors),
+        "actor_triangles": g.total_triangle_count - g.triangle_count,
+        "frames": frames,
+        "static_ms_median": 1e3 * float(np.median(t_static)),
+        "with_actors_ms_median": 1e3 * float(np.median(t_moving)),
+        "ratio": float(np.median(t_moving) / np.median(t_static)),
+        "static_cpu_ms_median": 1e3 * float(np.median(c_static)),
+        "with_actors_cpu_ms_median": 1e3 * float(np.median(c_moving)),
+        "ratio_cpu": float(np.median(c_moving) / np.median(c_static)),
+        "actor_px_mean": float(np.mean(px)),
+    }
+
+
 def _line_plan(p0: np.ndarray, seconds: float = 30.0, speed_mps: float = 0.6, dt_s: float = 0.1):
     """A straight plan along +x from rest: 0.6 m/s^2 up to ``speed_mps``, then cruise."""
     from planning.trajectory import Trajectory
@@ -212,9 +272,22 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--episodes", type=int, default=3, help="oracle episodes for the closed-loop columns (one task per scene)")
     ap.add_argument("--json", type=str, default=None, help="write the results here")
+    ap.add_argument("--only-actors", action="store_true", help="only the actors section (render with and without walkers)")
     args = ap.parse_args(argv)
     scenes = args.scenes or list_scenes()
     cam = default_camera()
+    actor_rows = [r for r in (bench_actors(s, args.frames, args.threads, args.seed) for s in scenes) if r is not None]
+    print(f"actors: camera {cam.width} x {cam.height}, threads {args.threads}, {args.frames} frames per scene (half of them looking at a walker)")
+    print(f"{'scene':<18} {'actors':>6} {'tris':>5} {'static ms':>10} {'actors ms':>10} {'ratio':>6} {'cpu ratio':>9} {'actor px':>9}")
+    for r in actor_rows:
+        print(f"{r['scene']:<18} {r['actors']:>6} {r['actor_triangles']:>5} {r['static_ms_median']:>10.1f} {r['with_actors_ms_median']:>10.1f} "
+              f"{r['ratio']:>6.3f} {r['ratio_cpu']:>9.3f} {r['actor_px_mean']:>9.0f}")
+    if args.only_actors:
+        if args.json:
+            with open(args.json, "w") as fh:
+                json.dump({"camera": [cam.width, cam.height], "threads": args.threads, "actors": actor_rows,
+                           "machine": platform.processor() or platform.machine()}, fh, indent=2)
+        return 0
     rows = [bench_scene(s, args.frames, args.naive_frames, args.threads, args.seed) for s in scenes]
     print(f"camera {cam.width} x {cam.height}, threads {args.threads}, {args.frames} frames per scene")
     print(f"{'scene':<14} {'tris':>5} {'render ms':>10} {'p90 ms':>8} {'cpu ms':>7} {'cast ms':>8} {'half ms':>8} {'real ms':>8} {'real cpu':>8} "
@@ -234,6 +307,7 @@ def main(argv=None) -> int:
         "realistic_cpu_ms_median": float(np.median([r["realistic_cpu_ms_median"] for r in rows])),
         "naive_ms_median": float(np.median([r["naive_ms_median"] for r in rows])),
         "per_scene": rows,
+        "actors": actor_rows,
         "machine": platform.processor() or platform.machine(),
     }
     print(f"all scenes: render_ms_median {result['render_ms_median']:.1f} (cpu {result['render_cpu_ms_median']:.1f}, cast alone {result['cast_ms_median']:.1f}, "

@@ -122,13 +122,15 @@ class SceneBuilder:
         self.ambient = ambient
         self.objects: list[dict] = []
 
-    def add(self, name, label, color, parts, aliases=(), target=True, texture=None, material=None) -> int:
+    def add(self, name, label, color, parts, aliases=(), target=True, texture=None, material=None, motion=None) -> int:
         iid = len(self.objects) + 1
         o = {"name": name, "label": label, "instance_id": iid, "color": color, "aliases": list(aliases), "target": target}
         if texture is not None:
             o["texture"] = texture
         if material is not None:
             o["material"] = material
+        if motion is not None:
+            o["motion"] = motion
         # glass panes and dark rubber / steel parts carry their material (depth sensors see
         # neither: docs/realism.md)
         parts = [dict(p, material=_PART_MATERIALS[p["color"]]) if p.get("color") in _PART_MATERIALS and "material" not in p else p
@@ -167,6 +169,15 @@ class SceneBuilder:
             for p in o["parts"]:
                 out.append(f"  {_val(p)},")
             out.append("]")
+            if "motion" in o:
+                out += ["", "[objects.motion]"]
+                for k, v in o["motion"].items():
+                    if k == "waypoints":
+                        out.append("waypoints = [")
+                        out += [f"  {_val(w)}," for w in v]
+                        out.append("]")
+                    else:
+                        out.append(f"{k} = {_val(v)}")
         return "\n".join(out) + "\n"
 
 
@@ -217,14 +228,106 @@ def bench(b, name, color, x, y, yaw, aliases=(), z0=0.0, target=True):
     return b.add(name, "bench", color, parts, aliases, target)
 
 
-def person(b, name, shirt, x, y, z0=0.0, trousers="#2F3A56", aliases=(), target=True, height=1.75):
+def person(b, name, shirt, x, y, z0=0.0, trousers="#2F3A56", aliases=(), target=True, height=1.75, motion=None, extra=()):
+    """A standing person at (x, y, z0); with ``motion`` a walker whose parts are in its own frame
+    (x, y, z0 are then ignored: the motion places it). ``extra`` parts (a cart) follow the body."""
     k = height / 1.75
+    if motion is not None:
+        x, y, z0 = 0.0, 0.0, 0.0
     parts = [
         cyl((x, y, z0), 0.2 * k, 0.85 * k, 8, color=trousers),
         cyl((x, y, z0 + 0.85 * k), 0.24 * k, 0.62 * k, 8),
         sph((x, y, z0 + 1.6 * k), 0.13 * k, 4, color=SKIN),
+        *extra,
     ]
-    return b.add(name, "person", shirt, parts, aliases, target)
+    return b.add(name, "person", shirt, parts, aliases, target, motion=motion)
+
+
+# Walking speeds of the walkers (docs/scene_format.md, "Actors"): comfortable gait speed of
+# healthy adults 1.27-1.46 m/s (Bohannon 1997, Age and Ageing 26:15-19, means by age and sex);
+# the MUTCD 2009 (section 4E.06) times pedestrian clearance for 1.07 m/s (3.5 ft/s) and for
+# 0.91 m/s (3.0 ft/s) where slower pedestrians cross. Strollers and people pushing carts walk
+# at the slow end (0.8-0.9 m/s, our choice within that range).
+WALK_MPS = 1.3
+STROLL_MPS = 0.9
+CART_MPS = 0.8
+
+
+def path(points, speed, loop=True, pauses=None, start_s=0.0):
+    """A ``path`` motion table: waypoints (x, y) or (x, y, z) at ``speed`` (a number or one per
+    waypoint), ``pauses`` {waypoint index: seconds}."""
+    speeds = speed if isinstance(speed, (list, tuple)) else [speed] * len(points)
+    wps = []
+    for i, p in enumerate(points):
+        w = {"position_m": [p[0], p[1], p[2] if len(p) > 2 else 0.0], "speed_mps": speeds[i]}
+        if pauses and i in pauses:
+            w["pause_s"] = pauses[i]
+        wps.append(w)
+    m = {"type": "path", "loop": loop}
+    if start_s:
+        m["start_s"] = start_s
+    m["waypoints"] = wps
+    return m
+
+
+def circle(center, radius, speed, phase_deg=0.0, clockwise=False, start_s=0.0):
+    """A ``circle`` motion table about (x, y[, z])."""
+    c = [center[0], center[1], center[2] if len(center) > 2 else 0.0]
+    m = {"type": "circle", "center_m": c, "radius_m": radius, "speed_mps": speed, "phase_deg": phase_deg, "clockwise": clockwise}
+    if start_s:
+        m["start_s"] = start_s
+    return m
+
+
+# Followed walkers of the tracking tasks (issue 19, onfly/data/tasks/track/): the vehicle's speed
+# limit is the paper's 0.6 m/s (its real pedestrian-tracking flight used the same limit), so a
+# person it follows walks slower: 0.40-0.45 m/s, within measured adult gait speeds (0.4-0.6 m/s
+# among older adults: S. Studenski et al., "Gait speed and survival in older adults", JAMA 305(1),
+# 2011); a wheelbarrow or a stroller slows a walker further. Each stands for the first
+# FOLLOWED_START_S (the operator designates them while they stand), then walks.
+FOLLOWED_MPS = 0.45
+FOLLOWED_PUSH_MPS = 0.4
+FOLLOWED_START_S = 6.0
+
+
+def _stroller():
+    """Parts of a stroller pushed in front of a walker (walker frame: x forward)."""
+    return (box((0.7, 0.0, 0.6), (0.6, 0.45, 0.45), color="#37474F"), box((0.7, 0.0, 0.2), (0.5, 0.4, 0.1), color=DARK))
+
+
+def _wheelbarrow():
+    """Parts of a wheelbarrow pushed in front of a walker (walker frame: x forward)."""
+    return (box((0.75, 0.0, 0.55), (0.7, 0.5, 0.5), color="#9E9E9E"), box((0.75, 0.0, 0.15), (0.6, 0.4, 0.1), color=DARK))
+
+
+def followed_walkers_plaza(b) -> None:
+    """The plaza's followed walkers (tracking tasks), in corners no route of the static tasks
+    passes within 2.5 m of (walkers there would walk into their flights)."""
+    s0 = FOLLOWED_START_S
+    person(b, "woman in the yellow coat", "#F2C12E", 0.0, 0.0, aliases=["woman in yellow", "person in the yellow coat", "yellow coat"],
+           motion=path([(-17.0, -17.5), (-7.0, -17.5), (-7.0, -20.5), (-17.0, -20.5)], FOLLOWED_MPS, start_s=s0))
+    person(b, "woman with the stroller", "#EC407A", 0.0, 0.0, aliases=["woman pushing the stroller", "person with the stroller"],
+           extra=_stroller(), motion=path([(9.5, -17.5), (16.5, -17.5), (16.5, -20.5)], FOLLOWED_PUSH_MPS, loop=False, start_s=s0))
+    person(b, "man with the wheelbarrow", "#8D6E63", 0.0, 0.0, aliases=["man pushing the wheelbarrow", "person with the wheelbarrow"],
+           extra=_wheelbarrow(), motion=path([(-17.5, 14.5), (-10.5, 14.5)], FOLLOWED_PUSH_MPS, loop=False, start_s=s0))
+    person(b, "woman in the purple dress", "#8E24AA", 0.0, 0.0, aliases=["woman in purple", "person in the purple dress", "purple dress"],
+           motion=path([(17.0, 17.5), (22.5, 17.5), (22.5, 20.5), (17.0, 20.5)], FOLLOWED_MPS, start_s=s0))
+
+
+def followed_walkers_duplex(b) -> None:
+    """The duplex's followed walkers (tracking tasks), off the static tasks' routes."""
+    s0 = FOLLOWED_START_S
+    person(b, "man in the orange vest", "#FB8C00", 0.0, 0.0, aliases=["man in orange", "person in the orange vest", "orange vest"],
+           motion=path([(-7.5, 6.0), (-3.0, 6.0), (-3.0, 12.5), (-7.5, 12.5)], FOLLOWED_MPS, start_s=s0))
+    person(b, "woman with the shopping bag", "#00897B", 0.0, 0.0, aliases=["woman carrying a shopping bag", "person with the shopping bag"],
+           extra=(box((0.0, -0.33, 0.75), (0.3, 0.12, 0.35), color="#FFFFFF"),),
+           motion=path([(2.0, 12.8), (12.0, 12.8)], FOLLOWED_PUSH_MPS, loop=False, start_s=s0))
+
+
+def cart(length=0.8, width=0.55, height=0.95, color="#9E9E9E"):
+    """Parts of a hand cart pushed in front of a walker (walker frame: x forward)."""
+    return (box((0.35 + length / 2, 0.0, 0.55), (length, width, 0.5), color=color),
+            box((0.35 + 0.05, 0.0, height - 0.05), (0.06, width, 0.06), color=DARK))
 
 
 def lamp_post(b, name, x, y, h=4.5, target=False, aliases=()):
@@ -411,6 +514,15 @@ def duplex(rng) -> SceneBuilder:
     b.add("wheelchair ramp", "ramp", "#B5AFA3", [ramp((13.0, -6.0, 0.0), 90, 4.0, 1.5, 0.5), box((13.0, -1.25, 0.25), (1.5, 1.5, 0.5))],
           ["ramp"])
     tree(b, "tree by the staircase", -5.5, 4.0, aliases=["tree"])
+    # issue 19: walkers (appended, so the ids above stay); the standing people are goals of the
+    # paper's static tasks and stay put; the walkers keep off those tasks' routes.
+    person(b, "person in yellow raincoat", "#FBC02D", 0.0, 0.0, aliases=["person in yellow", "person in the raincoat"],
+           motion=path([(-7.0, -16.5), (23.0, -16.5), (23.0, -17.3), (-7.0, -17.3)], 1.2))
+    person(b, "person in green jacket", "#2E7D32", 0.0, 0.0, aliases=["person in green"],
+           motion=path([(23.2, -15.0), (23.2, 11.0), (24.6, 11.0), (24.6, -15.0)], WALK_MPS, start_s=-8.0))
+    person(b, "person on the phone", "#6A1B9A", 0.0, 0.0, aliases=["person pacing", "person in purple"],
+           motion=circle((-5.5, -11.0), 2.5, STROLL_MPS, phase_deg=90.0, clockwise=True))
+    followed_walkers_duplex(b)
     return b
 
 
@@ -574,7 +686,9 @@ def plaza(rng) -> SceneBuilder:
     person(b, "person near the fountain", "#2E7D32", 3.4, 1.2, aliases=["person by the fountain", "person in green"])
     person(b, "person in white shirt", "#F0F0F0", 11.0, -4.0, aliases=["person in white"])
     person(b, "child with a yellow shirt", "#F9A825", -9.0, -3.0, height=1.2, aliases=["child", "kid"])
-    person(b, "person in red jacket", "#B71C1C", 13.0, 12.5, aliases=["person in red"], target=True)
+    # walks around the round flower bed (added below), counter-clockwise
+    person(b, "person in red jacket", "#B71C1C", 0.0, 0.0, aliases=["person in red"], target=True,
+           motion=circle((16.0, 11.5), 4.0, STROLL_MPS, phase_deg=180.0))
     b.add("statue", "statue", "#8D8A80", [box((-12, 2, 0.75), (1.5, 1.5, 1.5)), cyl((-12, 2, 1.5), 0.35, 1.6, 8), sph((-12, 2, 3.35), 0.3, 4)],
           ["bronze statue", "monument"])
     b.add("flagpole", "flagpole", "#D0D0D0", [cyl((12, 2, 0), 0.08, 8.0, 8), box((12.8, 2, 7.3), (1.5, 0.03, 1.0), color="#C62828")],
@@ -590,6 +704,19 @@ def plaza(rng) -> SceneBuilder:
     b.add("bicycle rack", "bicycle rack", "#9E9E9E", [box((-10 + 0.6 * i, 13.5, 0.4), (0.05, 0.7, 0.8)) for i in range(5)], ["bike rack"])
     for i, (x, y) in enumerate(((-8, -16), (8, -16), (-18, 16), (18, 16))):
         lamp_post(b, f"street lamp {i + 1}", x, y)
+    # issue 19: walkers (appended, so the ids above stay). The standing people above are goals of
+    # the paper's static tasks and stay put; the walkers keep off those tasks' routes.
+    b.add("round flower bed", "flower bed", "#C2185B", [cyl((16.0, 11.5, 0), 1.6, 0.45, 16, color="#6D4C41"), cyl((16.0, 11.5, 0.45), 1.4, 0.15, 16)],
+          ["flower bed", "flowers"])
+    b.add("flower stall", "stall", "#8E24AA", [box((14.5, 20.3, 1.1), (2.5, 1.4, 2.2)), box((14.5, 19.5, 2.3), (2.9, 0.6, 0.1), color="#F3E5F5")],
+          ["flower stand", "purple stall"], target=False)
+    person(b, "man with a cart", "#5D4037", 0.0, 0.0, aliases=["man pushing a cart", "man with the cart"], extra=cart(),
+           motion=path([(-19.0, 18.6), (-5.0, 18.6), (12.0, 18.6)], CART_MPS, loop=False, pauses={1: 5.0}))
+    person(b, "person in grey coat", "#757575", 0.0, 0.0, aliases=["person in grey", "man in grey"],
+           motion=path([(-20.0, -14.0), (-20.0, 12.0), (-21.5, 12.0), (-21.5, -14.0)], WALK_MPS))
+    person(b, "woman in green", "#43A047", 0.0, 0.0, aliases=["woman in a green dress", "person in green dress"], height=1.65,
+           motion=path([(19.5, -19.0), (19.5, -1.0), (21.0, -1.0), (21.0, -19.0)], 1.2, start_s=-6.0))
+    followed_walkers_plaza(b)
     return b
 
 
@@ -959,6 +1086,58 @@ def parking_garage(rng) -> SceneBuilder:
     return b
 
 
+def station_concourse(rng) -> SceneBuilder:
+    """Issue 19: a station concourse whose crowd crosses the routes. Passengers stream between the
+    street doors (south wall) and the platform gates (north wall) on two two-way lanes (x = 12 and
+    x = 22.5), so every flight from the west entrance to the east half crosses them; a man pushes a
+    luggage cart and stops at the information desk, a traveller paces round a column. The drone
+    starts (and the tasks fly) at 2.5 m, above head height."""
+    b = SceneBuilder("station_concourse", "Station concourse: columns, ticket machines, an information desk, kiosks, platform gates and a crowd crossing the hall.",
+                     (0.3, 0.3, 0.2), (37.7, 27.7, 8.7), (3.0, 14.0, 2.5), 0.0, light=(0.25, 0.3, 0.92), ambient=0.5, indoor=True)
+    walls(b, "concourse walls", 0, 38, 0, 28, 9.0, color="#CFC8BA", floor_color="#9C968C")
+    cols = [(x, y) for x in (7.0, 17.5, 28.0) for y in (7.0, 21.0)]
+    b.add("columns", "column", "#B8B2A6", [box((x, y, 4.5), (0.8, 0.8, 9.0)) for x, y in cols], target=False)
+    b.add("departure board", "board", "#1B2A49", [box((19.0, 27.8, 4.6), (8.0, 0.3, 2.4))], ["departures board", "timetable board"])
+    b.add("information desk", "desk", "#2E7D9A", [box((19.0, 14.0, 0.6), (4.0, 1.6, 1.2)), cyl((19.0, 14.0, 1.2), 0.08, 1.4, 6, color="#777777"),
+                                                 box((19.0, 14.0, 2.8), (0.9, 0.12, 0.6), color="#F5F5F5")],
+          ["info desk", "information counter"])
+    b.add("red ticket machine", "ticket machine", "#C62828", [box((8.0, 0.55, 0.9), (0.9, 0.6, 1.8))], ["red machine"])
+    b.add("blue ticket machine", "ticket machine", "#1565C0", [box((9.8, 0.55, 0.9), (0.9, 0.6, 1.8))], ["blue machine"])
+    b.add("coffee kiosk", "kiosk", "#6D4C41", [box((31.0, 4.0, 1.3), (3.0, 2.0, 2.6)), box((31.0, 4.0, 2.7), (3.4, 2.4, 0.2), color="#EFEBE9")],
+          ["coffee stand", "brown kiosk"])
+    b.add("newsstand", "kiosk", "#00897B", [box((31.0, 23.5, 1.25), (2.6, 2.0, 2.5))], ["news kiosk", "green kiosk"])
+    for i, x in enumerate((12.6, 23.1)):
+        b.add(f"platform gate {i + 1}", "gate", ["#F9A825", "#EF6C00"][i], [box((x, 27.85, 1.3), (3.0, 0.12, 2.6))],
+              [f"gate {i + 1}", f"platform entrance {i + 1}"])
+    for i, x in enumerate((12.6, 23.1)):
+        b.add(f"street door {i + 1}", "door", "#90A4AE", [box((x, 0.15, 1.3), (3.0, 0.12, 2.6))], [f"south door {i + 1}", f"exit {i + 1}"],
+              material="glass")
+    b.add("luggage lockers", "lockers", "#78909C", [box((37.6, 14.0, 1.0), (0.7, 5.0, 2.0))], ["lockers", "left-luggage lockers"])
+    bench(b, "bench by the west wall", "#8D6E63", 4.0, 25.0, 0, ["west bench"])
+    bench(b, "bench by the east wall", "#8D6E63", 34.0, 25.0, 0, ["east bench"])
+    b.add("station clock", "clock", "#FAFAFA", [box((17.5, 20.55, 3.2), (0.9, 0.08, 0.9))], ["clock"], target=False)
+    b.add("rubbish bin", "bin", "#37474F", [cyl((5.0, 9.5, 0.0), 0.25, 0.9, 8)], ["bin", "trash can"])
+    b.add("plant pot", "plant", "#388E3C", [cyl((34.0, 9.0, 0.0), 0.4, 0.6, 10, color="#795548"), sph((34.0, 9.0, 1.1), 0.55, 4)],
+          ["potted plant", "green plant"])
+    # the crowd: two two-way lanes between the street doors and the platform gates; three
+    # passengers per lane, spread evenly over the loop (start_s < 0: already walking at t = 0)
+    shirts = ["#D32F2F", "#1976D2", "#388E3C", "#FBC02D", "#7B1FA2", "#F57C00"]
+    names = ["passenger in red", "passenger in blue", "passenger in green", "passenger in yellow", "passenger in purple", "passenger in orange"]
+    k = 0
+    for lane_x, speed in ((12.0, WALK_MPS), (22.5, 1.2)):
+        loop = [(lane_x, 2.0), (lane_x, 26.0), (lane_x + 1.2, 26.0), (lane_x + 1.2, 2.0)]
+        cycle = (2 * 24.0 + 2 * 1.2) / speed
+        for j in range(3):
+            person(b, names[k], shirts[k], 0.0, 0.0, aliases=[names[k].replace("passenger", "person")],
+                   motion=path(loop, speed, start_s=round(-(j + 0.5 * (lane_x > 20)) * cycle / 3, 2)))
+            k += 1
+    person(b, "man with a luggage cart", "#455A64", 0.0, 0.0, aliases=["man with the luggage cart", "man pushing a trolley"], extra=cart(color="#B0BEC5"),
+           motion=path([(4.0, 4.5), (15.0, 4.5), (15.5, 11.0), (18.0, 11.5)], CART_MPS, loop=False, pauses={1: 4.0}))
+    person(b, "traveller pacing by the clock", "#C2185B", 0.0, 0.0, aliases=["person by the clock column", "woman in pink"], height=1.65,
+           motion=circle((17.5, 21.0), 2.0, STROLL_MPS, phase_deg=-90.0))
+    return b
+
+
 SCENES = {
     "urban_block": urban_block,
     "factory_hall": factory_hall,
@@ -974,6 +1153,8 @@ SCENES = {
     "apartment": apartment,
     "office_floor": office_floor,
     "parking_garage": parking_garage,
+    # issue 19: a scene whose crowd crosses the routes (its tasks: onfly/data/tasks/crowds/)
+    "station_concourse": station_concourse,
 }
 
 

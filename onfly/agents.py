@@ -114,6 +114,12 @@ class DecisionOutcome:
         rejected candidate still says which way the target is
     not_visible : the model answered that the target is not visible in this frame (no goal;
         the pilot's search counts these)
+    target_world : (3,) metres, world ENU, or None: the pointed object itself, the model's
+        pixel lifted at its depth (:func:`pointed_point`; the verifier's refined pixel may lie
+        beside the object, where the goal is safe). None when there is no goal (the verifier
+        rejected the pixel) or no reading. A follower (:mod:`onfly.follow`) tracks a moving
+        person with it
+    frame_t_s : capture time of the frame the decision was made on, seconds (NaN if unknown)
     """
 
     frame_id: str
@@ -126,10 +132,30 @@ class DecisionOutcome:
     reason: str = ""
     pixel_yaw: float | None = None
     not_visible: bool = False
+    target_world: np.ndarray | None = None
+    frame_t_s: float = float("nan")
 
     @property
     def latency_s(self) -> float:
         return self.response.latency_s
+
+
+def pointed_point(uv, obs: Observation, half_px: int = 3, percentile: float = 20.0) -> np.ndarray | None:
+    """The point a pixel ``uv`` of ``obs`` shows: the ``percentile`` of the valid z-depths of the
+    ``(2 half_px + 1)^2`` window around it (a low percentile: a pointed person stands in front
+    of the background, and a pixel near their outline must not take the background's depth),
+    lifted to (3,) metres, world ENU; None when the window has no reading or the pixel is
+    outside the image."""
+    h, w = obs.depth_m.shape
+    u, v = int(round(uv[0])), int(round(uv[1]))
+    if not (0 <= u < w and 0 <= v < h):
+        return None
+    win = np.asarray(obs.depth_m[max(v - half_px, 0) : v + half_px + 1, max(u - half_px, 0) : u + half_px + 1], float)
+    vals = win[np.isfinite(win) & (win > 0)]
+    if vals.size == 0:
+        return None
+    p_cam = obs.camera.back_project(np.array([float(uv[0]), float(uv[1])]), float(np.percentile(vals, percentile)))
+    return transform_points(obs.T_world_cam, p_cam)
 
 
 def pixel_yaw(uv, obs: Observation) -> float:
@@ -206,7 +232,9 @@ class DecisionAgent:
 
         def out(parse=None, verified=None, goal=None, reason="", not_visible=False):
             yaw = pixel_yaw(parse.uv, obs) if parse is not None and parse.ok else None
-            return DecisionOutcome(obs.frame_id, subtask, response, hist, parse, verified, goal, reason, yaw, not_visible)
+            target = pointed_point(parse.uv, obs) if goal is not None else None
+            return DecisionOutcome(obs.frame_id, subtask, response, hist, parse, verified, goal, reason, yaw, not_visible,
+                                   target, float(obs.t_s))
 
         if response.status is not CallStatus.OK:
             log.info("decision call %s: %s", response.status.value, response.error)

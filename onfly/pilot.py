@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from onfly.agents import DecisionAgent, DecisionOutcome, MonitoringAgent, MonitorOutcome
+from onfly.follow import FollowConfig, Follower
 from onfly.memory import MemoryConfig, make_memory
 from onfly.observation import Observation
 from onfly.runtime import AgentRuntime, Landed
@@ -128,6 +129,7 @@ class PilotConfig:
         body radius 0.25 m + the planner's 0.45 m safety distance. None disables it.
     search : the pilot's own search when the target is not being found (``onfly.search``;
         ours, not the paper's). ``SearchConfig(enabled=False)`` is the paper's pilot.
+    follow : the follow mode for a subtask that follows a moving person (``onfly.follow``)
     """
 
     control_period_s: float = 0.1
@@ -150,6 +152,7 @@ class PilotConfig:
     esdf: EsdfConfig = field(default_factory=EsdfConfig)
     memory: MemoryConfig = field(default_factory=MemoryConfig)
     search: SearchConfig = field(default_factory=SearchConfig)
+    follow: FollowConfig = field(default_factory=FollowConfig)
 
     def __post_init__(self) -> None:
         for name in ("control_period_s", "monitor_period_s", "goal_timeout_s", "recovery_timeout_s"):
@@ -185,6 +188,7 @@ class PilotConfig:
             "esdf": EsdfConfig,
             "memory": MemoryConfig,
             "search": SearchConfig,
+            "follow": FollowConfig,
         }
         return config_from_tables(cls, data, nested, PilotConfigError, "pilot")
 
@@ -285,6 +289,7 @@ class OnFlyPilot:
         self.events: list[PilotEvent] = []
         self.volume = volume
         self.search = Search(config.search)
+        self.follow = Follower(config.follow)  # follow mode (onfly.follow)
         self._no_goal_streak = 0  # decisions in a row without a goal (current subtask)
         self._not_visible_streak = 0  # "target not visible" answers in a row
         self._rejected_streak = 0  # of the decisions without a goal, those the verifier rejected
@@ -435,6 +440,7 @@ class OnFlyPilot:
             return
         if not speculative and out.subtask != self.tasks.current:
             return  # answered about a subtask that has since advanced
+        out = self.follow.on_decision(t_s, out)  # following: the goal is the person, predicted to now
         if out.goal_world is not None and self.config.goal_min_z_m is not None and out.goal_world[2] < self.config.goal_min_z_m:
             raised = np.array(out.goal_world, float)
             raised[2] = self.config.goal_min_z_m
@@ -480,6 +486,9 @@ class OnFlyPilot:
         if out.subtask != self.tasks.current:
             return
         if self.mode is PilotMode.RECOVERING and out.status.value != Status.STOP.value:
+            return
+        if out.status.value == Status.STOP.value and self.follow.ignores_stop(out.subtask):
+            self._event(t_s, "stop_ignored", {"reason": "following without an end", "position": state.p})
             return
         status = Status(out.status.value)
         if out.judged_position is not None:
@@ -530,7 +539,7 @@ class OnFlyPilot:
             self.goal_world = None
             self._face_yaw = None
             self._hold_p = state.p.copy()
-            seen = self._last_seen
+            seen = self.follow.where_now(t_s, self._last_seen)  # following: where the person is now
             if self.config.search.enabled and seen is not None and np.linalg.norm(seen[:2] - state.p[:2]) > 0.5:
                 # turn toward where the target was last seen (ours; the paper turns to the
                 # last normal point's heading, which after a detour can face away from it)
@@ -581,6 +590,9 @@ class OnFlyPilot:
         elif self.mode is PilotMode.NAVIGATING and self.goal_world is not None:
             goal = self.goal_world
             self._hold_p = None
+            follow = self.follow.control(t_s, state.p, cfg.goal_min_z_m or 0.0)
+            if follow is not None:  # following: the standoff point, facing the person
+                goal, yaw_ref = follow
         elif (
             self.mode is PilotMode.CONFIRMING
             and self.goal_world is not None
@@ -588,6 +600,9 @@ class OnFlyPilot:
         ):
             goal = self.goal_world  # a step closer while the STOP is confirmed
             self._hold_p = None
+            follow = self.follow.control(t_s, state.p, cfg.goal_min_z_m or 0.0)
+            if follow is not None:  # following: the standoff point, facing the person
+                goal, yaw_ref = follow
         else:
             if self._hold_p is None:
                 self._hold_p = state.p.copy()
@@ -691,10 +706,13 @@ class OnFlyPilot:
 
         self.search.start(t_s, state.p, state.yaw, trigger, toward_yaw=toward, worth_scanning=worth_scanning)
         if fresh:
-            # keep going the way the vehicle was going (its heading when it was not moving),
-            # unless that way is closed
-            ahead = travel if travel is not None else state.yaw
-            self.search.heading0 = open_heading(state.p, ahead, self.esdf, clearance_m=self.config.search.explore_clearance_m)
+            # keep going the way the vehicle was going, unless that way is closed (a dead end:
+            # its heading when it stalled); a vehicle that was not under way (the start, a
+            # hover) has no way to keep: a heading chosen at take-off says nothing of the route
+            ahead = travel if travel is not None else (state.yaw if trigger is SearchTrigger.STALL else None)
+            self.search.heading0 = (
+                None if ahead is None else open_heading(state.p, ahead, self.esdf, clearance_m=self.config.search.explore_clearance_m)
+            )
         self.search.reset_stall()
         self._no_goal_streak = self._not_visible_streak = self._rejected_streak = 0
         self.goal_world = None
@@ -725,6 +743,10 @@ class OnFlyPilot:
         if target is None:
             target = explore_target(state.p, self.search.heading0, self.esdf, prefer_yaw=self._last_seen_yaw(state), **common)
             how = "ring"
+        if target is not None and self.search.heading0 is None:
+            # the first leg of a search with no way to keep sets it: later legs go on from there
+            # rather than zig-zag between frontiers on either side
+            self.search.heading0 = float(np.arctan2(target[1] - state.p[1], target[0] - state.p[0]))
         self.search.explore_from(t_s, target, state.p, state.yaw)
         self._event(t_s, "search_explore", {"target": target, "position": state.p, "how": how})
 

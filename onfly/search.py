@@ -27,8 +27,8 @@ Policy (parameters in :class:`SearchConfig`):
    (``"open_ray"``); the ring of straight legs when neither finds one. On a leg the camera
    weaves ``weave_rad`` either side of the leg's bearing (a triangle wave inside the yaw-rate
    limit), so the flight itself looks for the target over a wider field of regard than the
-   camera's; without a weave (``weave_rad = 0``) the vehicle looks a quarter turn to the side
-   with the most unknown space after each leg. Legs prefer the heading the search began with
+   camera's (off by default, see ``weave_rad``); without a weave the vehicle looks a quarter
+   turn to the side with the most unknown space after each leg. Legs prefer the heading the search began with
    when the way ahead was open then (a route goes on), and its reverse when it was not (a dead
    end: back out).
 4. **Hand back**: any decision that yields a verified goal for the current subtask ends the
@@ -131,7 +131,10 @@ class SearchConfig:
         a 90 deg camera sweeps 90 deg + twice this of the way past it; targets beside the route
         come into view without stopping to look. 0 = face the way of travel. The bearing itself
         stays inside the camera's field of view as long as this is below half of it, so the
-        vehicle never flies into space its camera does not see
+        vehicle never flies into space its camera does not see. Off by default: with 0.6 rad,
+        one of the 69 hard-set episodes ended on a column (``parking_garage-o06``, clearance
+        0.24 m on a 1.9 m leg beside it; 0.40 m without the weave), and a weave is not worth a
+        collision until the planner's clearance holds under it
     weave_period_s : period of the weave, seconds (a sweep of ``4 weave_rad`` per period: 0.3
         rad/s at the defaults, inside the paper's 0.4 rad/s yaw rate)
     cruise_z_m : altitude of exploration legs, metres (world ENU z); None = the altitude the
@@ -170,7 +173,7 @@ class SearchConfig:
     side_gain_min: float = 0.25
     min_leg_m: float = 2.5
     scan_gain_min: float = 0.3
-    weave_rad: float = 0.6
+    weave_rad: float = 0.0
     weave_period_s: float = 8.0
     cruise_z_m: float | None = None
     monitor_period_s: float = 6.0
@@ -248,9 +251,15 @@ def known_mask(field_map, points: np.ndarray) -> np.ndarray:
     return np.ones(len(points), dtype=bool)
 
 
+def _ahead(bearing: float, yaw: float | None) -> float:
+    """How much a direction ``bearing`` goes the way ``yaw`` (radians): 1 straight on ... 0
+    straight behind; 1 for every direction when there is no heading to keep (None)."""
+    return 1.0 if yaw is None else 0.5 * (1.0 + float(np.cos(wrap_angle(bearing - yaw))))
+
+
 def explore_target(
     position: np.ndarray,
-    yaw: float,
+    yaw: float | None,
     field_map,
     *,
     config: SearchConfig,
@@ -267,7 +276,8 @@ def explore_target(
     position : (3,) metres, world ENU, the vehicle now
     yaw : radians, the heading to keep going in (the direction of travel when the search
         began): a route usually goes on the way it was going, and a search that doubles back
-        re-explores where the vehicle came from
+        re-explores where the vehicle came from; None = no heading to keep (the vehicle was
+        not under way: every direction is as good)
     field_map : the distance field (``query(points) -> (d, grad)``; ``known(points)`` if it has
         knownness, see :func:`known_mask`)
     volume : the operator flight volume or None; candidates and gain samples outside it are
@@ -282,7 +292,7 @@ def explore_target(
     """
     cfg = config
     p0 = np.array([position[0], position[1], z_m], dtype=float)
-    headings = yaw + np.linspace(0.0, 2 * np.pi, cfg.explore_headings, endpoint=False)
+    headings = (yaw or 0.0) + np.linspace(0.0, 2 * np.pi, cfg.explore_headings, endpoint=False)
     best, best_score = None, -np.inf
     for th in headings:
         d = np.array([np.cos(th), np.sin(th), 0.0])
@@ -297,7 +307,7 @@ def explore_target(
             gain = unknown_fraction(cand, th, field_map, volume, cfg.gain_lookahead_m)
             # a longer leg is worth a little even into known space (progress along the route)
             value = gain + 0.1 * r / max(cfg.explore_ranges_m)
-            ahead = 0.5 * (1.0 + np.cos(wrap_angle(th - yaw)))  # 1 straight on ... 0 behind
+            ahead = _ahead(th, yaw)
             score = value * ((1.0 - cfg.forward_weight) + cfg.forward_weight * ahead)
             if len(visited):
                 near = np.linalg.norm(np.asarray(visited)[:, :2] - cand[None, :2], axis=1)
@@ -311,7 +321,7 @@ def explore_target(
 
 def open_ray_target(
     position: np.ndarray,
-    yaw: float,
+    yaw: float | None,
     field_map,
     *,
     config: SearchConfig,
@@ -337,7 +347,7 @@ def open_ray_target(
     p0 = np.array([position[0], position[1], z_m], dtype=float)
     step = 0.25
     steps = np.arange(step, cfg.open_ray_max_m + 1e-9, step)
-    headings = yaw + np.linspace(0.0, 2 * np.pi, cfg.explore_headings, endpoint=False)
+    headings = (yaw or 0.0) + np.linspace(0.0, 2 * np.pi, cfg.explore_headings, endpoint=False)
     dirs = np.stack([np.cos(headings), np.sin(headings), np.zeros_like(headings)], axis=-1)
     pts = p0[None, None, :] + steps[None, :, None] * dirs[:, None, :]  # (headings, steps, 3)
     dist, _ = field_map.query(pts.reshape(-1, 3))
@@ -355,7 +365,7 @@ def open_ray_target(
         if reach < cfg.min_leg_m:
             continue
         tgt = p0 + min(reach, cfg.open_ray_max_m) * dirs[k]
-        ahead = 0.5 * (1.0 + np.cos(wrap_angle(th - yaw)))
+        ahead = _ahead(th, yaw)
         score = (reach / cfg.open_ray_max_m) * ((1.0 - cfg.forward_weight) + cfg.forward_weight * ahead)
         if len(vis):
             d = np.linalg.norm(vis[:, :2] - tgt[None, :2], axis=1)
@@ -396,7 +406,7 @@ def _reach_grid(field_map, p0: np.ndarray, clearance_m: float, stride: int = 2):
 
 def frontier_target(
     position: np.ndarray,
-    yaw: float,
+    yaw: float | None,
     field_map,
     *,
     config: SearchConfig,
@@ -453,7 +463,7 @@ def frontier_target(
         if path_m < 1.0:
             continue  # already here: the camera sees it from where it is
         bearing = float(np.arctan2(c[1] - p0[1], c[0] - p0[0]))
-        ahead = 0.5 * (1.0 + np.cos(wrap_angle(bearing - yaw)))
+        ahead = _ahead(bearing, yaw)
         size = min(len(members), 200) / 200.0  # a doorway's band of frontier: ~100-200 voxels
         score = (0.2 + size) * ((1.0 - cfg.forward_weight) + cfg.forward_weight * ahead) / (1.0 + path_m / 8.0)
         if len(vis):
@@ -546,7 +556,7 @@ class Search:
     trigger: SearchTrigger | None = None
     started_s: float = 0.0
     searches: int = 0
-    heading0: float = 0.0
+    heading0: float | None = None
     _scan_yaws: list[float] = field(default_factory=list)
     _scan_reached_s: float | None = None
     _hold_p: np.ndarray | None = None

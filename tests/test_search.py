@@ -228,6 +228,20 @@ def test_exploration_prefers_unknown_space_and_never_leaves_the_volume():
     assert target[1] > 0.5  # toward the unknown side (the last known cells before it)
 
 
+def test_with_no_heading_to_keep_every_direction_is_judged_by_its_unknown_space_alone():
+    free = AnalyticField(half_spaces=[HalfSpace(point=[0, 0, 0], normal=[0, 0, 1])])
+    f = KnownField(free, [-4.0, -50, -1], [50, 50, 10])  # unknown only behind (x < -4)
+    p = np.array([0.0, 0.0, 1.5])
+    common = dict(config=SearchConfig(forward_weight=1.0), volume=None, volume_margin_m=0.45, visited=np.zeros((0, 3)), z_m=1.5)
+    def bearing_deg(t):
+        return abs(float(np.rad2deg(np.arctan2(t[1], t[0]))))
+
+    # keeping heading 0 (+x) with full forward weight: straight behind is worth nothing
+    assert bearing_deg(explore_target(p, 0.0, f, **common)) < 150.0
+    # no heading to keep (a search from a hover): straight into the unknown side
+    assert bearing_deg(explore_target(p, None, f, **common)) > 170.0
+
+
 def test_visited_places_are_avoided():
     free = AnalyticField(half_spaces=[HalfSpace(point=[0, 0, 0], normal=[0, 0, 1])])
     f = KnownField(free, [-50, -50, -1], [50, 50, 10])  # nothing unknown: only memory decides

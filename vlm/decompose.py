@@ -125,7 +125,7 @@ _CUT_RE = re.compile(
 _STRIP = " \t,.;:!?"
 
 #: words by which a subtask points back at the previous subtask's target
-BACK_REFERENCE_WORDS = frozenset({"it", "there", "them", "that", "this", "one"})
+BACK_REFERENCE_WORDS = frozenset({"it", "there", "them", "that", "this", "one", "him", "her"})
 _FILLER_WORDS = frozenset(MOVEMENT_VERBS) | frozenset(
     {
         "a", "about", "above", "all", "and", "around", "at", "away", "back", "behind", "below", "beside",
@@ -211,12 +211,14 @@ def _is_back_reference(subtask: str) -> bool:
     )
 
 
-_PRONOUNS = frozenset({"it", "there", "them"})
+#: pronouns that always point back (``him`` / ``her``: the person a following leg named,
+#: ``then stop next to him``)
+_PRONOUNS = frozenset({"it", "there", "them", "him", "her"})
 
 
 def opens_with_back_reference(subtask: str) -> bool:
     """Whether the subtask's first reference points back: movement verbs and function words,
-    then ``it`` / ``there`` / ``them`` (or ``that`` / ``this`` / ``one`` closed by punctuation
+    then ``it`` / ``there`` / ``them`` / ``him`` / ``her`` (or ``that`` / ``this`` / ``one`` closed by punctuation
     or the end). ``stop beside it, across from office 105`` does: its goal is the previous
     subtask's target, ``office 105`` only says where to stand; ``go to that door`` does not."""
     low = subtask.lower()

@@ -90,6 +90,8 @@ class VisibleObject:
     aliases : tuple of str, other names a person might use
     target : bool, False for what a task never names as a goal (ground, walls, roofs, the
         scene file's ``target = false``); the simulated VLM never grounds a goal on it
+    moving : bool, the instance was moving when the frame was taken (a walking actor of the
+        embedded world); a standing person or any static object is False
     """
 
     instance_id: int
@@ -97,17 +99,19 @@ class VisibleObject:
     label: str
     aliases: tuple[str, ...] = ()
     target: bool = True
+    moving: bool = False
 
     def to_dict(self) -> dict:
         """JSON form (logs, the MAVLink camera channel)."""
         return {"instance_id": int(self.instance_id), "name": self.name, "label": self.label,
-                "aliases": list(self.aliases), "target": bool(self.target)}
+                "aliases": list(self.aliases), "target": bool(self.target), "moving": bool(self.moving)}
 
     @classmethod
     def from_dict(cls, d: dict) -> "VisibleObject":
-        """Inverse of :meth:`to_dict`; ``aliases`` and ``target`` are optional (older logs
-        carry neither: every object then counts as a possible target)."""
-        return cls(int(d["instance_id"]), str(d["name"]), str(d["label"]), tuple(d.get("aliases", ())), bool(d.get("target", True)))
+        """Inverse of :meth:`to_dict`; ``aliases``, ``target`` and ``moving`` are optional
+        (older logs carry none: every object then counts as a possible target, standing)."""
+        return cls(int(d["instance_id"]), str(d["name"]), str(d["label"]), tuple(d.get("aliases", ())), bool(d.get("target", True)),
+                   bool(d.get("moving", False)))
 
 
 @dataclass(frozen=True, eq=False)

@@ -27,6 +27,25 @@ For each task:
 
 The result, a :class:`onfly.bench.tasks.Reference` per task, is written into the task files
 by ``onfly tasks check --write``.
+
+A tracking task (``kind = "track"``) is proved differently (:meth:`TaskChecker.check_track`):
+
+1. the start has clearance ``>= body_radius_m + proof_margin_m`` from the scene and from every
+   actor at ``t = 0``, lies in the bounds, and is in the task's distance band of the followed
+   actor at ``t = 0``, which is in view from it (a ray from the start to the actor's chest
+   hits the actor first, every other actor at its ``t = 0`` pose occluding);
+2. a *kinematic follower* flies the task: every ``track_dt_s`` it heads for the point at the
+   middle of the band from the actor (``track_lead_s`` ahead) on the line toward it, with the
+   vehicle's speed and acceleration limits (``track_v_max_mps``, ``track_a_max_mps2``, the
+   paper's 0.6 m/s and 0.6 m/s^2), at the start's altitude; where the task asks for a stop, it
+   closes to ``stop_radius_m - 0.5`` once the actor has walked and stands again;
+3. **proof**: that flight keeps ``>= body_radius_m + proof_margin_m`` from the scene and from
+   every actor at each instant, stays in the bounds, is in the band for at least the task's
+   ``in_band_frac`` of ``duration_s``, and, for a stop task, ends within the stop radius of the
+   standing actor.
+
+Its reference is that flight (every second), its length, its end as the goal point and the start
+as ``visible_from_m``.
 """
 
 from __future__ import annotations
@@ -99,6 +118,10 @@ class CheckerConfig:
     min_goal_distance_m: float = 7.0
     max_path_m: float = 30.0
     seed: int = 0
+    track_dt_s: float = 0.1
+    track_v_max_mps: float = 0.6
+    track_a_max_mps2: float = 0.6
+    track_lead_s: float = 1.0
 
     def __post_init__(self) -> None:
         positive = (
@@ -374,6 +397,8 @@ class TaskChecker:
 
     def check(self, task: Task) -> CheckResult:
         """Prove one task solvable (see the module docstring); never raises for a bad task."""
+        if task.track is not None:
+            return self.check_track(task)
         c = self.config
         problems: list[str] = []
         region = task.goal_region
@@ -430,6 +455,96 @@ class TaskChecker:
             {"legs": len(legs), "goal_gap_m": float(region.distance(path[-1]))},
         )
 
+    def check_track(self, task: Task) -> CheckResult:
+        """Prove a tracking task feasible (module docstring, tracking steps 1-3)."""
+        from onfly.world.actors import pose_at, poses_at
+
+        c = self.config
+        tr = task.track
+        g = self.geometry
+        problems: list[str] = []
+        actor = self.scene.object_by_name(tr.actor)
+        motion = actor.motion
+        start = task.start.position_m.astype(float)
+        a0 = pose_at(motion, 0.0)
+        d0 = float(np.hypot(*(start[:2] - a0.position_m[:2])))
+        straight = d0
+        need = c.body_radius_m + c.proof_margin_m
+        clear0 = float(g.closest(start[None], t_s=0.0)[0][0])
+        if clear0 < need:
+            problems.append(f"start has clearance {clear0:.2f} m from the scene and the actors at t = 0 (< {need:.2f})")
+        if not bool(self.scene.bounds.contains(start[None])[0]):
+            problems.append("start lies outside the scene bounds")
+        if not (tr.band_m[0] <= d0 <= tr.band_m[1]):
+            problems.append(f"start is {d0:.2f} m from {tr.actor!r} at t = 0, outside the band {list(tr.band_m)}")
+        chest = a0.position_m + np.array([0.0, 0.0, 1.1])
+        ray = np.hstack([start, chest - start]).astype(np.float32)[None]
+        hit = g.cast(ray)
+        t_hit = hit["t_hit"].astype(np.float32).copy()
+        tri = hit["primitive_ids"].astype(np.int64).copy()
+        g.cast_actors(ray, t_hit, tri, 0.0)
+        inst = g.combined_table("tri_instance")
+        seen = bool(np.isfinite(t_hit[0]) and 0 <= tri[0] < len(inst) and int(inst[tri[0]]) == actor.instance_id)
+        if not seen:
+            problems.append(f"{tr.actor!r} is not in view from the start at t = 0")
+        # the kinematic follower
+        n = int(round(tr.duration_s / c.track_dt_s))
+        t = np.arange(n + 1) * c.track_dt_s
+        P_now, _, _, moving = poses_at(motion, t)
+        P_ahead, _, _, _ = poses_at(motion, t + c.track_lead_s)
+        p = start.copy()
+        v = np.zeros(3)
+        path = [p.copy()]
+        stopped_at = None
+        for k in range(n):
+            standoff = tr.standoff_m
+            if tr.stop_radius_m is not None and not moving[k] and moving[:k].any():
+                standoff = min(standoff, tr.stop_radius_m - 0.5)
+                if float(np.hypot(*(p[:2] - P_now[k, :2]))) <= tr.stop_radius_m - 0.3 and np.linalg.norm(v) <= 0.15:
+                    stopped_at = k
+                    break
+            away = p[:2] - P_ahead[k, :2]
+            dist = float(np.hypot(*away))
+            away = away / dist if dist > 1e-9 else np.array([1.0, 0.0])
+            goal = np.array([*(P_ahead[k, :2] + standoff * away), start[2]])
+            err = goal - p
+            # brake-aware speed command toward the goal, within the speed and acceleration limits
+            dist_goal = float(np.linalg.norm(err))
+            v_cmd = np.zeros(3) if dist_goal < 1e-9 else err / dist_goal * min(c.track_v_max_mps, math.sqrt(2 * c.track_a_max_mps2 * dist_goal))
+            dv = v_cmd - v
+            dv_n = float(np.linalg.norm(dv))
+            if dv_n > c.track_a_max_mps2 * c.track_dt_s:
+                dv *= c.track_a_max_mps2 * c.track_dt_s / dv_n
+            v = v + dv
+            p = p + v * c.track_dt_s
+            path.append(p.copy())
+        path = np.array(path)
+        tt = t[: len(path)]
+        dist = np.hypot(*(path[:, :2] - P_now[: len(path), :2]).T)
+        inside = (dist >= tr.band_m[0]) & (dist <= tr.band_m[1])
+        horizon = tt[-1] if (tr.stop_radius_m is not None and stopped_at is not None) else tr.duration_s
+        frac = float(np.sum(inside[:-1]) * c.track_dt_s / horizon) if horizon > 0 else float(inside[0])
+        if frac < tr.in_band_frac:
+            problems.append(f"a kinematic follower within the speed limit is in the band only {100 * frac:.0f} % of the time "
+                            f"(the task asks {100 * tr.in_band_frac:.0f} %)")
+        if tr.stop_radius_m is not None and stopped_at is None:
+            problems.append(f"the follower does not get within the stop radius {tr.stop_radius_m} m of the standing actor in time")
+        d_static = g.closest(path)[0]
+        d_all = g.closest(path, t_s=tt)[0]
+        clear = float(min(d_static.min(), d_all.min()))
+        if clear < need:
+            k = int(np.argmin(d_all))
+            problems.append(f"the follower's flight comes {clear:.2f} m from the scene or an actor (t = {tt[k]:.1f} s; need {need:.2f})")
+        if not np.all(self.scene.bounds.contains(path)):
+            problems.append("the follower's flight leaves the scene bounds")
+        ref = None
+        if not problems:
+            keep = np.unique(np.r_[np.arange(0, len(path), max(1, int(round(1.0 / c.track_dt_s)))), len(path) - 1])
+            wp = path[keep]
+            ref = Reference(polyline_length(path), wp, path[-1].copy(), start.copy(), clear)
+        return CheckResult(task.task_id, not problems, tuple(problems), ref, straight,
+                           {"follower_in_band": frac, "follower_stopped_s": None if stopped_at is None else float(t[stopped_at])})
+
     def _via_region(self, name: str) -> GoalRegion:
         lo, hi = object_bounds(self.scene, name)
         return GoalRegion((lo + hi) / 2, (hi - lo) / 2)
@@ -441,8 +556,8 @@ def check_tasks(tasks: Sequence[Task], config: CheckerConfig | None = None, prog
     ``progress`` (optional) is anything with ``update(n)``, e.g. a tqdm bar."""
     cfg = config if config is not None else CheckerConfig()
     by_scene: dict[str, list[int]] = {}
-    for i, t in enumerate(tasks):
-        by_scene.setdefault(t.scene, []).append(i)
+    for i, t in enumerate(tasks):  # an external scene by its file, a committed one by name
+        by_scene.setdefault(str(t.scene_file) if getattr(t, "scene_file", None) is not None else t.scene, []).append(i)
     out: list[CheckResult | None] = [None] * len(tasks)
     for scene_name, idx in by_scene.items():
         checker = TaskChecker(load_scene(resolve_scene(scene_name)), cfg)

@@ -35,11 +35,16 @@ class PrivilegedGoal:
 
     center / half_extents_m : the goal box (metres, world ENU)
     waypoints : array (k, 3), a collision-free reference path ending near the goal (may be empty)
+    track : a tracking task's :class:`onfly.bench.tasks.TrackSpec`, else None
+    actor_motion : the followed actor's motion (``onfly.world.actors``), else None: its true
+        pose at any time is ``onfly.world.actors.pose_at(actor_motion, t_s)``
     """
 
     center: np.ndarray
     half_extents_m: np.ndarray
     waypoints: np.ndarray
+    track: Any = None
+    actor_motion: Any = None
 
 
 @dataclass(frozen=True, eq=False)

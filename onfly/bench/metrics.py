@@ -15,6 +15,28 @@ Definitions (paper, "Metrics"; success radius 5 m):
 
 Distances to the goal region are to the region's surface (0 inside), so a large object is
 reached when the vehicle is near any part of it.
+
+Tracking tasks (``kind = "track"``, :func:`track_metrics`) follow a moving actor. With ``d(t)``
+the *horizontal* distance from the vehicle to the actor's centre and the task's band
+``[lo, hi]``:
+
+- **time in band**: the fraction of the horizon ``H`` during which ``lo <= d <= hi``. Samples
+  are held until the next one (sample ``i`` stands for ``[t_i, t_{i+1})``). ``H`` is the task's
+  ``duration_s`` (an episode that ends early - collision, out of bounds, a stop that is not
+  asked for - counts the rest as out of band), or the episode's length when the task asks for
+  a stop and the method declared it;
+- **band error**: the time-weighted mean of ``max(lo - d, 0, d - hi)`` over the flown samples
+  (0 inside the band), metres;
+- **lost / re-found**: a maximal stretch out of the band that lasts longer than
+  ``lost_after_s`` (from its first sample to the first sample back in band, or to the end)
+  counts as *lost*; it is *re-found* when the vehicle gets back into the band. A stretch
+  before the vehicle first enters the band is the acquisition, not a loss;
+- **stop** (tasks with ``stop_radius_m``): the method declared its stop, the actor was not
+  moving at that moment but had moved before (it *has stopped*; a person who has not set off
+  yet has not), and ``d <= stop_radius_m`` then;
+- **success**: time in band ``>= in_band_frac``, no collision, and the stop where asked.
+  The classic SR of a tracking episode is this success; OSR is the time-in-band condition
+  alone (collision-free up to then), SPL is SR (no reference path applies).
 """
 
 from __future__ import annotations
@@ -24,7 +46,18 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-__all__ = ["GoalRegion", "EpisodeTrace", "EpisodeMetrics", "episode_metrics", "summarize", "MetricsError"]
+__all__ = [
+    "GoalRegion",
+    "EpisodeTrace",
+    "EpisodeMetrics",
+    "episode_metrics",
+    "summarize",
+    "MetricsError",
+    "TrackMetrics",
+    "track_metrics",
+    "summarize_track",
+    "as_track_episode",
+]
 
 
 class MetricsError(ValueError):
@@ -156,3 +189,136 @@ def summarize(metrics: Iterable[EpisodeMetrics]) -> dict[str, float]:
 
 def metrics_dict(m: EpisodeMetrics) -> dict:
     return asdict(m)
+
+
+@dataclass(frozen=True)
+class TrackMetrics:
+    """Metrics of one tracking episode (definitions in the module docstring).
+
+    in_band_frac : time in band / horizon, [0, 1]
+    band_error_m : time-weighted mean distance outside the band, metres
+    times_lost, times_refound : counts of out-of-band stretches longer than ``lost_after_s``,
+        and of those that ended back in the band
+    stop_ok : the stop condition held (None when the task asks for no stop)
+    success : in band long enough, no collision, stop where asked
+    band_ok : in band long enough (the time-in-band condition alone)
+    horizon_s : the horizon the fraction is taken over, seconds
+    min_distance_m, final_distance_m : horizontal vehicle-actor distances, metres
+    """
+
+    in_band_frac: float
+    band_error_m: float
+    times_lost: int
+    times_refound: int
+    stop_ok: bool | None
+    success: bool
+    band_ok: bool
+    horizon_s: float
+    min_distance_m: float
+    final_distance_m: float
+
+
+def track_metrics(
+    trace: EpisodeTrace,
+    actor_positions,
+    actor_moving,
+    *,
+    band_m: tuple[float, float],
+    in_band_frac: float,
+    duration_s: float,
+    lost_after_s: float,
+    stop_radius_m: float | None = None,
+) -> TrackMetrics:
+    """Tracking metrics of one episode.
+
+    Parameters
+    ----------
+    trace : the episode's trace (vehicle positions (n, 3) at ``t_s`` (n,), world ENU)
+    actor_positions : array (n, 3), the followed actor's centre at the same times, metres
+    actor_moving : bool array (n,), whether the actor was moving at each time
+    band_m, in_band_frac, duration_s, lost_after_s, stop_radius_m : the task's
+        :class:`onfly.bench.tasks.TrackSpec`
+    """
+    t = trace.t_s
+    n = t.size
+    A = np.asarray(actor_positions, float)
+    moving = np.asarray(actor_moving, bool).reshape(-1)
+    if A.shape != (n, 3) or moving.shape != (n,) or not np.all(np.isfinite(A)):
+        raise MetricsError(f"actor positions (n, 3) and moving flags (n,) for n = {n} samples required, got {A.shape} and {moving.shape}")
+    lo, hi = float(band_m[0]), float(band_m[1])
+    if not (0 < lo < hi) or not (0 < in_band_frac <= 1) or not (duration_s > 0) or not (lost_after_s > 0):
+        raise MetricsError(f"bad tracking spec: band {band_m}, fraction {in_band_frac}, duration {duration_s}, lost after {lost_after_s}")
+    d = np.linalg.norm(trace.positions[:, :2] - A[:, :2], axis=1)
+    inside = (d >= lo) & (d <= hi)
+    err = np.maximum(np.maximum(lo - d, d - hi), 0.0)
+    flown = float(t[-1] - t[0])
+    # sample i stands for [t_i, t_{i+1}); the last sample for nothing (0 s), unless it is the only one
+    w = np.diff(t) if n > 1 else np.zeros(0)
+    if stop_radius_m is not None and trace.stopped_by_method:
+        horizon = flown
+    else:
+        horizon = max(float(duration_s), flown)
+    if horizon <= 0:
+        frac = float(inside[0])
+        band_err = float(err[0])
+    else:
+        frac = float(np.sum(w * inside[:-1]) / horizon)
+        band_err = float(np.sum(w * err[:-1]) / flown) if flown > 0 else float(err[0])
+    lost = refound = 0
+    entered = bool(inside[0])
+    i = 0
+    while i < n:
+        if inside[i]:
+            entered = True
+            i += 1
+            continue
+        j = i
+        while j < n and not inside[j]:
+            j += 1
+        end_t = t[j] if j < n else t[-1]
+        if entered and end_t - t[i] > lost_after_s:
+            lost += 1
+            refound += int(j < n)
+        i = j
+    stop_ok = None
+    if stop_radius_m is not None:
+        stop_ok = bool(trace.stopped_by_method and not moving[-1] and bool(moving[:-1].any()) and d[-1] <= stop_radius_m)
+    band_ok = bool(frac >= in_band_frac - 1e-12)
+    ok = band_ok and not trace.collided and (stop_ok is None or stop_ok)
+    return TrackMetrics(
+        in_band_frac=frac,
+        band_error_m=band_err,
+        times_lost=lost,
+        times_refound=refound,
+        stop_ok=stop_ok,
+        success=bool(ok),
+        band_ok=band_ok,
+        horizon_s=float(horizon),
+        min_distance_m=float(d.min()),
+        final_distance_m=float(d[-1]),
+    )
+
+
+def as_track_episode(m: EpisodeMetrics, tm: TrackMetrics) -> EpisodeMetrics:
+    """The classic metrics of a tracking episode: SR is the tracking success, OSR the time in
+    band alone, SPL is SR (see the module docstring)."""
+    from dataclasses import replace
+
+    return replace(m, success=tm.success, oracle_success=tm.band_ok, spl=float(tm.success))
+
+
+def summarize_track(metrics: Iterable[TrackMetrics]) -> dict[str, float]:
+    """Means over tracking episodes: time in band, band error, lost and re-found counts, and the
+    share of stop episodes whose stop held (None when none asked for one)."""
+    ms = list(metrics)
+    if not ms:
+        raise MetricsError("no tracking episodes to summarize")
+    stops = [m.stop_ok for m in ms if m.stop_ok is not None]
+    return {
+        "episodes": len(ms),
+        "in_band": float(np.mean([m.in_band_frac for m in ms])),
+        "band_error_m": float(np.mean([m.band_error_m for m in ms])),
+        "lost": float(np.mean([m.times_lost for m in ms])),
+        "refound": float(np.mean([m.times_refound for m in ms])),
+        "stop_ok": float(np.mean(stops)) if stops else None,
+    }

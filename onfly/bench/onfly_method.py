@@ -96,6 +96,7 @@ class OnFlyMethod:
             "planner_fallbacks": p.planner_fallbacks,
             "search_triggers": dict(Counter(e.data.get("trigger") for e in p.events if e.kind == "search_start")),
             "goals_clamped": kinds.get("goal_clamped", 0),
+            "follow": p.follow.summary() if hasattr(p, "follow") else {},
         }
 
 

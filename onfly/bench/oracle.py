@@ -15,6 +15,14 @@ verifier-free path of the real pilot:
 - it declares the task done when the vehicle is within ``done_radius_m`` of the goal region
   (or 0.3 m beyond the reference's end, if that lies farther out) and slower than
   ``done_speed_mps``.
+
+On a tracking task (the privileged goal carries the followed actor's motion) it follows the
+actor's *true* position instead: each control period the goal is the point at the middle of
+the task's distance band from the actor (predicted ``track_lead_s`` ahead) on the line toward
+the vehicle, at the start's altitude, with the yaw reference facing the actor; the same ESDF and
+MPC fly it, so every person (the followed one included) is avoided from the camera's map. Where
+the task asks for a stop, it declares done once the actor has walked and stands again and the
+vehicle is within the stop radius (less ``0.3`` m) and slower than ``done_speed_mps``.
 """
 
 from __future__ import annotations
@@ -53,6 +61,7 @@ class OracleConfig:
     done_speed_mps : ... and below this speed, m/s
     path_step_m : spacing the reference polyline is resampled at, metres
     progress_window_m : how far ahead of the last progress point the nearest point is searched
+    track_lead_s : tracking tasks: the actor's position is taken this far ahead of now, seconds
     """
 
     lookahead_m: float = 4.0
@@ -60,6 +69,7 @@ class OracleConfig:
     done_speed_mps: float = 0.15
     path_step_m: float = 0.1
     progress_window_m: float = 6.0
+    track_lead_s: float = 1.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -131,6 +141,12 @@ class OraclePilot:
         if wp.ndim != 2 or wp.shape[1] != 3 or len(wp) < 1:
             raise OracleError(f"the oracle needs reference waypoints (k, 3), got shape {wp.shape}")
         self.region = GoalRegion(goal.center, goal.half_extents_m)
+        self.track = getattr(goal, "track", None)
+        self.actor_motion = getattr(goal, "actor_motion", None)
+        if self.track is not None and self.actor_motion is None:
+            raise OracleError("the oracle needs the followed actor's motion on a tracking task (PrivilegedGoal.actor_motion is None)")
+        self._z_m = float(spec.start_state.p[2])
+        self._actor_moved = False
         start = spec.start_state.p.astype(float)
         if np.linalg.norm(wp[0] - start) > 1e-6:
             wp = np.vstack([start, wp])
@@ -162,6 +178,8 @@ class OraclePilot:
             self._frames += 1
             self._esdf_ms.append(float(upd.total_ms))
         self._steps += 1
+        if self.track is not None:
+            return self._follow(t_s, state)
         gap = float(self.region.distance(state.p))
         speed = float(np.linalg.norm(state.v))
         if gap <= self._done_gap_m and speed <= self.config.done_speed_mps:
@@ -172,6 +190,34 @@ class OraclePilot:
         self._min_pred_clearance = min(self._min_pred_clearance, float(plan.min_predicted_clearance_m))
         self._plan_ms.append(float(plan.solve_time_ms))
         return MethodStep(plan.trajectory, False, {"carrot": carrot, "goal_gap_m": gap})
+
+    def _follow(self, t_s: float, state: VehicleState) -> MethodStep:
+        """One control period on a tracking task (module docstring)."""
+        from onfly.world.actors import pose_at
+
+        tr = self.track
+        now = pose_at(self.actor_motion, t_s)
+        ahead = pose_at(self.actor_motion, t_s + self.config.track_lead_s)
+        d_now = float(np.hypot(*(state.p[:2] - now.position_m[:2])))
+        speed = float(np.linalg.norm(state.v))
+        standoff = tr.standoff_m
+        self._actor_moved = self._actor_moved or bool(now.moving)
+        if tr.stop_radius_m is not None and not now.moving and self._actor_moved:
+            standoff = min(standoff, tr.stop_radius_m - 0.5)
+            if d_now <= tr.stop_radius_m - 0.3 and speed <= self.config.done_speed_mps:
+                return MethodStep(None, True, {"actor_distance_m": d_now})
+        away = state.p[:2] - ahead.position_m[:2]
+        dist = float(np.hypot(*away))
+        if dist < 1e-6:
+            away, dist = np.array([1.0, 0.0]), 1.0
+        goal = np.array([*(ahead.position_m[:2] + standoff * away / dist), self._z_m])
+        face = now.position_m[:2] - state.p[:2]
+        yaw = float(np.arctan2(face[1], face[0])) if np.hypot(*face) > 1e-6 else float(state.yaw)
+        plan = self.planner.step(state, goal, self.esdf, yaw_ref=yaw)
+        self._fallbacks[plan.fallback.value] += 1
+        self._min_pred_clearance = min(self._min_pred_clearance, float(plan.min_predicted_clearance_m))
+        self._plan_ms.append(float(plan.solve_time_ms))
+        return MethodStep(plan.trajectory, False, {"carrot": goal, "actor_distance_m": d_now})
 
     def summary(self) -> dict[str, Any]:
         return {

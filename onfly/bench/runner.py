@@ -44,7 +44,7 @@ import numpy as np
 from onfly import defaults
 from onfly.serialize import to_jsonable
 from onfly.bench.episode import EpisodeConfig, EpisodeResult, run_episode
-from onfly.bench.metrics import EpisodeMetrics, summarize
+from onfly.bench.metrics import EpisodeMetrics, TrackMetrics, as_track_episode, summarize, summarize_track, track_metrics
 from onfly.bench.motion import MOTION_KEYS, motion_metrics
 from onfly.bench.registry import get_factory, method_names
 from onfly.bench.tasks import KINDS, Task, load_tasks, select_tasks
@@ -377,13 +377,17 @@ def fly_task(
     -------
     (EpisodeResult, extras) : extras holds ``min_clearance_m`` (exact, to the scene mesh),
     ``failure`` (empty on success), ``motion`` (:class:`onfly.bench.motion.MotionMetrics` as a
-    dict) and ``cpu_s``.
+    dict) and ``cpu_s``; a tracking task's extras add ``track``
+    (:class:`onfly.bench.metrics.TrackMetrics` as a dict), and its episode lasts the task's
+    ``duration_s`` and its SR / OSR / SPL are the tracking ones (:func:`as_track_episode`).
     """
     if task.reference is None:
         raise ValueError(f"task {task.task_id!r} has no reference path: run `onfly tasks check --write`")
     w = dict(defaults.WORLD)
     w.update(world or {})
     ep = EpisodeConfig(**(episode or {}))
+    if task.track is not None:  # a tracking episode lasts the task's duration
+        ep = replace(ep, time_limit_s=float(task.track.duration_s))
     camera = PinholeCamera.from_fov(int(w["width_px"]), int(w["height_px"]), float(w["hfov_deg"]), float(w["vfov_deg"]))
     start = VehicleState(0.0, task.start.position_m.copy(), np.zeros(3), float(task.start.yaw_rad))
     realism = realism_profile(w.get("realism", "ideal"))
@@ -423,14 +427,31 @@ def fly_task(
         yaw[~good] = np.interp(idx[~good], idx[good], yaw[good])
     goal = task.goal_region
     motion = motion_metrics(tr.t_s, tr.positions, yaw, goal.center, goal.distance(tr.positions), ep.success_radius_m)
-    clearance = the_world.collision.clearance(tr.positions)
+    clearance = the_world.collision.clearance(tr.positions, tr.t_s)  # people at their pose then
+    track = None
+    if task.track is not None:
+        track = _track_metrics(task, the_world, tr)
+        result = replace(result, metrics=as_track_episode(result.metrics, track))
     extras = {
         "min_clearance_m": float(clearance.min()),
         "failure": _failure(result.end_reason, result.metrics),
         "motion": motion.to_dict(),
         "cpu_s": cpu_s,
     }
+    if track is not None:
+        extras["track"] = asdict(track)
     return result, extras
+
+
+def _track_metrics(task: Task, world: World, trace) -> TrackMetrics:
+    """Tracking metrics of a flown trace against the followed actor's true poses."""
+    from onfly.world.actors import poses_at
+
+    motion = world.scene.object_by_name(task.track.actor).motion
+    P, _, _, moving = poses_at(motion, np.asarray(trace.t_s, float))
+    tr = task.track
+    return track_metrics(trace, P, moving, band_m=tr.band_m, in_band_frac=tr.in_band_frac, duration_s=tr.duration_s,
+                         lost_after_s=tr.lost_after_s, stop_radius_m=tr.stop_radius_m)
 
 
 def run_job(job: EpisodeJob) -> dict:
@@ -585,6 +606,8 @@ def _block(recs: list[dict]) -> dict:
     for key in MOTION_KEYS:
         vals = [r["motion"][key] for r in recs if r.get("motion") and r["motion"].get(key) is not None]
         s[key] = float(np.mean(vals)) if vals else None
+    tracked = [TrackMetrics(**r["track"]) for r in recs if r.get("track")]
+    s["track"] = summarize_track(tracked) if tracked else None
     s["failures"] = {}
     for r in recs:
         if r["failure"]:
@@ -650,6 +673,21 @@ def format_summary(summary: dict) -> str:
             lines.append(
                 f"| {m} | {kind} | {s['episodes']} | {_pct(s['SR'])} | {_pct(s['OSR'])} | {_pct(s['CR'])} | "
                 f"{_num(s['FT'])} | {_num(s['NE'], '{:5.2f}')} | {_num(s['SPL'], '{:4.2f}')} | {_num(s['realtime_factor'], '{:5.2f}')} |"
+            )
+    tracking = [(m, b["by_kind"]["track"]) for m, b in summary["methods"].items() if (b.get("by_kind") or {}).get("track", {}).get("track")]
+    if tracking:
+        lines += [
+            "",
+            "| method | tracking episodes | SR % | CR % | time in band % | band error m | lost | re-found | stop held % |",
+            "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+        ]
+        for m, s in tracking:
+            t = s["track"]
+            stop = t.get("stop_ok")
+            stop_txt = _pct(stop)
+            lines.append(
+                f"| {m} | {s['episodes']} | {_pct(s['SR'])} | {_pct(s['CR'])} | {_pct(t['in_band'])} | {_num(t['band_error_m'], '{:5.2f}')} | "
+                f"{_num(t['lost'], '{:4.2f}')} | {_num(t['refound'], '{:4.2f}')} | {stop_txt} |"
             )
     return "\n".join(lines)
 

@@ -15,6 +15,9 @@ One TOML file per scene (``onfly/data/tasks/<scene>.toml``)::
     goal = { center_m = [11.6, 0, 0.9], half_extents_m = [0.6, 0.6, 0.6] }
     # or, for object navigation:  goal = { object = "pool ladder", margin_m = 0.2 }
     via = ["fountain"]                     # optional: objects the route passes (long-range)
+    # tracking tasks (kind = "track") follow a moving actor instead of reaching a goal:
+    # track = { actor = "person in red jacket", band_m = [1.5, 4.0], in_band_frac = 0.8,
+    #           duration_s = 60, lost_after_s = 3.0, stop_radius_m = 3.0 }   # stop_radius_m optional
 
     [tasks.reference]                      # written by `onfly tasks check --write`
     path_length_m = 17.9
@@ -26,6 +29,13 @@ One TOML file per scene (``onfly/data/tasks/<scene>.toml``)::
 World frame ENU, metres; yaw in degrees in the file, radians here. A goal given by ``object``
 is that object's axis-aligned bounds (all its parts) grown by ``margin_m``. Every target, the
 goal object and every via object must be a named object of the scene with ``target = true``.
+
+A tracking task (``kind = "track"``, :class:`TrackSpec`; ``docs/tracking.md``) names the actor
+to follow (a scene object with a motion, one of the targets), the horizontal distance band to
+keep from it, the fraction of the episode to spend in the band, the episode's length, and
+optionally a stop radius: "stop next to them when they stop". It has no ``goal`` table: its goal
+is the actor's bounds where the actor is at the end of ``duration_s`` (grown by 0.5 m), used
+only for the navigation error of the classic metrics.
 
 The reference block is the checker's proof (:mod:`onfly.bench.checker`): a collision-free
 path from the start through the via objects to ``goal_point_m`` (a free point next to the goal
@@ -55,6 +65,7 @@ __all__ = [
     "TaskFormatError",
     "StartPose",
     "GoalSpec",
+    "TrackSpec",
     "Reference",
     "Task",
     "tasks_dir",
@@ -66,7 +77,7 @@ __all__ = [
 ]
 
 TASK_FORMAT = "onfly-tasks/1"
-KINDS = ("object", "precise", "long_range")
+KINDS = ("object", "precise", "long_range", "track")
 
 
 class TaskFormatError(ValueError):
@@ -121,6 +132,46 @@ class GoalSpec:
         return GoalRegion(self.center_m, self.half_extents_m)
 
 
+@dataclass(frozen=True)
+class TrackSpec:
+    """What a tracking task asks (``kind = "track"``; definitions in :mod:`onfly.bench.metrics`).
+
+    actor : name of the scene object to follow (it has a motion)
+    band_m : (lo, hi), the horizontal distance band to keep from the actor's centre, metres
+    in_band_frac : fraction of the episode the vehicle must spend in the band, (0, 1]
+    duration_s : the episode's length (the time limit of a tracking episode), seconds
+    lost_after_s : out of the band for longer than this counts as having lost the actor
+    stop_radius_m : None, or "stop next to them when they stop": the method must declare its
+        stop after the actor has stopped, within this horizontal distance of it
+    """
+
+    actor: str
+    band_m: tuple[float, float] = (1.5, 4.0)
+    in_band_frac: float = 0.8
+    duration_s: float = 60.0
+    lost_after_s: float = 3.0
+    stop_radius_m: float | None = None
+
+    def __post_init__(self) -> None:
+        lo, hi = (float(x) for x in self.band_m)
+        if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo < hi):
+            raise ValueError(f"TrackSpec.band_m must be 0 < lo < hi, got {self.band_m!r}")
+        object.__setattr__(self, "band_m", (lo, hi))
+        if not (0 < self.in_band_frac <= 1):
+            raise ValueError(f"TrackSpec.in_band_frac must be in (0, 1], got {self.in_band_frac!r}")
+        for name in ("duration_s", "lost_after_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"TrackSpec.{name} must be positive, got {v!r}")
+        if self.stop_radius_m is not None and not (math.isfinite(self.stop_radius_m) and self.stop_radius_m > 0):
+            raise ValueError(f"TrackSpec.stop_radius_m must be positive or absent, got {self.stop_radius_m!r}")
+
+    @property
+    def standoff_m(self) -> float:
+        """The middle of the band, metres (where a follower aims)."""
+        return 0.5 * (self.band_m[0] + self.band_m[1])
+
+
 @dataclass(frozen=True, eq=False)
 class Reference:
     """The checker's result for one task (see the module docstring).
@@ -149,6 +200,7 @@ class Task:
     targets : named scene objects the instruction refers to, in order of mention
     goal : GoalSpec; start : StartPose; via : objects the route passes (long-range)
     reference : the checker's Reference, or None if the task was never checked
+    track : TrackSpec of a tracking task (``kind == "track"``), else None
     source : the file the task came from (None if built in code)
     scene_file : the scene file when the task file names one by path (an external scene; a
         relative path resolves against the task file's folder), None for a committed scene
@@ -166,6 +218,7 @@ class Task:
     reference: Reference | None = None
     source: Path | None = None
     scene_file: Path | None = None
+    track: TrackSpec | None = None
 
     @property
     def goal_region(self) -> GoalRegion:
@@ -174,7 +227,10 @@ class Task:
     def privileged_goal(self) -> PrivilegedGoal:
         """Ground truth for privileged methods (the oracle): goal box and reference waypoints."""
         wp = self.reference.waypoints_m if self.reference is not None else np.zeros((0, 3))
-        return PrivilegedGoal(self.goal.center_m.copy(), self.goal.half_extents_m.copy(), wp.copy())
+        motion = None
+        if self.track is not None:
+            motion = actor_motion(_scene(str(self.scene_file) if self.scene_file is not None else self.scene), self.track.actor)
+        return PrivilegedGoal(self.goal.center_m.copy(), self.goal.half_extents_m.copy(), wp.copy(), self.track, motion)
 
     def with_reference(self, reference: Reference | None) -> "Task":
         return replace(self, reference=reference)
@@ -269,7 +325,8 @@ def _target_object(ctx: _Ctx, scene: Scene, field: str, name: str) -> None:
         raise ctx.err(field, f"object {name!r} of scene {scene.name!r} is not a target (target = false)")
 
 
-_TASK_KEYS = ("id", "kind", "instruction", "subtasks", "targets", "goal", "start", "via", "reference")
+_TASK_KEYS = ("id", "kind", "instruction", "subtasks", "targets", "goal", "start", "via", "reference", "track")
+_TRACK_KEYS = ("actor", "band_m", "in_band_frac", "duration_s", "lost_after_s", "stop_radius_m")
 _REF_KEYS = ("path_length_m", "waypoints_m", "goal_point_m", "visible_from_m", "min_clearance_m")
 
 
@@ -303,6 +360,56 @@ def _parse_reference(ctx: _Ctx, t: Any) -> Reference:
     )
 
 
+def _parse_track(ctx: _Ctx, t: Any, scene: Scene, targets: tuple[str, ...]) -> TrackSpec:
+    if not isinstance(t, dict):
+        raise ctx.err(None, f"expected a table, got {t!r}")
+    _check_keys(ctx, t, _TRACK_KEYS)
+    actor = _string(ctx, t, "actor")
+    _target_object(ctx, scene, "actor", actor)
+    if actor not in targets:
+        raise ctx.err("actor", f"the followed actor {actor!r} must be one of the targets {list(targets)}")
+    if actor_motion(scene, actor) is None:
+        raise ctx.err("actor", f"object {actor!r} of scene {scene.name!r} does not move (it has no motion): nothing to follow")
+    band = _get(ctx, t, "band_m", [1.5, 4.0])
+    ok = isinstance(band, list) and len(band) == 2 and all(
+        not isinstance(x, bool) and isinstance(x, (int, float)) and math.isfinite(x) for x in band)
+    if not ok or not (0 < band[0] < band[1]):
+        raise ctx.err("band_m", f"expected [lo, hi] metres with 0 < lo < hi, got {band!r}")
+    frac = _number(ctx, t, "in_band_frac", 0.8, lo=0.0)
+    if not (0 < frac <= 1):
+        raise ctx.err("in_band_frac", f"must be in (0, 1], got {frac}")
+    duration = _number(ctx, t, "duration_s", 60.0, lo=0.0)
+    lost = _number(ctx, t, "lost_after_s", 3.0, lo=0.0)
+    for key, v in (("duration_s", duration), ("lost_after_s", lost)):
+        if v <= 0:
+            raise ctx.err(key, f"must be positive, got {v}")
+    stop = None
+    if "stop_radius_m" in t:
+        stop = _number(ctx, t, "stop_radius_m", lo=0.0)
+        if stop <= 0:
+            raise ctx.err("stop_radius_m", f"must be positive, got {stop}")
+    return TrackSpec(actor, (float(band[0]), float(band[1])), frac, duration, lost, stop)
+
+
+def actor_motion(scene: Scene, name: str):
+    """The motion of a named scene object (an actor), or None for a static object."""
+    return getattr(scene.object_by_name(name), "motion", None)
+
+
+def actor_bounds_at(scene: Scene, name: str, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned bounds (min (3,), max (3,)) metres, world ENU, of an actor at time ``t_s``
+    (its parts are given in its own frame, placed at its pose then)."""
+    from onfly.world.actors import pose_at
+
+    lo, hi = object_bounds(scene, name)
+    pose = pose_at(actor_motion(scene, name), float(t_s))
+    c, s = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    W = corners @ R.T + np.asarray(pose.position_m, float)
+    return W.min(axis=0), W.max(axis=0)
+
+
 def _parse_task(ctx: _Ctx, t: dict, scene: Scene, path: Path) -> Task:
     _check_keys(ctx, t, _TASK_KEYS)
     task_id = _string(ctx, t, "id")
@@ -318,7 +425,18 @@ def _parse_task(ctx: _Ctx, t: dict, scene: Scene, path: Path) -> Task:
     via = _strings(ctx, t, "via", [])
     for i, name in enumerate(via):
         _target_object(ctx, scene, f"via[{i}]", name)
-    goal = _parse_goal(ctx.sub("goal"), _get(ctx, t, "goal"), scene)
+    track = None
+    if kind == "track":
+        track = _parse_track(ctx.sub("track"), _get(ctx, t, "track"), scene, targets)
+    elif "track" in t:
+        raise ctx.err("track", f"only tasks of kind 'track' have a track table (this one is {kind!r})")
+    if track is not None and "goal" in t:
+        raise ctx.err("goal", "a tracking task has no goal table: its goal is derived from the followed actor")
+    if track is not None:
+        lo, hi = actor_bounds_at(scene, track.actor, track.duration_s)
+        goal = GoalSpec((lo + hi) / 2, (hi - lo) / 2 + 0.5, None, 0.0)
+    else:
+        goal = _parse_goal(ctx.sub("goal"), _get(ctx, t, "goal"), scene)
     if goal.object is not None and goal.object not in targets:
         raise ctx.err("goal.object", f"goal object {goal.object!r} must be one of the targets {list(targets)}")
     if "start" in t:
@@ -336,7 +454,7 @@ def _parse_task(ctx: _Ctx, t: dict, scene: Scene, path: Path) -> Task:
     ref = None
     if "reference" in t:
         ref = _parse_reference(ctx.sub("reference"), t["reference"])
-    return Task(task_id, scene.name, kind, instruction, subtasks, targets, goal, start, via, ref, path)
+    return Task(task_id, scene.name, kind, instruction, subtasks, targets, goal, start, via, ref, path, track=track)
 
 
 @functools.lru_cache(maxsize=32)
@@ -531,7 +649,14 @@ def write_task_file(path: str | Path, scene: str, tasks: Sequence[Task], header:
         yaw_deg = round(math.degrees(t.start.yaw_rad), 3)
         lines.append(f"start = {{ position_m = {_toml_vec(t.start.position_m)}, yaw_deg = {_toml_num(yaw_deg)} }}")
         g = t.goal
-        if g.object is not None:
+        if t.track is not None:
+            tr = t.track
+            items = [f"actor = {_toml_str(tr.actor)}", f"band_m = {_toml_vec(tr.band_m)}", f"in_band_frac = {_toml_num(tr.in_band_frac)}",
+                     f"duration_s = {_toml_num(tr.duration_s)}", f"lost_after_s = {_toml_num(tr.lost_after_s)}"]
+            if tr.stop_radius_m is not None:
+                items.append(f"stop_radius_m = {_toml_num(tr.stop_radius_m)}")
+            lines.append("track = { " + ", ".join(items) + " }")
+        elif g.object is not None:
             lines.append(f"goal = {{ object = {_toml_str(g.object)}, margin_m = {_toml_num(g.margin_m)} }}")
         else:
             lines.append(f"goal = {{ center_m = {_toml_vec(g.center_m)}, half_extents_m = {_toml_vec(g.half_extents_m)} }}")

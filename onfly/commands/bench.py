@@ -18,7 +18,7 @@ from pathlib import Path
 from onfly.cli import CliError
 
 #: Task kinds (as :data:`onfly.bench.tasks.KINDS`; kept here so ``--help`` imports nothing heavy).
-KINDS = ("object", "precise", "long_range")
+KINDS = ("object", "precise", "long_range", "track")
 
 NAME = "bench"
 HELP = "run the embedded benchmark (methods x tasks x runs) and print SR / OSR / CR / FT / NE / SPL"

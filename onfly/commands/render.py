@@ -24,6 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("render_out"), help="output folder (created if missing)")
     parser.add_argument("--width", type=int, default=640, help="image width in pixels")
     parser.add_argument("--height", type=int, default=427, help="image height in pixels")
+    parser.add_argument("--time", type=float, default=0.0, help="world-clock time in seconds that places the scene's moving people (default 0)")
 
 
 def parse_pose(text: str):
@@ -52,6 +53,8 @@ def run(args: argparse.Namespace) -> int:
     if args.width <= 0 or args.height <= 0:
         raise CliError(f"--width and --height must be positive, got {args.width} x {args.height}")
     pose = None if args.pose is None else parse_pose(args.pose)
+    if not math.isfinite(args.time):
+        raise CliError(f"--time must be a finite number of seconds, got {args.time}")
     import cv2
     import numpy as np
 
@@ -68,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
     p, yaw = (scene.start.position_m, scene.start.yaw_rad) if pose is None else pose
     camera = PinholeCamera.from_fov(args.width, args.height, 90.0, 60.0)
     renderer = Renderer(SceneGeometry(scene), camera)
-    result = renderer.render(cam_transform_from_body(body_transform(p, yaw)))
+    result = renderer.render(cam_transform_from_body(body_transform(p, yaw)), t_s=args.time)
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(out / "rgb.png"), result.rgb[:, :, ::-1])
@@ -78,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     cv2.imwrite(str(out / "ids_raw.png"), result.instance_ids.astype(np.uint16))
     ann = renderer.annotate(result)
     counts = np.bincount(result.instance_ids.ravel())
-    print(f"scene {scene.name}: pose ({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}) yaw {yaw:.3f} rad -> {out}/")
+    print(f"scene {scene.name}: pose ({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}) yaw {yaw:.3f} rad, t = {args.time:g} s -> {out}/")
     print(f"{'id':>5}  {'pixels':>7}  {'label':<16} name")
     for iid, vo in sorted(ann.objects.items(), key=lambda kv: -counts[kv[0]]):
         print(f"{iid:>5}  {counts[iid]:>7}  {vo.label:<16} {vo.name}")

@@ -23,12 +23,14 @@ def run(args: argparse.Namespace) -> int:
     for name in list_scenes():
         path = resolve_scene(name)
         scene = load_scene(path)
+        geometry = SceneGeometry(scene)
         rows.append(
             {
                 "name": scene.name,
                 "objects": len(scene.objects),
                 "targets": len(scene.targets),
-                "triangles": SceneGeometry(scene).triangle_count,
+                "actors": len(scene.actors),
+                "triangles": geometry.total_triangle_count,
                 "bounds_min_m": scene.bounds.min_m.tolist(),
                 "bounds_max_m": scene.bounds.max_m.tolist(),
                 "start_m": scene.start.position_m.tolist(),
@@ -39,11 +41,11 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(rows, indent=2))
         return 0
-    print(f"{'scene':<14} {'objects':>7} {'targets':>7} {'triangles':>9}  bounds (min .. max, m)")
+    print(f"{'scene':<18} {'objects':>7} {'targets':>7} {'actors':>6} {'triangles':>9}  bounds (min .. max, m)")
     for r in rows:
         lo = ", ".join(f"{v:g}" for v in r["bounds_min_m"])
         hi = ", ".join(f"{v:g}" for v in r["bounds_max_m"])
-        print(f"{r['name']:<14} {r['objects']:>7} {r['targets']:>7} {r['triangles']:>9}  ({lo}) .. ({hi})")
+        print(f"{r['name']:<18} {r['objects']:>7} {r['targets']:>7} {r['actors']:>6} {r['triangles']:>9}  ({lo}) .. ({hi})")
         if args.objects:
             print("    " + "; ".join(r["target_names"]))
     return 0

@@ -17,7 +17,7 @@ from pathlib import Path
 from onfly.cli import CliError
 
 #: Task kinds (as :data:`onfly.bench.tasks.KINDS`; kept here so ``--help`` imports nothing heavy).
-KINDS = ("object", "precise", "long_range")
+KINDS = ("object", "precise", "long_range", "track")
 
 NAME = "tasks"
 HELP = "list the benchmark tasks or check that each is solvable (and write the reference paths)"

@@ -316,7 +316,7 @@ class WorldVehicleModel:
         with self._frame_lock:
             index = self._frame_index
             self._frame_index += 1
-        r = renderer.render(self.world.T_world_cam(s), noise_key=index)
+        r = renderer.render(self.world.T_world_cam(s), noise_key=index, t_s=float(s.t_s))
         return Observation(
             t_s=float(s.t_s),
             rgb=r.rgb,
@@ -365,7 +365,7 @@ class WorldVehicleModel:
         self._state = VehicleState(t, p, np.array([s.v[0], s.v[1], vz]), s.yaw)
 
     def _check_contacts(self, times: np.ndarray, pos: np.ndarray) -> bool:
-        d, q, inst = self.world.geometry.closest(pos)
+        d, q, inst = self.world.geometry.closest(pos, t_s=times)  # actors at their poses then
         ground = q[:, 2] <= self.ground_z_m + 1e-3
         bad = np.flatnonzero((d < self.radius_m) & ~ground)
         if len(bad) == 0:

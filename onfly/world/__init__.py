@@ -4,6 +4,7 @@ See ``docs/scene_format.md`` for the scene files, ``docs/realism.md`` for the re
 (``ideal``, ``realistic``, ``realistic_calm``) and ``DESIGN.md`` ("The embedded world").
 """
 
+from onfly.world.actors import ActorPose, CircleMotion, Motion, MotionFormatError, PathMotion, Waypoint, parse_motion, pose_at, positions_at
 from onfly.world.clock import DECISION, MONITORING, LatencyModel, PendingCall, SimClock
 from onfly.world.collision import Collision, CollisionChecker
 from onfly.world.geometry import SceneGeometry
@@ -14,6 +15,15 @@ from onfly.world.vehicle import SimVehicle, VehicleConfig
 from onfly.world.world import EpisodeEndedError, World, WorldStep
 
 __all__ = [
+    "ActorPose",
+    "CircleMotion",
+    "Motion",
+    "MotionFormatError",
+    "PathMotion",
+    "Waypoint",
+    "parse_motion",
+    "pose_at",
+    "positions_at",
     "DECISION",
     "MONITORING",
     "Collision",

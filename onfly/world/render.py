@@ -11,6 +11,12 @@ pattern evaluated at the world hit point: ``1 - contrast * level / 15`` with the
 for stripes and checker and one of 16 random levels per cell for noise. Rays that hit nothing
 get the scene's sky colour, depth 0 (no reading) and ids 0.
 
+Actors (objects with a motion, :mod:`onfly.world.actors`) are not part of the static
+ray-casting structure: each has its own, built once in its own frame. Per frame, the rays that
+pass its bounding sphere are moved into the actor frame at its pose at ``t_s`` (a rigid
+transform, so hit distances are unchanged) and cast; the nearer of the static and actor hits
+wins per pixel (depth, ids, shading). Nothing is rebuilt when actors move.
+
 Depth sensor-noise model (:class:`DepthNoise`, off by default), applied to depth only:
 axial Gaussian noise with ``sigma(z) = sigma_base_m + sigma_quadratic_per_m * z**2`` (the
 quadratic growth of stereo / structured-light RMS error), independent per-pixel dropout with
@@ -158,12 +164,21 @@ class Renderer:
         self._light = scene.light.direction.astype(np.float32)
         self._ambient = np.float32(scene.light.ambient)
         self._sky = scene.sky_color.astype(np.uint8)
-        # per-triangle tables with one extra "sky" row at index triangle_count
-        self._tri_instance = np.append(geometry.tri_instance, 0).astype(np.int32)
-        self._tri_label = np.append(geometry.tri_label, 0).astype(np.int32)
-        self._tri_texture = np.append(geometry.tri_texture, 0).astype(np.int8)
-        self._tri_material = np.append(geometry.tri_material, 0).astype(np.uint8)
-        prm = geometry.tri_tex_params
+        # per-triangle tables over the static triangles then each actor's (SceneGeometry.
+        # combined_table), with one extra "sky" row at index m (the total triangle count)
+        g = geometry
+        self._m = g.total_triangle_count
+        self._tri_instance = np.append(g.combined_table("tri_instance"), 0).astype(np.int32)
+        self._tri_label = np.append(g.combined_table("tri_label"), 0).astype(np.int32)
+        self._tri_texture = np.append(g.combined_table("tri_texture"), 0).astype(np.int8)
+        self._tri_material = np.append(g.combined_table("tri_material"), 0).astype(np.uint8)
+        self._tri_color = g.combined_table("tri_color").astype(np.float32)
+        # normals and first vertices: static ones in the world; actor ones in their own frames,
+        # moved to the pose of the frame being rendered (render() never mutates the renderer,
+        # so threads may share it)
+        self._tri_normal = g.combined_table("tri_normal").astype(np.float32)
+        self._tri_v0 = g.combined_table("tri_v0").astype(np.float32)
+        prm = g.combined_table("tri_tex_params")
         self._tex_inv_period = np.where(prm[:, 0] > 0, 1.0 / np.where(prm[:, 0] > 0, prm[:, 0], 1.0), 0.0).astype(np.float32)
         self._tex_contrast = np.append(prm[:, 1], 0.0).astype(np.float32)  # sky row: no texture
         self._tex_axis = np.argmax(np.abs(prm[:, 2:5]), axis=1).astype(np.intp)
@@ -183,24 +198,28 @@ class Renderer:
         )
         return rays.numpy().reshape(-1, 6)
 
-    def render(self, T_world_cam, *, noise_key: int = 0) -> RenderResult:
+    def render(self, T_world_cam, *, noise_key: int = 0, t_s: float = 0.0) -> RenderResult:
         """Render RGB, z-depth and id images.
 
         Parameters
         ----------
         T_world_cam : (4, 4), camera optical frame -> world ENU
         noise_key : int, frame key for the depth-noise draw (ignored when noise is off)
+        t_s : float, world-clock time that places the actors (scenes without actors ignore it)
         """
         T = check_transform(T_world_cam, "T_world_cam")
         H, W = self.camera.height, self.camera.width
         buf = self.world_rays(T)
         hits = self.geometry.cast(buf, threads=self.config.threads)
-        g = self.geometry
-        m = g.triangle_count
+        m = self._m
         # Misses carry primitive id 2^32 - 1: clamp them onto the sky row (index m) of the
         # per-triangle tables so every per-pixel lookup is one gather, without boolean masks.
         tri = np.minimum(hits["primitive_ids"], m).astype(np.intp)
         t_hit = hits["t_hit"]
+        if self.geometry.actors:
+            # each actor is cast in its own frame against its own structure; nearest hit wins
+            self.geometry.cast_actors(buf, t_hit, tri, float(t_s), threads=self.config.threads,
+                                      candidates=self._sphere_pixels(T))
         depth = t_hit.copy()  # rays have unit optical z: t is the z-depth
         depth[tri == m] = 0.0
         inst = np.take(self._tri_instance, tri)
@@ -208,7 +227,7 @@ class Renderer:
         # Flat shading is per triangle and texture brightness is quantized to _LEVELS levels,
         # so the colour of every (triangle, level) pair is tabulated once per frame and the
         # image is one gather.
-        lut = self._colour_table(T[:3, 3])
+        lut = self._colour_table(T[:3, 3], float(t_s))
         index = tri * _LEVELS
         textured = np.flatnonzero(np.take(self._tri_texture, tri)) if self.config.textures else ()
         if len(textured):
@@ -239,18 +258,58 @@ class Renderer:
             depth = self.config.depth_noise.apply(depth, noise_key)
         return RenderResult(rgb.reshape(H, W, 3), depth, inst.reshape(H, W), sem.reshape(H, W), T, exact)
 
-    def _colour_table(self, camera_m: np.ndarray) -> np.ndarray:
+    def _sphere_pixels(self, T_world_cam: np.ndarray):
+        """``f(centre_m, radius_m)`` -> row-major pixel indices of a rectangle that holds the
+        image of a world sphere: the range of ``x / z`` and ``y / z`` (optical frame) over the
+        sphere's bounding cube cut to ``z > 0`` (every camera ray has optical ``z`` = 1), one
+        pixel of margin; empty when the sphere is behind the camera or outside the image."""
+        cam = self.camera
+        R, p = T_world_cam[:3, :3], T_world_cam[:3, 3]
+        H, W = cam.height, cam.width
+        fx, fy, cx, cy = cam.fx, cam.fy, cam.cx, cam.cy
+        empty = np.zeros(0, dtype=np.intp)
+
+        def pixels(centre_m: np.ndarray, radius_m: float):
+            c = R.T @ (np.asarray(centre_m, float) - p)  # camera optical frame
+            z1 = c[2] + radius_m
+            if z1 <= 0:
+                return empty
+            z0 = max(c[2] - radius_m, 1e-6)
+            # x / z and y / z are monotonic in each variable on the cube: extremes at its corners
+            xs = ((c[0] - radius_m) / z0, (c[0] - radius_m) / z1, (c[0] + radius_m) / z0, (c[0] + radius_m) / z1)
+            ys = ((c[1] - radius_m) / z0, (c[1] - radius_m) / z1, (c[1] + radius_m) / z0, (c[1] + radius_m) / z1)
+            u_lo, u_hi = fx * min(xs) + cx, fx * max(xs) + cx
+            v_lo, v_hi = fy * min(ys) + cy, fy * max(ys) + cy
+            if u_hi < -1 or v_hi < -1 or u_lo > W or v_lo > H:
+                return empty
+            u0, u1 = max(int(np.floor(u_lo)) - 1, 0), min(int(np.ceil(u_hi)) + 1, W - 1)
+            v0, v1 = max(int(np.floor(v_lo)) - 1, 0), min(int(np.ceil(v_hi)) + 1, H - 1)
+            if u0 > u1 or v0 > v1:
+                return empty
+            return (np.arange(v0, v1 + 1, dtype=np.intp)[:, None] * W + np.arange(u0, u1 + 1, dtype=np.intp)[None, :]).ravel()
+
+        return pixels
+
+    def _colour_table(self, camera_m: np.ndarray, t_s: float = 0.0) -> np.ndarray:
         """uint8 RGB of every triangle at every texture level seen from ``camera_m`` (3,):
         shape ((m + 1) * _LEVELS, 3), row ``tri * _LEVELS + level``; the last block is the sky.
+        Actor rows use the actors' poses at ``t_s``.
 
         Lambert shading with the face normal turned towards the camera; level ``l`` scales the
         colour by ``1 - contrast * l / (_LEVELS - 1)``.
         """
-        g = self.geometry
-        facing = np.sign(np.einsum("ij,ij->i", g.tri_normal, camera_m.astype(np.float32) - g.tri_v0))
-        lam = self._ambient + (1.0 - self._ambient) * np.maximum(facing * np.einsum("ij,j->i", g.tri_normal, self._light), 0.0)
-        colour = np.empty((g.triangle_count + 1, 3), dtype=np.float32)
-        colour[:-1] = g.tri_color * lam[:, None]
+        nrm, v0 = self._tri_normal, self._tri_v0
+        if self.geometry.actors:
+            nrm, v0 = nrm.copy(), v0.copy()
+            for a in self.geometry.actors:
+                T = a.pose(t_s).T_world_actor.astype(np.float32)
+                rows = slice(a.tri_offset, a.tri_offset + len(a.triangles))
+                nrm[rows] = a.tables["tri_normal"] @ T[:3, :3].T
+                v0[rows] = a.tables["tri_v0"] @ T[:3, :3].T + T[:3, 3]
+        facing = np.sign(np.einsum("ij,ij->i", nrm, camera_m.astype(np.float32) - v0))
+        lam = self._ambient + (1.0 - self._ambient) * np.maximum(facing * np.einsum("ij,j->i", nrm, self._light), 0.0)
+        colour = np.empty((self._m + 1, 3), dtype=np.float32)
+        colour[:-1] = self._tri_color * lam[:, None]
         colour[-1] = self._sky.astype(np.float32) / 255.0
         factor = 1.0 - self._tex_contrast[:, None] * np.linspace(0.0, 1.0, _LEVELS, dtype=np.float32)
         table = colour[:, None, :] * factor[:, :, None] * 255.0 + 0.5

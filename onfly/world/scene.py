@@ -22,6 +22,8 @@ from typing import Any, Union
 
 import numpy as np
 
+from onfly.world.actors import Motion, MotionFormatError, parse_motion
+
 __all__ = [
     "SceneFormatError",
     "Bounds",
@@ -260,6 +262,10 @@ class SceneObject:
     texture : optional Texture
     parts : one or more Part
     material : one of :data:`MATERIALS` (default ``"opaque"``); a part may override it
+    motion : a :class:`onfly.world.actors.PathMotion` or ``CircleMotion``, or None. An object
+        with a motion is an *actor*: its parts are written in its own frame (origin on the
+        ground between the feet, x forward, z up) and placed at the motion's pose at each
+        instant (``onfly.world.actors``); without one, parts are in the world frame.
     """
 
     name: str
@@ -271,6 +277,12 @@ class SceneObject:
     target: bool = True
     texture: Texture | None = None
     material: str = DEFAULT_MATERIAL
+    motion: Motion | None = None
+
+    @property
+    def is_actor(self) -> bool:
+        """True for an object that moves (it has a motion)."""
+        return self.motion is not None
 
     def part_material(self, part: Part) -> str:
         """The material of one of this object's parts (its own, else the object's)."""
@@ -296,6 +308,16 @@ class Scene:
     def label_ids(self) -> dict[str, int]:
         """Semantic label -> id (1..K, labels sorted alphabetically; 0 is background)."""
         return {lab: i + 1 for i, lab in enumerate(sorted({o.label for o in self.objects}))}
+
+    @property
+    def actors(self) -> tuple[SceneObject, ...]:
+        """Objects that move (with a motion), in file order."""
+        return tuple(o for o in self.objects if o.motion is not None)
+
+    @property
+    def static_objects(self) -> tuple[SceneObject, ...]:
+        """Objects that never move, in file order."""
+        return tuple(o for o in self.objects if o.motion is None)
 
     @property
     def targets(self) -> tuple[SceneObject, ...]:
@@ -512,7 +534,7 @@ def _parse_shape(ctx: _Ctx, t: dict, base_dir: Path) -> Shape:
 
 
 _SHAPE_TYPES_SET = frozenset(SHAPE_TYPES)
-_OBJECT_KEYS = ("name", "label", "instance_id", "color", "aliases", "target", "texture", "material", "parts")
+_OBJECT_KEYS = ("name", "label", "instance_id", "color", "aliases", "target", "texture", "material", "motion", "parts")
 _TEXTURE_KEYS = ("pattern", "period_m", "contrast", "axis", "seed")
 
 
@@ -571,7 +593,15 @@ def _parse_object(ctx: _Ctx, t: dict, base_dir: Path) -> SceneObject:
             raise ctx.err(f"parts[{i}]", f"expected a table, got {_type_name(p)}")
         shape = _parse_shape(pctx, p, base_dir)
         parts.append(Part(shape, _color(pctx, p, "color", None), _material(pctx, p, None)))
-    return SceneObject(name, label, iid, color, tuple(parts), tuple(aliases), target, texture, material)
+    motion = None
+    if "motion" in t:
+        try:
+            motion = parse_motion(t["motion"])
+        except MotionFormatError as exc:
+            raise ctx.err("motion" if exc.field is None else f"motion.{exc.field}", exc.detail) from None
+        if texture is not None:
+            raise ctx.err("texture", "an actor (an object with a motion) cannot have a texture: patterns are fixed to world coordinates")
+    return SceneObject(name, label, iid, color, tuple(parts), tuple(aliases), target, texture, material, motion)
 
 
 _TOP_KEYS = ("format", "name", "description", "indoor", "bounds", "start", "light", "sky_color", "objects")

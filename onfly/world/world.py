@@ -12,6 +12,11 @@ out-of-bounds check and the rendered view use the true pose; what a pilot reads
 (:attr:`World.estimate`, the ``T_world_cam`` of each :class:`Observation`) is the odometry's
 estimate. Under ``ideal`` the estimate *is* the truth and every frame arrives at once, so the
 world behaves exactly as before profiles existed.
+
+Actors (objects with a motion, :mod:`onfly.world.actors`) move on the world clock: the view is
+rendered and the swept path is checked with every actor at its pose at that instant
+(:meth:`World.actor_pose`). The pilot never reads actor poses; they are ground truth for the
+world, the metrics and privileged oracles.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from onfly.observation import Observation
+from onfly.world.actors import ActorPose
 from onfly.world.clock import LatencyModel, PendingCall, SimClock
 from onfly.world.collision import Collision, CollisionChecker
 from onfly.world.geometry import SceneGeometry
@@ -134,6 +140,32 @@ class World:
         return VehicleState(s.t_s, s.p + self.odometry.offset_m + dp, s.v, wrap_angle(s.yaw + dyaw), s.yaw_rate, s.a)
 
     @property
+    def actor_ids(self) -> tuple[int, ...]:
+        """Instance ids of the actors (objects with a motion), in scene order."""
+        return tuple(a.instance_id for a in self.geometry.actors)
+
+    def actor_pose(self, actor: int | str, t_s: float | None = None) -> ActorPose:
+        """The true pose of an actor at ``t_s`` (default: now on the world clock).
+
+        ``actor`` is its instance id or its name. Raises KeyError naming the actors when it is
+        not one (a static object or no object)."""
+        iid = actor
+        if isinstance(actor, str):
+            try:
+                iid = self.scene.object_by_name(actor).instance_id
+            except KeyError:
+                iid = None
+        if iid is None or int(iid) not in self.actor_ids:
+            names = ", ".join(repr(a.obj.name) for a in self.geometry.actors) or "(none)"
+            raise KeyError(f"{actor!r} is not an actor of scene {self.scene.name!r}; actors: {names}")
+        return self.geometry.actor(int(iid)).pose(self.clock.now_s if t_s is None else float(t_s))
+
+    def actor_poses(self, t_s: float | None = None) -> dict[int, ActorPose]:
+        """Every actor's true pose at ``t_s`` (default: now): instance id -> ActorPose."""
+        t = self.clock.now_s if t_s is None else float(t_s)
+        return {a.instance_id: a.pose(t) for a in self.geometry.actors}
+
+    @property
     def collided(self) -> Collision | None:
         """The collision that ended the episode, or None."""
         return self._collision
@@ -176,8 +208,9 @@ class World:
         return r
 
     def render(self, camera: PinholeCamera | None = None) -> RenderResult:
-        """Render the current view (advances the frame counter that keys depth noise)."""
-        result = self.renderer_for(camera).render(self.T_world_cam(), noise_key=self._frame_index)
+        """Render the current view, actors at their poses now (advances the frame counter that
+        keys depth noise)."""
+        result = self.renderer_for(camera).render(self.T_world_cam(), noise_key=self._frame_index, t_s=self.clock.now_s)
         self._frame_index += 1
         return result
 
@@ -199,8 +232,17 @@ class World:
             camera=renderer.camera,
             frame_id=f"{self.scene.name}/{index:06d}",
             T_body_cam=self.T_body_cam,
-            annotation=renderer.annotate(r),
+            annotation=self._annotate_motion(renderer.annotate(r)),
         )
+
+    def _annotate_motion(self, ann):
+        """Mark the visible actors that are moving now (``VisibleObject.moving``: what the
+        simulated VLM sees of a walking person; ``vlm.sim.error_model``, Following)."""
+        moving = {iid for iid in self.actor_ids if iid in ann.objects and self.actor_pose(iid).moving}
+        if not moving:
+            return ann
+        objects = {i: (replace(o, moving=True) if i in moving else o) for i, o in ann.objects.items()}
+        return replace(ann, objects=objects)
 
     # -- frame delivery (drops and latency of a realism profile) ---------------------------------
 

@@ -21,6 +21,7 @@ from typing import Sequence
 import numpy as np
 
 from vlm.decompose import CLOSING_ONLY_WORDS, opens_with_back_reference, split_instruction
+from vlm.following import follow_intent
 from vlm.prompts import (
     SPF_MAX_DEPTH_M,
     DecisionPrompt,
@@ -63,7 +64,7 @@ log = logging.getLogger(__name__)
 
 _STATUSES = ("CONTINUE", "STOP", "LOST")
 #: words by which a leg of an instruction refers back to the previous leg's target
-_BACK_REFERENCES = frozenset({"it", "its", "there", "them", "that", "this"})
+_BACK_REFERENCES = frozenset({"it", "its", "there", "them", "that", "this", "him", "her"})
 #: the TypeFly sim's exploration move after a full find turn without the target, metres
 TYPEFLY_EXPLORE_M = 3.0
 
@@ -78,6 +79,7 @@ class Perception:
     region : Region of that object, or None
     perceived : bool, False if there is none or it was missed
     small, far : bool, the miss conditions that applied
+    moving : bool, the perceived object is moving in this frame (a walking person)
     """
 
     named_id: int | None
@@ -85,6 +87,7 @@ class Perception:
     perceived: bool
     small: bool = False
     far: bool = False
+    moving: bool = False
 
 
 @dataclass(frozen=True)
@@ -243,7 +246,7 @@ class SimulatedVlm:
         rng = keyed_rng(self.seed, "miss", image.frame_id, iid)
         u_small, u_far = rng.random(2)
         missed = (small and u_small < self.model.miss_prob_small) or (far and u_far < self.model.miss_prob_far)
-        return Perception(iid, region, not missed, small, far)
+        return Perception(iid, region, not missed, small, far, bool(getattr(ann.objects[iid], "moving", False)))
 
     # -- decision -------------------------------------------------------------------------------
     def _decide(self, prompt: DecisionPrompt, image: VlmImage, structured: bool) -> str:
@@ -345,7 +348,7 @@ class SimulatedVlm:
         seen = [self._leg_perceptions(legs, img)[-1] for img in images]
         latest = seen[-1]
         window = m.lost_window_frames
-        if latest.perceived and latest.region.median_depth_m < m.stop_distance_m + m.stop_offset_m + jitter:
+        if self._complete(prompt.subtask, latest, jitter, seen[:-1]):
             status = "STOP"
         elif len(seen) > window and not any(p.perceived for p in seen[-window:]) and any(p.perceived for p in seen[:-window]):
             status = "LOST"
@@ -371,6 +374,20 @@ class SimulatedVlm:
         return bool(
             per is not None and per.perceived and per.region.median_depth_m < m.stop_distance_m + m.stop_offset_m + jitter_m
         )
+
+    def _complete(self, text: str, per: Perception | None, jitter_m: float, earlier: Sequence[Perception] = ()) -> bool:
+        """The completion rule of a text's last leg (monitoring STOP and every baseline's stop
+        interface): the stop rule (:meth:`_close`); for a following text
+        (:func:`vlm.following.follow_intent`) only when it follows *until the target stops*,
+        the target stands still in this frame and was seen walking in an ``earlier`` frame of
+        the same prompt (a prompt with one image cannot tell that a standing person has
+        stopped). A following task without an end is never complete."""
+        if not self._close(per, jitter_m):
+            return False
+        intent = follow_intent(text)
+        if intent is None:
+            return True
+        return intent.until_stop and not per.moving and any(p.perceived and p.moving for p in earlier)
 
     @staticmethod
     def _legs(instruction: str) -> list[str]:
@@ -406,7 +423,7 @@ class SimulatedVlm:
         pers = self._leg_perceptions(legs, image)
         final = len(legs) - 1
         if pers[final].perceived:
-            return LegTarget(final, pers[final], True, self._close(pers[final], jitter_m))
+            return LegTarget(final, pers[final], True, self._complete(instruction, pers[final], jitter_m))
         seen = [k for k, p in enumerate(pers) if p.perceived]
         if not seen:
             return LegTarget(0, None, final == 0, False)
@@ -510,7 +527,7 @@ class SimulatedVlm:
         # detector's scene description only
         reached = self._leg_perceptions(legs, image)
         detected = _detected_per_leg(legs, prompt.objects, image.annotation)
-        if self._close(reached[final], jitter):
+        if self._complete(prompt.instruction, reached[final], jitter):
             program = "stop"
         else:
             seen = [k for k, d in enumerate(detected) if d is not None]

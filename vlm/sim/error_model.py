@@ -95,6 +95,19 @@ Monitoring (``CONTINUE`` / ``STOP`` / ``LOST``, images ``[first, *keyframes, lat
       earlier frame of the memory;
     - CONTINUE otherwise (including subtasks that name no visible object at all).
 
+    *Following* (a subtask that follows someone who moves, :func:`vlm.following.follow_intent`:
+    ``follow the person in the red jacket``): being near the person does not complete it. A
+    following subtask with an end (``... until he stops, then stop next to him``) is complete
+    by the STOP rule above only when the target also *stands still* in the latest frame
+    (:attr:`vlm.types.VisibleObject.moving` is False) after it was seen *walking* in an
+    earlier image of the same prompt (it has stopped; a person who has not set off yet has
+    not). A baseline prompt shows one image, so it never sees a person stop: on such a task
+    its stop interface never fires. One without an end is never complete (CONTINUE or LOST). Telling a walking from a standing person is within what current video
+    VLMs do (MVBench's action and moving-attribute tasks: K. Li et al., "MVBench: A
+    Comprehensive Multi-modal Video Understanding Benchmark", CVPR 2024); the per-call
+    ``status_error_prob`` flip applies as to every status. The same rule is the completion of
+    every baseline prompt below (``depth 0``, PIVOT ``stop``, TypeFly ``stop``).
+
     With probability ``status_error_prob`` the answer is replaced by one of the two other
     statuses, uniformly.
 
