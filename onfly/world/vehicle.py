@@ -147,8 +147,20 @@ class SimVehicle:
         _, _, a_r, _, yaw_rate_r = self._traj.sample(self._t + 0.5 * h)
         return p_r, v_r, a_r, yaw_r, yaw_rate_r
 
-    def _substep_realistic(self, h: float) -> None:
+    def _advance(self, a: np.ndarray, yaw_r: float, yaw_rate_r: float, h: float) -> None:
+        """Integrate ``h`` seconds under the body acceleration ``a`` (3,) m/s^2 (held), and the
+        yaw loop toward ``yaw_r`` with feed-forward ``yaw_rate_r`` (rate-limited)."""
         c = self.config
+        self._p = self._p + self._v * h + 0.5 * a * h * h
+        self._v = self._v + a * h
+        self._a = a
+        rate = yaw_rate_r + c.k_yaw_per_s * wrap_angle(yaw_r - self._yaw)
+        rate = float(np.clip(rate, -c.yaw_rate_max_radps, c.yaw_rate_max_radps))
+        self._yaw = wrap_angle(self._yaw + rate * h)
+        self._yaw_rate = rate
+        self._t += h
+
+    def _substep_realistic(self, h: float) -> None:
         ctl = self.controller
         p_est = self._p + self.estimate_offset_m
         if self._traj is None:
@@ -167,14 +179,7 @@ class SimVehicle:
         if self.gusts is not None:
             self.gusts.step(h)
             a = a + self.gusts.acceleration()
-        self._p = self._p + self._v * h + 0.5 * a * h * h
-        self._v = self._v + a * h
-        self._a = a
-        rate = yaw_rate_r + c.k_yaw_per_s * wrap_angle(yaw_r - self._yaw)
-        rate = float(np.clip(rate, -c.yaw_rate_max_radps, c.yaw_rate_max_radps))
-        self._yaw = wrap_angle(self._yaw + rate * h)
-        self._yaw_rate = rate
-        self._t += h
+        self._advance(a, yaw_r, yaw_rate_r, h)
 
     def _substep(self, h: float) -> None:
         if self.controller is not None:
@@ -194,14 +199,7 @@ class SimVehicle:
                 a = -self._v / np.linalg.norm(self._v) * c.a_max_mps2
             else:
                 a = _clip_norm((_clip_norm(v_next, c.v_max_mps) - self._v) / h, c.a_max_mps2)
-        self._p = self._p + self._v * h + 0.5 * a * h * h
-        self._v = self._v + a * h
-        self._a = a
-        rate = yaw_rate_r + c.k_yaw_per_s * wrap_angle(yaw_r - self._yaw)
-        rate = float(np.clip(rate, -c.yaw_rate_max_radps, c.yaw_rate_max_radps))
-        self._yaw = wrap_angle(self._yaw + rate * h)
-        self._yaw_rate = rate
-        self._t += h
+        self._advance(a, yaw_r, yaw_rate_r, h)
 
     def step(self, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
         """Advance by ``dt_s`` seconds in fixed steps of ``config.step_s`` (a shorter last step
