@@ -296,7 +296,6 @@ class OnFlyPilot:
         self._answered_s = -np.inf  # when the decision agent last gave a parseable answer
         self._last_seen: np.ndarray | None = None  # last verified goal of the current subtask
         self._start_z: float | None = None  # altitude at the first tick (the search's cruise default)
-        self._search_paused = False  # a STOP heard while searching: resume if it is withdrawn
         self._pending_decomposition = None  # the decomposition call, until it is submitted
 
     # -- lifecycle ------------------------------------------------------------------------------
@@ -498,8 +497,8 @@ class OnFlyPilot:
             event = self.tasks.on_status(status, t_s, state.p, state.yaw)
         if event is TaskEvent.NONE and status is Status.STOP:
             if self.mode is not PilotMode.CONFIRMING:
-                # a search is paused, not ended: a STOP that is withdrawn resumes it where it was
-                self._search_paused = self.search.active
+                # a search is paused, not ended (nothing starts or ends one while confirming but
+                # a task event): a STOP that is withdrawn resumes it where it was
                 self.mode = PilotMode.CONFIRMING
                 self._hold_p = state.p.copy()
                 self._face_yaw = None
@@ -510,19 +509,17 @@ class OnFlyPilot:
             if self.mode is PilotMode.CONFIRMING:
                 # CONTINUE (or a repeated LOST) after an unconfirmed STOP: carry on toward the
                 # freshest goal, or with the search the STOP interrupted
-                if self._search_paused and self.search.active and self.goal_world is None:
+                if self.search.active and self.goal_world is None:
                     self.mode = PilotMode.SEARCHING
                 else:
                     self._end_search(t_s, "stop_withdrawn")
                     self.mode = PilotMode.NAVIGATING if self.goal_world is not None else PilotMode.HOLDING
-                self._search_paused = False
                 self._event(t_s, "stop_withdrawn", {"position": state.p})
         if event is TaskEvent.LOST and self.search.active and self._last_seen is None:
             # the search is already the recovery, and there is no sighting to turn back to
             self._event(t_s, "lost", {"recovery": "searching", "position": state.p})
             return
         if event is not TaskEvent.NONE:
-            self._search_paused = False
             self._end_search(t_s, event.value)
         if event is TaskEvent.FINISHED:
             self.mode = PilotMode.FINISHED
@@ -587,18 +584,12 @@ class OnFlyPilot:
         if self.mode is PilotMode.SEARCHING and search_goal is not None:
             goal = search_goal
             self._hold_p = None
-        elif self.mode is PilotMode.NAVIGATING and self.goal_world is not None:
-            goal = self.goal_world
-            self._hold_p = None
-            follow = self.follow.control(t_s, state.p, cfg.goal_min_z_m or 0.0)
-            if follow is not None:  # following: the standoff point, facing the person
-                goal, yaw_ref = follow
-        elif (
-            self.mode is PilotMode.CONFIRMING
-            and self.goal_world is not None
-            and float(np.linalg.norm(self.goal_world - state.p)) <= cfg.confirm_approach_m
+        elif self.goal_world is not None and (
+            self.mode is PilotMode.NAVIGATING
+            # a step closer while a STOP is confirmed
+            or (self.mode is PilotMode.CONFIRMING and float(np.linalg.norm(self.goal_world - state.p)) <= cfg.confirm_approach_m)
         ):
-            goal = self.goal_world  # a step closer while the STOP is confirmed
+            goal = self.goal_world
             self._hold_p = None
             follow = self.follow.control(t_s, state.p, cfg.goal_min_z_m or 0.0)
             if follow is not None:  # following: the standoff point, facing the person
@@ -653,14 +644,12 @@ class OnFlyPilot:
             self._event(t_s, "search_end", {"reason": reason, "duration_s": t_s - self.search.started_s})
             self.search.stop()
 
-    @property
-    def _cruise_z(self) -> float | None:
-        """Altitude of the search's legs: the configured one, else the task's start altitude,
-        never below the goal floor."""
+    def _cruise_z(self, state: VehicleState) -> float:
+        """Altitude of the search's legs, metres: the configured one, else the task's start
+        altitude (else the vehicle's), never below the goal floor."""
         z = self.config.search.cruise_z_m if self.config.search.cruise_z_m is not None else self._start_z
-        if z is not None and self.config.goal_min_z_m is not None:
-            z = max(z, self.config.goal_min_z_m)
-        return z
+        z = float(state.p[2]) if z is None else float(z)
+        return z if self.config.goal_min_z_m is None else max(z, self.config.goal_min_z_m)
 
     def _count_decision(self, t_s: float, out: DecisionOutcome, state: VehicleState) -> None:
         """Streaks of decisions without a goal; start a search when one is long enough."""
@@ -729,7 +718,7 @@ class OnFlyPilot:
 
     def _explore(self, t_s: float, state: VehicleState) -> None:
         """Pick the next exploration point and fly toward it (or scan again if none)."""
-        z = self._cruise_z if self._cruise_z is not None else float(state.p[2])
+        z = self._cruise_z(state)
         common = dict(
             config=self.config.search, volume=self.volume, volume_margin_m=self._volume_margin_m, visited=self.search.visited, z_m=z
         )

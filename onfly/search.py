@@ -251,10 +251,23 @@ def known_mask(field_map, points: np.ndarray) -> np.ndarray:
     return np.ones(len(points), dtype=bool)
 
 
-def _ahead(bearing: float, yaw: float | None) -> float:
-    """How much a direction ``bearing`` goes the way ``yaw`` (radians): 1 straight on ... 0
-    straight behind; 1 for every direction when there is no heading to keep (None)."""
-    return 1.0 if yaw is None else 0.5 * (1.0 + float(np.cos(wrap_angle(bearing - yaw))))
+def _direction_weight(bearing: float, yaw: float | None, forward_weight: float) -> float:
+    """The factor on a leg's value for its direction ``bearing`` (radians) against the heading
+    to keep ``yaw``: ``1 - w + w (1 + cos d) / 2`` (1 straight on ... ``1 - w`` straight behind),
+    1 for every direction when there is no heading to keep (None)."""
+    if yaw is None:
+        return 1.0
+    return (1.0 - forward_weight) + forward_weight * 0.5 * (1.0 + float(np.cos(wrap_angle(bearing - yaw))))
+
+
+def _visited_near(visited: np.ndarray, point: np.ndarray, radius_m: float) -> float:
+    """How visited the place ``point`` is: the sum over remembered track points (k, 3) of
+    ``max(0, 1 - d / radius_m)``, ``d`` the horizontal distance (0 with no track)."""
+    vis = np.asarray(visited, dtype=float).reshape(-1, 3)
+    if not len(vis):
+        return 0.0
+    d = np.linalg.norm(vis[:, :2] - np.asarray(point, float)[None, :2], axis=1)
+    return float(np.sum(np.clip(1.0 - d / radius_m, 0.0, 1.0)))
 
 
 def explore_target(
@@ -307,11 +320,8 @@ def explore_target(
             gain = unknown_fraction(cand, th, field_map, volume, cfg.gain_lookahead_m)
             # a longer leg is worth a little even into known space (progress along the route)
             value = gain + 0.1 * r / max(cfg.explore_ranges_m)
-            ahead = _ahead(th, yaw)
-            score = value * ((1.0 - cfg.forward_weight) + cfg.forward_weight * ahead)
-            if len(visited):
-                near = np.linalg.norm(np.asarray(visited)[:, :2] - cand[None, :2], axis=1)
-                score -= 0.5 * float(np.sum(np.clip(1.0 - near / cfg.visit_radius_m, 0.0, 1.0)))
+            score = value * _direction_weight(th, yaw, cfg.forward_weight)
+            score -= 0.5 * _visited_near(visited, cand, cfg.visit_radius_m)
             if prefer_yaw is not None:
                 score -= 0.3 * abs(wrap_angle(th - prefer_yaw)) / np.pi
             if score > best_score:
@@ -358,18 +368,14 @@ def open_ray_target(
         ok &= volume.contains(pts.reshape(-1, 3), margin_m=volume_margin_m).reshape(ok.shape)
     blocked = ~ok
     run = np.where(blocked.any(axis=1), np.argmax(blocked, axis=1), len(steps))  # free steps
-    vis = np.asarray(visited, dtype=float).reshape(-1, 3)
     best, best_score = None, -np.inf
     for k, th in enumerate(headings):
         reach = run[k] * step - (0.5 if run[k] < len(steps) else 0.0)  # stop short of where it ends
         if reach < cfg.min_leg_m:
             continue
         tgt = p0 + min(reach, cfg.open_ray_max_m) * dirs[k]
-        ahead = _ahead(th, yaw)
-        score = (reach / cfg.open_ray_max_m) * ((1.0 - cfg.forward_weight) + cfg.forward_weight * ahead)
-        if len(vis):
-            d = np.linalg.norm(vis[:, :2] - tgt[None, :2], axis=1)
-            score -= 0.3 * float(np.sum(np.clip(1.0 - d / cfg.visit_radius_m, 0.0, 1.0)))
+        score = (reach / cfg.open_ray_max_m) * _direction_weight(th, yaw, cfg.forward_weight)
+        score -= 0.3 * _visited_near(visited, tgt, cfg.visit_radius_m)
         if score > best_score:
             best, best_score = tgt, score
     return best
@@ -447,7 +453,6 @@ def frontier_target(
     groups: dict[tuple[int, int], list[int]] = {}
     for k, key in enumerate(map(tuple, keys)):
         groups.setdefault(key, []).append(k)
-    vis = np.asarray(visited, dtype=float).reshape(-1, 3)
     best, best_score = None, -np.inf
     best_near, best_near_score = None, -np.inf  # groups closer than a leg: only if none farther
     for members in groups.values():
@@ -463,12 +468,9 @@ def frontier_target(
         if path_m < 1.0:
             continue  # already here: the camera sees it from where it is
         bearing = float(np.arctan2(c[1] - p0[1], c[0] - p0[0]))
-        ahead = _ahead(bearing, yaw)
         size = min(len(members), 200) / 200.0  # a doorway's band of frontier: ~100-200 voxels
-        score = (0.2 + size) * ((1.0 - cfg.forward_weight) + cfg.forward_weight * ahead) / (1.0 + path_m / 8.0)
-        if len(vis):
-            d = np.linalg.norm(vis[:, :2] - tgt[None, :2], axis=1)
-            score -= 0.3 * float(np.sum(np.clip(1.0 - d / cfg.visit_radius_m, 0.0, 1.0)))
+        score = (0.2 + size) * _direction_weight(bearing, yaw, cfg.forward_weight) / (1.0 + path_m / 8.0)
+        score -= 0.3 * _visited_near(visited, tgt, cfg.visit_radius_m)
         if path_m < cfg.min_leg_m:
             if score > best_near_score:
                 best_near, best_near_score = tgt, score
