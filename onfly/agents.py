@@ -120,6 +120,8 @@ class DecisionOutcome:
         rejected the pixel) or no reading. A follower (:mod:`onfly.follow`) tracks a moving
         person with it
     frame_t_s : capture time of the frame the decision was made on, seconds (NaN if unknown)
+    look_yaw : with ``not_visible``, the world heading (radians) of the viewing ray of the point
+        where the model would look for the target instead (``decision/v3``), or None
     """
 
     frame_id: str
@@ -134,6 +136,7 @@ class DecisionOutcome:
     not_visible: bool = False
     target_world: np.ndarray | None = None
     frame_t_s: float = float("nan")
+    look_yaw: float | None = None
 
     @property
     def latency_s(self) -> float:
@@ -233,8 +236,9 @@ class DecisionAgent:
         def out(parse=None, verified=None, goal=None, reason="", not_visible=False):
             yaw = pixel_yaw(parse.uv, obs) if parse is not None and parse.ok else None
             target = pointed_point(parse.uv, obs) if goal is not None else None
+            look = getattr(parse, "look_uv", None) if not_visible else None
             return DecisionOutcome(obs.frame_id, subtask, response, hist, parse, verified, goal, reason, yaw, not_visible,
-                                   target, float(obs.t_s))
+                                   target, float(obs.t_s), pixel_yaw(look, obs) if look is not None else None)
 
         if response.status is not CallStatus.OK:
             log.info("decision call %s: %s", response.status.value, response.error)

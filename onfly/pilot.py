@@ -53,6 +53,7 @@ from onfly.search import (
     SearchTrigger,
     explore_target,
     frontier_target,
+    look_target,
     open_heading,
     open_ray_target,
     side_to_look,
@@ -292,6 +293,7 @@ class OnFlyPilot:
         self.follow = Follower(config.follow)  # follow mode (onfly.follow)
         self._no_goal_streak = 0  # decisions in a row without a goal (current subtask)
         self._not_visible_streak = 0  # "target not visible" answers in a row
+        self._look: tuple[float, float] | None = None  # (t_s, heading) where the model would look
         self._rejected_streak = 0  # of the decisions without a goal, those the verifier rejected
         self._answered_s = -np.inf  # when the decision agent last gave a parseable answer
         self._last_seen: np.ndarray | None = None  # last verified goal of the current subtask
@@ -395,6 +397,7 @@ class OnFlyPilot:
             dec = out.decomposition
             self.tasks = TaskManager(list(dec.subtasks), self.config.stop_confirmations, self.config.intermediate_stop_confirmations)
             self._last_seen = None  # sightings on the whole instruction belong to no subtask
+            self._look = None
             self._no_goal_streak = self._not_visible_streak = self._rejected_streak = 0
             self._event(
                 landed.landed_s,
@@ -428,6 +431,7 @@ class OnFlyPilot:
                 "goal_world": out.goal_world,
                 "reason": out.reason,
                 "not_visible": out.not_visible,
+                "look_uv": getattr(out.parse, "look_uv", None),
                 "verifier": rec,
                 "latency_s": out.latency_s,
             },
@@ -528,7 +532,7 @@ class OnFlyPilot:
         elif event is TaskEvent.ADVANCED:
             self.goal_world = None
             self._face_yaw = None
-            self._last_seen = None
+            self._last_seen = self._look = None
             self._no_goal_streak = self._not_visible_streak = self._rejected_streak = 0
             self.mode = PilotMode.HOLDING
             self._event(t_s, "advanced", {"subtask": self.tasks.current, "index": self.tasks.index})
@@ -665,18 +669,38 @@ class OnFlyPilot:
             self._rejected_streak += 1
         self._not_visible_streak = self._not_visible_streak + 1 if out.not_visible else 0
         scfg = self.config.search
+        if out.not_visible and out.look_yaw is not None and scfg.enabled and scfg.look_hints:
+            self._look = (t_s, float(out.look_yaw))
+        if self.search.active and self.search.phase is SearchPhase.EXPLORE and self.search.leg_kind == "look":
+            target = self._look_leg(t_s, state)  # a fresher look point re-aims the leg
+            if target is not None:
+                self.search.reaim(t_s, target)
         if not scfg.enabled or self.search.active or self.mode in (PilotMode.CONFIRMING, PilotMode.FINISHED):
             return
         if self.mode is PilotMode.NAVIGATING and self.goal_world is not None:
             # a target seen moments ago and missed now (far, small, occluded for a frame): keep
             # flying its goal; when that goal times out the streak starts the search
             return
-        if self._not_visible_streak >= scfg.not_visible_streak:
+        if out.not_visible and self._look_leg(t_s, state) is not None:
+            # the model says where it would look: go there now, no scan (it has just seen this view)
+            self._start_search(t_s, state, SearchTrigger.NOT_VISIBLE, explore_first=True)
+        elif self._not_visible_streak >= scfg.not_visible_streak:
             self._start_search(t_s, state, SearchTrigger.NOT_VISIBLE)
         elif self._no_goal_streak - self._rejected_streak >= scfg.fail_streak or self._no_goal_streak >= scfg.reject_streak:
             # a target the verifier keeps rejecting is usually in view and near (no feasible
             # goal in front of it): the monitor's STOP gets longer to arrive before we turn away
             self._start_search(t_s, state, SearchTrigger.NO_GOAL)
+
+    def _look_leg(self, t_s: float, state: VehicleState) -> np.ndarray | None:
+        """The leg toward the freshest look point (:func:`onfly.search.look_target`), or None
+        (no look point younger than ``look_max_age_s``, or no leg that way)."""
+        scfg = self.config.search
+        if self._look is None or not scfg.look_hints or t_s - self._look[0] > scfg.look_max_age_s:
+            return None
+        return look_target(
+            state.p, self._look[1], self.esdf, config=scfg, volume=self.volume, volume_margin_m=self._volume_margin_m,
+            visited=self.search.visited, z_m=self._cruise_z(state),
+        )  # fmt: skip
 
     def _last_seen_yaw(self, state: VehicleState) -> float | None:
         seen = self._last_seen
@@ -722,21 +746,21 @@ class OnFlyPilot:
         common = dict(
             config=self.config.search, volume=self.volume, volume_margin_m=self._volume_margin_m, visited=self.search.visited, z_m=z
         )
-        # the most promising frontier of the map first; the ring of straight legs where the map
-        # has no reachable frontier at this height
-        target, how = None, "frontier"
-        if self.config.search.explore_policy == "open_ray":
+        # where the model would look first; then the most promising frontier of the map; the
+        # ring of straight legs where the map has no reachable frontier at this height
+        target, how = self._look_leg(t_s, state), "look"
+        if target is None and self.config.search.explore_policy == "open_ray":
             target, how = open_ray_target(state.p, self.search.heading0, self.esdf, **common), "open_ray"
         if target is None:
             target, how = frontier_target(state.p, self.search.heading0, self.esdf, **common), "frontier"
         if target is None:
             target = explore_target(state.p, self.search.heading0, self.esdf, prefer_yaw=self._last_seen_yaw(state), **common)
             how = "ring"
-        if target is not None and self.search.heading0 is None:
+        if target is not None and (self.search.heading0 is None or how == "look"):
             # the first leg of a search with no way to keep sets it: later legs go on from there
-            # rather than zig-zag between frontiers on either side
+            # rather than zig-zag between frontiers on either side; the model's look sets it too
             self.search.heading0 = float(np.arctan2(target[1] - state.p[1], target[0] - state.p[0]))
-        self.search.explore_from(t_s, target, state.p, state.yaw)
+        self.search.explore_from(t_s, target, state.p, state.yaw, kind=how)
         self._event(t_s, "search_explore", {"target": target, "position": state.p, "how": how})
 
     def _search_control(self, t_s: float, state: VehicleState) -> tuple[np.ndarray, float | None]:

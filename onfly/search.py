@@ -31,6 +31,16 @@ Policy (parameters in :class:`SearchConfig`):
    turn to the side with the most unknown space after each leg. Legs prefer the heading the search began with
    when the way ahead was open then (a route goes on), and its reverse when it was not (a dead
    end: back out).
+3b. **Where the model would look** (``look_hints``): a decision answer that says the target is
+   not visible may carry the point where the model would look for it instead (the decision
+   prompt's ``decision/v3``: a doorway, a corridor, open space leading on). Its viewing ray's
+   heading is a leg: down the longest run of seen free space within ``look_cone_rad`` of it
+   (:func:`look_target`, at most ``open_ray_max_m``, at least ``look_min_leg_m``). The first such
+   answer starts the search straight on that leg (no scan: the model has just looked at this
+   view and said where to go), each later one re-aims the leg, and a leg that ends picks the
+   freshest one (at most ``look_max_age_s`` old) before the map's frontiers. A look point into
+   a wall, or toward places already visited, is no leg; then the search goes on as above
+   (the scan when nothing is reachable, the frontiers, a dead end backed out of).
 4. **Hand back**: any decision that yields a verified goal for the current subtask ends the
    search (the pilot flies that goal). A STOP from the monitor pauses it (the vehicle hovers
    while the STOP is confirmed) and a withdrawn STOP resumes it where it was; a LOST while
@@ -67,6 +77,7 @@ __all__ = [
     "explore_target",
     "frontier_target",
     "known_mask",
+    "look_target",
     "open_heading",
     "open_ray_target",
     "seen_obstacle_near",
@@ -149,6 +160,21 @@ class SearchConfig:
         line of sight through seen free space, :func:`open_ray_target`, the frontier choice
         when no ray is long enough); the ring of straight legs when neither finds a leg
     open_ray_max_m : the longest leg down a line of sight, metres
+    look_hints : follow the point where the model would look for a target it cannot see (step
+        3b of the module docstring); False = only the map chooses legs
+    look_cone_rad : half-width of the cone of headings around the look point's heading in which
+        :func:`look_target` seeks the longest free run, radians (a doorway 1 m wide 4 m away
+        spans 14 deg; the model's point carries a few pixels of noise)
+    look_min_leg_m : the shortest leg toward a look point, metres. Shorter than ``min_leg_m``:
+        the leg is re-aimed on every answer, so a short one grows as the camera sees further
+        (outdoors, open sky clears only a few metres of the map at flight height)
+    look_max_age_s : a look point older than this does not choose a new leg, seconds (on one
+        inference engine a decomposition or monitoring call can hold the next decision ~3 s;
+        the look's heading is in the world frame, so it stays meaningful while the vehicle
+        flies a few metres)
+    look_visited_max : a leg whose end has this much of the track near it (see
+        :func:`explore_target`'s visit measure: about one remembered point right there) is not
+        taken: the model looks the way it came from
     """
 
     enabled: bool = True
@@ -179,6 +205,11 @@ class SearchConfig:
     monitor_period_s: float = 6.0
     explore_policy: str = "frontier"
     open_ray_max_m: float = 6.0
+    look_hints: bool = True
+    look_cone_rad: float = math.radians(20.0)
+    look_min_leg_m: float = 1.5
+    look_max_age_s: float = 5.0
+    look_visited_max: float = 1.0
 
     def __post_init__(self) -> None:
         for name in ("not_visible_streak", "fail_streak", "reject_streak", "explore_headings"):
@@ -199,6 +230,9 @@ class SearchConfig:
             "weave_period_s",
             "monitor_period_s",
             "open_ray_max_m",
+            "look_min_leg_m",
+            "look_max_age_s",
+            "look_visited_max",
         ):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
@@ -209,6 +243,8 @@ class SearchConfig:
             raise SearchConfigError(f"SearchConfig.weave_rad must be in [0, pi/4), got {self.weave_rad}")
         if self.cruise_z_m is not None and not np.isfinite(self.cruise_z_m):
             raise SearchConfigError(f"SearchConfig.cruise_z_m must be finite or None, got {self.cruise_z_m}")
+        if not (np.isfinite(self.look_cone_rad) and 0.0 <= self.look_cone_rad <= math.pi / 2):
+            raise SearchConfigError(f"SearchConfig.look_cone_rad must be in [0, pi/2], got {self.look_cone_rad}")
         if self.explore_policy not in EXPLORE_POLICIES:
             raise SearchConfigError(f"SearchConfig.explore_policy must be one of {EXPLORE_POLICIES}, got {self.explore_policy!r}")
         if not (0.0 <= self.scan_gain_min <= 1.0):
@@ -355,30 +391,75 @@ def open_ray_target(
     """
     cfg = config
     p0 = np.array([position[0], position[1], z_m], dtype=float)
-    step = 0.25
-    steps = np.arange(step, cfg.open_ray_max_m + 1e-9, step)
     headings = (yaw or 0.0) + np.linspace(0.0, 2 * np.pi, cfg.explore_headings, endpoint=False)
-    dirs = np.stack([np.cos(headings), np.sin(headings), np.zeros_like(headings)], axis=-1)
-    pts = p0[None, None, :] + steps[None, :, None] * dirs[:, None, :]  # (headings, steps, 3)
-    dist, _ = field_map.query(pts.reshape(-1, 3))
-    ok = (np.asarray(dist).reshape(len(headings), len(steps)) >= cfg.explore_clearance_m) & known_mask(
-        field_map, pts.reshape(-1, 3)
-    ).reshape(len(headings), len(steps))
-    if volume is not None:
-        ok &= volume.contains(pts.reshape(-1, 3), margin_m=volume_margin_m).reshape(ok.shape)
-    blocked = ~ok
-    run = np.where(blocked.any(axis=1), np.argmax(blocked, axis=1), len(steps))  # free steps
+    runs, dirs = _free_runs(p0, headings, field_map, clearance_m=cfg.explore_clearance_m, max_m=cfg.open_ray_max_m,
+                            volume=volume, volume_margin_m=volume_margin_m)
     best, best_score = None, -np.inf
     for k, th in enumerate(headings):
-        reach = run[k] * step - (0.5 if run[k] < len(steps) else 0.0)  # stop short of where it ends
+        reach = float(runs[k])
         if reach < cfg.min_leg_m:
             continue
-        tgt = p0 + min(reach, cfg.open_ray_max_m) * dirs[k]
+        tgt = p0 + reach * dirs[k]
         score = (reach / cfg.open_ray_max_m) * _direction_weight(th, yaw, cfg.forward_weight)
         score -= 0.3 * _visited_near(visited, tgt, cfg.visit_radius_m)
         if score > best_score:
             best, best_score = tgt, score
     return best
+
+
+def _free_runs(p0: np.ndarray, headings: np.ndarray, field_map, *, clearance_m: float, max_m: float,
+               volume: FlightVolume | None, volume_margin_m: float, step_m: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
+    """How far each horizontal ray from ``p0`` (3,) runs through seen free space that keeps
+    ``clearance_m`` inside the volume, up to ``max_m``. Returns ``(reach (n,), dirs (n, 3))``:
+    the run in metres, ``0.5`` m short of where it ends (the whole ``max_m`` when it never
+    ends), and the unit directions."""
+    steps = np.arange(step_m, max_m + 1e-9, step_m)
+    dirs = np.stack([np.cos(headings), np.sin(headings), np.zeros_like(headings)], axis=-1)
+    pts = (p0[None, None, :] + steps[None, :, None] * dirs[:, None, :]).reshape(-1, 3)
+    dist, _ = field_map.query(pts)
+    ok = (np.asarray(dist) >= clearance_m) & known_mask(field_map, pts)
+    if volume is not None:
+        ok &= volume.contains(pts, margin_m=volume_margin_m)
+    blocked = ~ok.reshape(len(headings), len(steps))
+    run = np.where(blocked.any(axis=1), np.argmax(blocked, axis=1), len(steps))
+    reach = run * step_m - np.where(run < len(steps), 0.5, 0.0)
+    return np.minimum(reach, max_m), dirs
+
+
+def look_target(
+    position: np.ndarray,
+    look_yaw: float,
+    field_map,
+    *,
+    config: SearchConfig,
+    volume: FlightVolume | None,
+    volume_margin_m: float,
+    visited: np.ndarray,
+    z_m: float,
+) -> np.ndarray | None:
+    """A leg toward where the model would look: the end of the longest free run (as in
+    :func:`open_ray_target`) among headings within ``look_cone_rad`` of ``look_yaw`` (radians,
+    world ENU, the look point's viewing ray), a run counting less the further it turns from
+    that heading (a quarter less at the cone's edge); None when no run reaches
+    ``look_min_leg_m`` or the best one ends where the vehicle has been (``look_visited_max``).
+
+    Returns (3,) metres, world ENU, at ``z_m``, or None.
+    """
+    cfg = config
+    p0 = np.array([position[0], position[1], z_m], dtype=float)
+    n = max(1, int(round(cfg.look_cone_rad / math.radians(5.0))))
+    offsets = np.linspace(-cfg.look_cone_rad, cfg.look_cone_rad, 2 * n + 1)
+    reach, dirs = _free_runs(p0, look_yaw + offsets, field_map, clearance_m=cfg.explore_clearance_m,
+                             max_m=cfg.open_ray_max_m, volume=volume, volume_margin_m=volume_margin_m)
+    weight = 1.0 - 0.25 * np.abs(offsets) / max(cfg.look_cone_rad, 1e-9)
+    score = np.where(reach >= cfg.look_min_leg_m, reach * weight, -np.inf)
+    k = int(np.argmax(score))
+    if not np.isfinite(score[k]):
+        return None
+    tgt = p0 + reach[k] * dirs[k]
+    if _visited_near(visited, tgt, cfg.visit_radius_m) >= cfg.look_visited_max:
+        return None
+    return tgt
 
 
 def _reach_grid(field_map, p0: np.ndarray, clearance_m: float, stride: int = 2):
@@ -559,6 +640,7 @@ class Search:
     started_s: float = 0.0
     searches: int = 0
     heading0: float | None = None
+    leg_kind: str | None = None  # how the current leg was chosen ("look", "frontier", ...)
     _scan_yaws: list[float] = field(default_factory=list)
     _scan_reached_s: float | None = None
     _hold_p: np.ndarray | None = None
@@ -628,6 +710,7 @@ class Search:
             self.heading0 = float(yaw)  # the direction of travel when this search began (the
             # pilot replaces it with its reverse in a dead end, see ``open_heading``)
         self.phase = SearchPhase.SCAN
+        self.leg_kind = None
         self.trigger = trigger
         self.started_s = float(t_s)
         self.searches += 1
@@ -656,6 +739,7 @@ class Search:
     def look(self, t_s: float, position: np.ndarray, yaws: list[float]) -> None:
         """A short scan of the given headings from ``position`` (then ``"scan_done"``)."""
         self.phase = SearchPhase.SCAN
+        self.leg_kind = None
         self._hold_p = np.asarray(position, dtype=float).copy()
         self._scan_reached_s = None
         self._scan_yaws = [float(y) for y in yaws]
@@ -675,20 +759,32 @@ class Search:
     def stop(self) -> None:
         self.phase = None
         self.trigger = None
+        self.leg_kind = None
         self._scan_yaws = []
         self._explore_p = None
         self.reset_stall()
 
-    def explore_from(self, t_s: float, target: np.ndarray | None, position: np.ndarray, yaw: float) -> None:
-        """Switch to exploring toward ``target`` (None: nothing reachable, scan again)."""
+    def explore_from(
+        self, t_s: float, target: np.ndarray | None, position: np.ndarray, yaw: float, kind: str = "frontier"
+    ) -> None:
+        """Switch to exploring toward ``target`` (None: nothing reachable, scan again);
+        ``kind`` says how the leg was chosen."""
         if target is None:
+            self.leg_kind = None
             self.start(t_s, position, float(yaw), self.trigger or SearchTrigger.NO_GOAL)
             return
         self.phase = SearchPhase.EXPLORE
+        self.leg_kind = kind
         self._leg_start = np.asarray(position, dtype=float).copy()
         self._explore_p = np.asarray(target, dtype=float).copy()
         self._explore_start_s = float(t_s)
         self.reset_stall()  # the scan held position on purpose
+
+    def reaim(self, t_s: float, target: np.ndarray) -> None:
+        """Move the current leg's end to ``target`` (a fresher look point), keeping where the leg
+        began; the leg's timeout counts from now."""
+        self._explore_p = np.asarray(target, dtype=float).copy()
+        self._explore_start_s = float(t_s)
 
     def control(self, t_s: float, position: np.ndarray, yaw: float) -> tuple[np.ndarray, float | None, str | None]:
         """Where to be and where to look this tick.

@@ -326,6 +326,42 @@ NOT_VISIBLE_FAILURES = [
 ]
 
 
+# decision/v3: the point beside a false flag is where the model would look (look_uv), never a
+# target point; an invalid one leaves the answer "not visible" without a look point
+LOOK_CASES = [
+    ('{"target_visible": false, "point_2d": [320, 240]}', {}, (320.0, 240.0)),
+    ('```json\n{"target_visible": false, "point_2d": [10, 20]}\n```', {}, (10.0, 20.0)),
+    ('Not here. {"target_visible": false, "point_2d": [10, 20]}', {}, (10.0, 20.0)),
+    ('{"visible": false, "point": [7, 9]}', {}, (7.0, 9.0)),
+    ('{"target_visible": false, "point_2d": [500, 500]}', {"coord_format": "rel1000"}, (0.5 * (W - 1), 0.5 * (H - 1))),
+    ('{"target_visible": false, "point_2d": [20, 10]}', {"order": "yx"}, (10.0, 20.0)),
+    ('{"target_visible": false, "point_2d": null}', {}, None),
+    ('{"target_visible": false, "point_2d": [9999, 10]}', {}, None),  # outside: no look point
+    ('{"target_visible": false, "point_2d": [-3, 10]}', {}, None),
+    ('{"target_visible": false, "point_2d": ["left", 10]}', {}, None),
+    ('{"target_visible": false, "point_2d": [1, 2, 3]}', {}, None),
+    ('{"target_visible": false, "bbox_2d": [1, 2, 3, 4]}', {}, None),  # a box is no look point
+    ("NOT_VISIBLE", {}, None),
+]
+
+
+@pytest.mark.parametrize("text,kwargs,look", LOOK_CASES)
+def test_not_visible_look_point(text, kwargs, look):
+    res = parse_point(text, (W, H), **kwargs)
+    assert res.not_visible and not res.ok and res.uv is None and res.candidates == ()
+    assert res.look_uv == look
+    if look is not None:
+        assert 0 <= look[0] <= W - 1 and 0 <= look[1] <= H - 1
+
+
+def test_look_point_is_never_read_from_another_object():
+    """A point in another object than the false flag is a contradiction, not a look point."""
+    for text in ('{"target_visible": false, "point_2d": null} {"point_2d": [5, 6]}',
+                 '[{"target_visible": false}, {"point_2d": [5, 6]}]'):
+        res = parse_point(text, (W, H))
+        assert not res.ok and not res.not_visible and res.look_uv is None and "ambiguous" in res.reason
+
+
 @pytest.mark.parametrize("text,reason", NOT_VISIBLE_FAILURES)
 def test_not_visible_near_misses_are_failures(text, reason):
     res = parse_point(text, (W, H))

@@ -37,7 +37,7 @@ from vlm.types import ChatMessage, VlmImage
 # Editing a template's text without a new version breaks this test on purpose: a logged
 # version must name one exact text. Bump "## version:" in the file and update the pin.
 PINNED = {
-    "decision": ("decision/v2", "c21177675bd1af0a03114801867d6506a0118676f7a52b068b0d08e2a72ab022"),
+    "decision": ("decision/v3", "747a6933aa59ecad0d1cbcce0cb8f187cb19daf16fb7093cbd9510043b686907"),
     "monitor": ("monitor/v2", "0c82ac88a7066fb7704704cc28a8e434ed24bc16e5335c25f9de24589481b51b"),
     "decompose": ("decompose/v1", "531dcedca5041025b19524364a85a208ff85a9b1c8c2bf4598b36aff21d5aa4c"),
     "typefly": ("typefly/v1", "91e40abda5ab5999748b97cba358b7ca2d18629e22d4c1efcc17ebc8aa72a563"),
@@ -68,14 +68,17 @@ def test_decision_prompt_content_and_round_trip():
     assert count_placeholders(messages) == len(images) == 1
     system, user = messages[0].content, messages[1].content
     assert "decision agent" in system and '"point_2d": [x, y]}' in system and "integer pixel" in system
-    # decision/v2: "not visible" is an answer the model is offered, in the form the parser reads
+    # decision/v2: "not visible" is an answer the model is offered, in the form the parser reads;
+    # v3: with the point where to look instead
     assert '{"target_visible": false, "point_2d": null}' in system
     assert parse_point('{"target_visible": false, "point_2d": null}', (640, 480)).not_visible
+    assert '{"target_visible": false, "point_2d": [x, y]}' in system and "look for it" in system
+    assert parse_point('{"target_visible": false, "point_2d": [5, 6]}', (640, 480)).look_uv == (5, 6)
     assert parse_point('{"target_visible": true, "point_2d": [3, 4]}', (640, 480)).uv == (3, 4)
     # subtask before the image (stable within a subtask), history point after it
     assert user.index("Current subtask: fly to the red van") < user.index(IMAGE_PLACEHOLDER) < user.index("History point: (412, 234)")
     assert "640 x 480 pixels" in user
-    assert parse_prompt(messages) == DecisionPrompt("decision/v2", "fly to the red van", (640, 480), (412, 234))
+    assert parse_prompt(messages) == DecisionPrompt("decision/v3", "fly to the red van", (640, 480), (412, 234))
 
 
 def test_decision_prompt_without_history_and_bad_history():

@@ -5,6 +5,7 @@ fly the pilot in the embedded world with a scripted model that answers only when
 in the frame, as a real model that can say "not visible" would.
 """
 
+import json
 import math
 
 import numpy as np
@@ -21,6 +22,7 @@ from onfly.search import (
     SearchPhase,
     SearchTrigger,
     explore_target,
+    look_target,
     open_heading,
     open_ray_target,
     side_to_look,
@@ -215,6 +217,37 @@ def test_the_open_ray_leg_goes_down_the_longest_line_of_sight_and_stops_short_of
     assert open_ray_target(p, 0.0, f_tiny, config=cfg, volume=None, volume_margin_m=0.45, visited=np.zeros((0, 3)), z_m=1.5) is None
 
 
+def test_the_look_leg_is_the_longest_free_run_near_the_heading_the_model_looked():
+    # the corridor of the open-ray test: walls at y = +-1.0 along +x, seen to x = 9
+    boxes = [
+        Box(center=[9.5, 1.1, 1.5], half_extents=[10.5, 0.1, 1.5]),
+        Box(center=[9.5, -1.1, 1.5], half_extents=[10.5, 0.1, 1.5]),
+    ]
+    corridor = AnalyticField(boxes=boxes, half_spaces=[HalfSpace(point=[0, 0, 0], normal=[0, 0, 1])])
+    f = KnownField(corridor, [-1.0, -1.0, 0.0], [9.0, 1.0, 3.0])
+    cfg = SearchConfig(open_ray_max_m=6.0)
+    p = np.array([0.0, 0.0, 1.5])
+    none = np.zeros((0, 3))
+    common = dict(config=cfg, volume=None, volume_margin_m=0.45, z_m=1.5)
+    # the model looked 15 deg off the corridor's axis (a noisy point): the leg goes down the
+    # corridor (the longest free run in the cone, capped at open_ray_max_m), not at the wall
+    # 15 deg off, where the run ends after 2 m
+    t = look_target(p, math.radians(15.0), f, visited=none, **common)
+    assert t is not None and np.linalg.norm(t - p) == pytest.approx(6.0) and abs(t[1]) <= 0.55
+    assert corridor.distance(np.linspace(p, t, 60)).min() >= cfg.explore_clearance_m
+    # the model looked at a wall: no run in the cone reaches look_min_leg_m, no leg
+    assert look_target(p, math.radians(90.0), f, visited=none, **common) is None
+    # outside the cone the axis is not considered: 40 deg off with a 20 deg cone finds nothing
+    assert look_target(p, math.radians(40.0), f, visited=none, **common) is None
+    # the leg's end is where the vehicle has been: the model looks back the way it came, no leg
+    been = np.array([[5.5, 0.0, 1.5], [6.0, 0.0, 1.5], [6.5, 0.0, 1.5]])
+    assert look_target(p, 0.0, f, visited=been, **common) is None
+    # the volume shortens the leg (its face keeps the margin) and it stays inside
+    vol = FlightVolume(np.array([-5.0, -5.0, 0.0]), np.array([4.0, 5.0, 5.0]))
+    t_vol = look_target(p, 0.0, f, visited=none, **{**common, "volume": vol})
+    assert t_vol is not None and bool(vol.contains(t_vol, margin_m=0.45)[0]) and 2.5 <= t_vol[0] <= 3.55
+
+
 def test_exploration_prefers_unknown_space_and_never_leaves_the_volume():
     free = AnalyticField(half_spaces=[HalfSpace(point=[0, 0, 0], normal=[0, 0, 1])])
     # everything around is known except the +y side; the volume ends at x = 1
@@ -308,6 +341,22 @@ class SeeingVlm(ScriptedVlm):
                 self.hidden += 1
                 self.counts["decision"] += 1
                 return text(NOT_VISIBLE, 0.81)
+        return super().complete(messages, images, **kw)
+
+
+class LookingVlm(SeeingVlm):
+    """As :class:`SeeingVlm`, but "not visible" carries where the model would look
+    (``decision/v3``): the centre of the image, straight ahead."""
+
+    def complete(self, messages, images=(), **kw):
+        prompt = parse_prompt(messages)
+        if isinstance(prompt, DecisionPrompt) and images:
+            ann = images[-1].annotation
+            if int(np.count_nonzero(ann.instance_ids == self.target_id)) < self.min_px:
+                self.hidden += 1
+                self.counts["decision"] += 1
+                w, h = images[-1].size
+                return text(json.dumps({"target_visible": False, "point_2d": [w // 2, h // 2]}), 0.81)
         return super().complete(messages, images, **kw)
 
 
@@ -516,3 +565,41 @@ def test_a_withdrawn_stop_resumes_the_search_and_a_lost_without_a_sighting_does_
     assert ends[0].data["reason"] == "target_pointed" and ends[0].t_s > lost.t_s
     assert len([t for t in started if t < ends[0].t_s]) == 1
     assert r.end_reason == "stopped" and r.metrics.success and not r.metrics.collided
+
+
+def test_a_look_point_starts_the_search_on_a_leg_that_way_without_a_scan(planner):
+    """The first "not visible" answer that says where to look starts the search straight on a
+    leg that way (no scan: the model has just looked at this view); the vehicle then gets out
+    of the pocket and finds the crate. Without look hints the same answers start a scan."""
+    scene = pocket_scene()
+    start = VehicleState(0.0, np.array([3.0, 0.0, 1.5]), np.zeros(3), math.pi)  # facing out of the pocket
+    world = World(scene, camera=CAM, initial_state=start)
+    m = PilotMethod(LookingVlm(3), planner=planner)
+    track = []
+    region = GoalRegion([-2.0, 5.0, 0.6], [0.6, 0.6, 0.6])
+    r = run_episode(
+        world, m, instruction="Find the red crate and stop next to it.", goal=region, reference_path_m=10.0, seed=0,
+        error_model="test", config=EpisodeConfig(time_limit_s=70.0, frame_period_s=0.5),
+        observer=lambda st: track.append((st.t_s, st.state.p.copy(), st.state.yaw)),
+    )
+    ev = m.pilot.events
+    first_decision = next(e.t_s for e in ev if e.kind == "decision")
+    start_ev = next(e for e in ev if e.kind == "search_start")
+    assert start_ev.t_s == pytest.approx(first_decision) and start_ev.data["trigger"] == "not_visible"
+    after = [e for e in ev if e.t_s >= start_ev.t_s and e.kind.startswith("search_")]
+    assert after[1].kind == "search_explore" and after[1].data["how"] == "look"
+    leg = np.asarray(after[1].data["target"])
+    assert leg[0] <= 3.0 - SearchConfig().look_min_leg_m and abs(leg[1]) < 1.0  # straight ahead, out of the pocket
+    # flying at once, facing the way it flies: no turn in place before the first leg
+    early = [(t, p, y) for t, p, y in track if t <= start_ev.t_s + 2.0]
+    assert max(abs(wrap_angle(y - math.pi)) for _, _, y in early) < 0.3
+    assert early[-1][1][0] < 2.5 and abs(early[-1][1][1]) < 0.3
+    assert r.end_reason == "stopped" and r.metrics.success and not r.metrics.collided
+
+    # look hints off: the same answers start a scan in place first
+    cfg = PilotConfig(search=SearchConfig(look_hints=False))
+    m2 = PilotMethod(LookingVlm(3), config=cfg, planner=planner)
+    world2 = World(scene, camera=CAM, initial_state=start)
+    fly(world2, m2, "Find the red crate and stop next to it.", region, limit_s=12.0)
+    assert "look" not in [e.data.get("how") for e in m2.pilot.events if e.kind == "search_explore"]
+    assert any(e.kind == "search_start" for e in m2.pilot.events)

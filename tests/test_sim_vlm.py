@@ -272,11 +272,14 @@ def test_hidden_target_is_never_seen():
     # the red van is behind the tree: not in the annotation at all -> "not visible", no invented
     # point, with or without a history point
     hidden = frame("h1", [TREE, BLUE_VAN], open_cols=(0, 10))
+    look = list(exploration_point(hidden.annotation.depth_m))
     r = decide(sim, "fly to the red van", hidden)
-    assert json.loads(r.text) == {"target_visible": False, "point_2d": None}
-    assert parse_point(r.text, hidden.size).not_visible
+    # decision/v3: where to look instead is the exploration point every baseline prompt gets
+    assert json.loads(r.text) == {"target_visible": False, "point_2d": look}
+    parsed = parse_point(r.text, hidden.size)
+    assert parsed.not_visible and parsed.uv is None and parsed.look_uv == tuple(look)
     r = decide(sim, "fly to the red van", hidden, history=(130.2, 70.7))
-    assert json.loads(r.text) == {"target_visible": False, "point_2d": None}
+    assert json.loads(r.text) == {"target_visible": False, "point_2d": look}
     # an annotation entry without pixels is not seen either
     stale = frame("h2", [TREE])
     ann = stale.annotation
@@ -402,7 +405,8 @@ def test_missed_target_answer_is_not_visible():
     model = dataclasses.replace(PRESETS["perfect"], miss_prob_small=1.0)
     sim = SimulatedVlm(model)
     img = frame("x", [Obj(7, "red van", "van", 5.0, rect=(100, 50, 102, 52))], open_cols=(10, 20))
-    assert json.loads(decide(sim, "fly to the red van", img).text) == {"target_visible": False, "point_2d": None}
+    look = list(exploration_point(img.annotation.depth_m))
+    assert json.loads(decide(sim, "fly to the red van", img).text) == {"target_visible": False, "point_2d": look}
     assert json.loads(decide(sim, "fly to the red van", img, history=(50, 50)).text)["target_visible"] is False
 
 

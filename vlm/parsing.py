@@ -58,7 +58,10 @@ failure (hold the last goal). Accepted forms, and nothing else:
    with ``"target_visible": false`` or ``"visible": false`` (a JSON boolean; strings such as
    ``"false"`` do not count, and make the object a failure). The flag is the model's statement and wins over a point in the
    same object (``{"target_visible": false, "point_2d": [3, 4]}`` is not visible: a point the
-   model says is not on the target is not a target point). ``"target_visible": true`` with a
+   model says is not on the target is not a target point). That point is where the model
+   would look for the target instead (``decision/v3``): it is returned as ``look_uv`` when it
+   is a valid point of the image (same rules as any point), else ``look_uv`` is None and the
+   answer is still "not visible". ``"target_visible": true`` with a
    point is a point; with ``"point_2d": null`` or no point it is a failure.
 2. Plain text with no point in any syntax and a whole-word statement: ``NOT_VISIBLE`` /
    ``not visible`` (any case, ``_``, ``-`` or a space between), ``cannot see`` / ``can't see`` /
@@ -162,6 +165,9 @@ class PointParse:
         ``"json:target_visible"``, ``"prose:not_visible"``)
     not_visible : bool, the model answered that the target is not visible (then ``ok`` is
         False and ``uv`` None); never True for a parse failure
+    look_uv : (u, v) floats in pixels of the original image, or None: with ``not_visible``,
+        where the model would look for the target (the point in the same JSON object as the
+        false flag); None otherwise
     """
 
     ok: bool
@@ -171,6 +177,7 @@ class PointParse:
     reason: str = ""
     source: str = ""
     not_visible: bool = False
+    look_uv: tuple[float, float] | None = None
 
     @property
     def outcome(self) -> PointOutcome:
@@ -303,8 +310,24 @@ def _numbers(value: Any, n: int) -> list[float] | None:
 _POINT_KEYS = ("point_2d", "point", "points")
 #: keys of an explicit visibility flag (a JSON boolean; false = the target is not visible)
 _VISIBLE_KEYS = ("target_visible", "visible")
-#: the marker :func:`_points_in_json` yields for an object flagged not visible
-_NOT_VISIBLE = "\x00not_visible"
+
+
+@dataclass(frozen=True)
+class _NotVisible:
+    """What :func:`_points_in_json` yields for an object flagged not visible: the object's own
+    point as the place to look (pixels), or None."""
+
+    look: tuple[float, float] | None
+
+
+def _look_point(obj: dict, frame: _Frame) -> tuple[float, float] | None:
+    """The valid point of a not-visible object (``point_2d`` or ``point``), or None."""
+    for key in _POINT_KEYS[:2]:
+        pair = _numbers(obj.get(key), 2)
+        if pair is not None:
+            p = frame.to_pixel(pair[0], pair[1], False)
+            return p if isinstance(p, tuple) else None
+    return None
 _BOX_KEYS = ("bbox_2d", "bbox", "box_2d")
 
 
@@ -338,7 +361,10 @@ def _points_in_json(value: Any, frame: _Frame, depth: int = 0) -> Iterator[tuple
     if isinstance(value, dict):
         for key in _VISIBLE_KEYS:
             if key in value and value[key] is not True:
-                yield f"json:{key}", _NOT_VISIBLE if value[key] is False else f"{key} is not a JSON boolean"
+                if value[key] is False:
+                    yield f"json:{key}", _NotVisible(_look_point(value, frame))
+                else:
+                    yield f"json:{key}", f"{key} is not a JSON boolean"
                 return
         for key in _POINT_KEYS:
             if key in value:
@@ -516,10 +542,10 @@ def parse_point(
             continue
         source, first = found[0]
         candidates = tuple(p for _, p in found if isinstance(p, tuple))
-        if first == _NOT_VISIBLE:
+        if isinstance(first, _NotVisible):
             if candidates:
                 return PointParse(False, None, candidates, raw, _AMBIGUOUS, source)
-            return PointParse(False, None, (), raw, "target not visible", source, not_visible=True)
+            return PointParse(False, None, (), raw, "target not visible", source, not_visible=True, look_uv=first.look)
         if isinstance(first, str):
             return PointParse(ok=False, uv=None, candidates=candidates, raw=raw, reason=f"first point: {first}", source=source)
         if says_not_visible or flags_false:

@@ -544,13 +544,14 @@ def prompt_segments(messages: Sequence[ChatMessage], images: Sequence[VlmImage])
 
 
 def decision_schema() -> dict:
-    """Schema of the decision answer (``decision/v2``): ``{"target_visible": true, "point_2d":
-    [x, y]}`` (integer pixels) or ``{"target_visible": false, "point_2d": null}``.
+    """Schema of the decision answer (``decision/v3``): ``{"target_visible": true, "point_2d":
+    [x, y]}`` (integer pixels) or ``{"target_visible": false, "point_2d": [x, y] | null}``.
 
     Both keys are required and nothing else is allowed (the form OpenAI-style ``strict``
     structured output needs); the flag comes first, so a constrained decoder commits to
     visibility before it writes a point. :func:`vlm.parsing.parse_point` reads a false flag as
-    ``not_visible`` whatever ``point_2d`` holds.
+    ``not_visible`` whatever ``point_2d`` holds; a valid point beside it is where the model
+    would look for the target (``look_uv``).
     """
     return {
         "type": "object",

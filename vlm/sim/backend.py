@@ -271,7 +271,7 @@ class SimulatedVlm:
             u0, v0 = anchor_pixel(region.mask)
             sigma = m.pixel_sigma_px(w, region.median_depth_m)
         elif _leg_names_target(legs, leg):
-            return self._not_visible(rng, u_malformed, u_variety, structured, w, h)
+            return self._not_visible(rng, u_malformed, u_variety, structured, ann.depth_m)
         elif prompt.history_uv is not None:
             u0, v0 = prompt.history_uv
             sigma = m.pixel_sigma_px(w, 0.0)
@@ -294,14 +294,23 @@ class SimulatedVlm:
         return variants[int(rng.integers(len(variants)))]
 
     def _not_visible(
-        self, rng: np.random.Generator, u_malformed: float, u_variety: float, structured: bool, w: int, h: int
+        self, rng: np.random.Generator, u_malformed: float, u_variety: float, structured: bool, depth_m: np.ndarray
     ) -> str:
-        """The decision answer "the target is not visible" (decision/v2), in a real model's
-        shapes; malformed with ``malformed_prob`` like any answer."""
+        """The decision answer "the target is not visible" (decision/v3) with the point where
+        the model would look instead: the exploration point plus the pixel noise at ``d = 0``,
+        the point every baseline prompt is given for an unperceived target (one rule for
+        every prompt). In a real model's shapes (one of them, ``NOT_VISIBLE``, carries no
+        point); malformed with ``malformed_prob`` like any answer."""
         m = self.model
+        h, w = depth_m.shape
+        u0, v0 = exploration_point(depth_m)
+        sigma = m.pixel_sigma_px(w, 0.0)
+        du, dv = rng.normal(0.0, sigma, 2) if sigma > 0 else (0.0, 0.0)
+        u = int(np.clip(round(u0 + du), 0, w - 1))
+        v = int(np.clip(round(v0 + dv), 0, h - 1))
         if u_malformed < m.malformed_prob:
             return self._malformed_point(rng, w // 2, h // 2, w, h, structured, flag=True)
-        plain = json.dumps({"target_visible": False, "point_2d": None})
+        plain = json.dumps({"target_visible": False, "point_2d": [u, v]})
         if structured or u_variety >= m.format_variety_prob:
             return plain
         variants = (f"```json\n{plain}\n```", "NOT_VISIBLE", f"The target is not visible in this image. {plain}")
@@ -322,7 +331,7 @@ class SimulatedVlm:
     def _malformed_point(
         rng: np.random.Generator, u: int, v: int, w: int, h: int, structured: bool, flag: bool = False
     ) -> str:
-        """A malformed pointing answer; ``flag`` for the decision/v2 form (``target_visible``)."""
+        """A malformed pointing answer; ``flag`` for the decision prompt's form (``target_visible``)."""
         head = {"target_visible": True} if flag else {}
         outside = json.dumps({**head, "point_2d": [w + 1 + int(rng.integers(w)), v]})
         if structured:

@@ -55,7 +55,7 @@ perception: it needs no object in the frame.
 Per call, with ``sigma_px = W * (pixel_noise_frac + pixel_noise_frac_per_m * d)`` where ``W`` is
 the image width and ``d`` the median z-depth of the pointed object's pixels:
 
-Decision (``decision/v2``: ``{"target_visible": true, "point_2d": [x, y]}`` or ``{"target_visible": false, "point_2d": null}``)
+Decision (``decision/v3``: ``{"target_visible": true, "point_2d": [x, y]}`` or ``{"target_visible": false, "point_2d": [x, y] | null}``)
     0. *Leg*: the leg rule of the baseline prompts below (last leg's target if perceived, else
        the furthest leg whose target is perceived and not yet within ``stop_distance_m +
        stop_offset_m``, else the leg after it; nothing perceived: the first leg). The decision
@@ -71,7 +71,10 @@ Decision (``decision/v2``: ``{"target_visible": true, "point_2d": [x, y]}`` or `
        rounded and kept inside the image.
     4. *Not visible*: the pursued leg names a target (see Legs) and it is not perceived (not in
        the frame, or missed by rule 1): the answer is ``{"target_visible": false, "point_2d":
-       null}``; no point is invented, whatever the history point. Abstaining on a referring
+       [x, y]}`` with the point where to look instead: the exploration point of rule 5 plus
+       noise ``sigma_px`` at ``d = 0``, the point every baseline prompt aims at when its target
+       is not perceived (no semantic prior: the deepest open direction, whatever the target);
+       no target point is invented, whatever the history point. Abstaining on a referring
        expression with no referent is a trained behaviour of grounding models (gRefCOCO's
        no-target expressions: C. Liu, H. Ding, X. Jiang, "GRES: Generalized Referring
        Expression Segmentation", CVPR 2023); the miss rule decides when the model fails to
