@@ -58,7 +58,9 @@ it``; ``go to that door`` names a door and stays. So does one whose first refere
 its own it names nothing a monitor could judge complete. Likewise a statement that only sets the
 scene (``You're at the end of the hall. Fly back past ...``: it opens with one of
 :data:`CONTEXT_OPENERS` and holds no movement verb) has nothing to complete; it is joined to
-the subtask after it (:func:`attach_context`).
+the subtask after it (:func:`attach_context`), and so is a subtask that names nothing to reach
+(``leave the study``, ``follow the hallway west``: :func:`attach_transit`), whose end no
+monitor can see except as arriving where the next subtask begins.
 """
 
 from __future__ import annotations
@@ -80,6 +82,7 @@ __all__ = [
     "attach_back_references",
     "opens_with_back_reference",
     "attach_context",
+    "attach_transit",
     "CONTEXT_OPENERS",
     "BACK_REFERENCE_WORDS",
     "MOVEMENT_VERBS",
@@ -279,6 +282,32 @@ def attach_context(subtasks: list[str] | tuple[str, ...]) -> tuple[str, ...]:
     return tuple(out)
 
 
+def attach_transit(subtasks: list[str] | tuple[str, ...]) -> tuple[str, ...]:
+    """Join every subtask that names nothing to reach (:func:`vlm.sim.grounding.names_target`:
+    ``leave the study``, ``follow the hallway west``, ``turn left``) to the subtask after it.
+
+    Such a subtask is a way, not a place: no monitor can see it done except by arriving where
+    the next one begins, so on its own it holds the task until the time limit. Joined, it is
+    the first leg of the next subtask, whose completion is judged on that subtask's target
+    (the leg rule of every prompt). ``["Leave the study", "go past the ironing board"]`` ->
+    ``("Leave the study, go past the ironing board",)``. The last subtask stays (nothing after
+    it to arrive at); order and words are kept.
+    """
+    out: list[str] = []
+    carry: str | None = None
+    for sub in subtasks:
+        if carry is not None:
+            sub = f"{carry}, {sub}"
+            carry = None
+        if not _names_target(sub):
+            carry = sub
+        else:
+            out.append(sub)
+    if carry is not None:
+        out.append(carry)
+    return tuple(out)
+
+
 def _starts_with_subordinator(clause: str) -> bool:
     """True if the current clause (since the last sentence/connective cut) opens with one."""
     low = clause.strip(_STRIP).lower()
@@ -295,12 +324,13 @@ def decompose_detailed(
 ) -> Decomposition:
     """Decompose with one VLM call; fall back to :func:`split_instruction` on any failure;
     scene-setting statements and back-references are attached to the subtask they belong to
-    (:func:`attach_context`, :func:`attach_back_references`) either way.
+    (:func:`attach_context`, :func:`attach_back_references`) and a subtask that names nothing to
+    reach to the one after it (:func:`attach_transit`), either way.
 
     ``structured`` passes :func:`vlm.prompts.subtasks_schema` as ``json_schema``.
     """
     dec = _decompose_raw(_check_instruction(instruction), backend, deadline_s, max_new_tokens, structured)
-    return replace(dec, subtasks=attach_back_references(attach_context(dec.subtasks)))
+    return replace(dec, subtasks=attach_transit(attach_back_references(attach_context(dec.subtasks))))
 
 
 def _decompose_raw(

@@ -47,8 +47,9 @@ yellow forklift and stop in front of the fuel pump`` is never complete at the fo
 
 A leg *names a target* when it holds a word that is not a number, an attribute or one of
 :data:`vlm.sim.grounding.NON_OBJECT_WORDS` (movement verbs, function words, directions,
-places such as corridor / intersection / floor, units): ``fly forward``, ``continue through
-the intersection`` and ``go to the end of the corridor`` name none
+places such as corridor / intersection / floor and rooms such as the study or the kitchen,
+units): ``fly forward``, ``continue through the intersection``, ``leave the study`` and ``go to
+the end of the corridor`` name none
 (:func:`vlm.sim.grounding.names_target`). This is the model's language knowledge, not
 perception: it needs no object in the frame.
 

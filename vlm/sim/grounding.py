@@ -60,14 +60,16 @@ PHRASE_END_WORDS = frozenset(
     close closer closest far farther further furthest nearest somewhere anywhere everywhere nowhere away home
     too instead already soon later once twice""".split()
 )
-#: Words that name no object to reach: the phrase-end words and places, directions and units.
+#: Words that name no object to reach: the phrase-end words and places (rooms too: a room is
+#: where, not what), directions and units.
 #: A subtask whose words are all of these (or numbers) names no target (``fly forward``,
 #: ``continue through the intersection``, ``go to the end of the corridor``).
 NON_OBJECT_WORDS = PHRASE_END_WORDS | frozenset(
     """corridor hallway hall intersection junction crossing corner end middle center centre side edge lane road street
     path footpath way area space spot place room level storey story floor ground air altitude height sky top bottom
     distance direction degree metre meter foot feet yard inch m cm half halfway couple time times view sight
-    zero two three four five six seven eight nine ten few""".split()
+    zero two three four five six seven eight nine ten few
+    study bedroom bathroom kitchen laundry lobby foyer""".split()
 )
 _DETERMINERS = frozenset("the a an this that these those".split())
 #: a mention after one of these is a landmark flown past, not the goal ("fly past the bench to ...")
@@ -114,9 +116,17 @@ def _ends_phrase(word: str) -> bool:
 
 def names_target(text: str) -> bool:
     """Whether ``text`` names something to reach: a word that is not a number, an attribute or
-    one of :data:`NON_OBJECT_WORDS`. ``fly forward`` and ``continue through the intersection``
-    name none; ``stop at the blue door`` names one (visible or not)."""
-    return any(not (w.isdigit() or w in NON_OBJECT_WORDS or w in ATTRIBUTE_WORDS) for w in words(text))
+    one of :data:`NON_OBJECT_WORDS` and is the head of its noun phrase (the grounding rule: a
+    word another noun follows is that noun's modifier). ``fly forward``, ``continue through the
+    intersection`` and ``go into the elevator lobby`` (a lobby is a place; ``elevator`` only
+    says which) name none; ``stop at the blue door`` names one (visible or not)."""
+    toks, breaks = _tokens(text)
+    for i, w in enumerate(toks):
+        if w.isdigit() or w in NON_OBJECT_WORDS or w in ATTRIBUTE_WORDS:
+            continue
+        if breaks[i] or i + 1 == len(toks) or _ends_phrase(toks[i + 1]):
+            return True
+    return False
 
 
 @dataclass(frozen=True)
