@@ -165,6 +165,11 @@ class SearchConfig:
     look_cone_rad : half-width of the cone of headings around the look point's heading in which
         :func:`look_target` seeks the longest free run, radians (a doorway 1 m wide 4 m away
         spans 14 deg; the model's point carries a few pixels of noise)
+    look_clearance_m : clearance the way to a look leg's end must keep in the map, metres
+        (below the planner's: from a few metres away a doorway's frame is partly unseen, and
+        unseen space is an obstacle, so a door the vehicle will fly through reads narrower than
+        it is; the planner keeps its own clearance on the way, and a way that stays too narrow
+        ends the leg as a stall)
     look_min_leg_m : the shortest leg toward a look point, metres. Shorter than ``min_leg_m``:
         the leg is re-aimed on every answer, so a short one grows as the camera sees further
         (outdoors, open sky clears only a few metres of the map at flight height)
@@ -207,6 +212,7 @@ class SearchConfig:
     open_ray_max_m: float = 6.0
     look_hints: bool = True
     look_cone_rad: float = math.radians(20.0)
+    look_clearance_m: float = 0.3
     look_min_leg_m: float = 1.5
     look_max_age_s: float = 5.0
     look_visited_max: float = 1.0
@@ -243,6 +249,8 @@ class SearchConfig:
             raise SearchConfigError(f"SearchConfig.weave_rad must be in [0, pi/4), got {self.weave_rad}")
         if self.cruise_z_m is not None and not np.isfinite(self.cruise_z_m):
             raise SearchConfigError(f"SearchConfig.cruise_z_m must be finite or None, got {self.cruise_z_m}")
+        if not (np.isfinite(self.look_clearance_m) and self.look_clearance_m >= 0):
+            raise SearchConfigError(f"SearchConfig.look_clearance_m must be >= 0, got {self.look_clearance_m}")
         if not (np.isfinite(self.look_cone_rad) and 0.0 <= self.look_cone_rad <= math.pi / 2):
             raise SearchConfigError(f"SearchConfig.look_cone_rad must be in [0, pi/2], got {self.look_cone_rad}")
         if self.explore_policy not in EXPLORE_POLICIES:
@@ -437,29 +445,67 @@ def look_target(
     visited: np.ndarray,
     z_m: float,
 ) -> np.ndarray | None:
-    """A leg toward where the model would look: the end of the longest free run (as in
-    :func:`open_ray_target`) among headings within ``look_cone_rad`` of ``look_yaw`` (radians,
-    world ENU, the look point's viewing ray), a run counting less the further it turns from
-    that heading (a quarter less at the cone's edge); None when no run reaches
-    ``look_min_leg_m`` or the best one ends where the vehicle has been (``look_visited_max``).
+    """A leg toward where the model would look (``look_yaw``, radians, world ENU: the look
+    point's viewing ray), or None.
+
+    With a map that has a horizontal distance layer (``distance_slice``, the ESDF): the place
+    reached through the map's free layer (breadth-first, keeping ``explore_clearance_m``, as
+    :func:`frontier_target`, but keeping ``look_clearance_m``) that lies furthest along the look ray, at most ``open_ray_max_m``
+    along it, inside the cone of ``look_cone_rad`` about it and by a path at most twice its
+    distance; so a doorway or a corridor seen at an angle is a leg even when no straight line
+    through it keeps the clearance. Otherwise (an analytic field): the end of the longest
+    straight free run (as in :func:`open_ray_target`) among headings in the cone. Either way a
+    place counts less the further it turns from the ray (a quarter less at the cone's edge);
+    None when nothing reaches ``look_min_leg_m`` along the ray or the best place is where the
+    vehicle has been (``look_visited_max``).
 
     Returns (3,) metres, world ENU, at ``z_m``, or None.
     """
     cfg = config
     p0 = np.array([position[0], position[1], z_m], dtype=float)
+    if callable(getattr(field_map, "distance_slice", None)):
+        tgt = _look_through_reach(p0, look_yaw, field_map, cfg, volume, volume_margin_m)
+    else:
+        tgt = _look_along_rays(p0, look_yaw, field_map, cfg, volume, volume_margin_m)
+    if tgt is None or _visited_near(visited, tgt, cfg.visit_radius_m) >= cfg.look_visited_max:
+        return None
+    return tgt
+
+
+def _look_through_reach(p0, look_yaw, field_map, cfg, volume, volume_margin_m) -> np.ndarray | None:
+    """:func:`look_target` on the map's reachable free layer."""
+    x, y, steps = _reach_grid(field_map, p0, cfg.look_clearance_m)
+    ri, rj = np.nonzero(np.isfinite(steps))
+    if not len(ri):
+        return None
+    d = np.stack([x[ri] - p0[0], y[rj] - p0[1]], axis=-1)
+    u = np.array([np.cos(look_yaw), np.sin(look_yaw)])
+    along = d @ u
+    off = np.abs(np.arctan2(d[:, 0] * u[1] - d[:, 1] * u[0], along))
+    path = steps[ri, rj]
+    ok = (along >= cfg.look_min_leg_m) & (along <= cfg.open_ray_max_m) & (off <= cfg.look_cone_rad) & (path <= 2.0 * along)
+    if volume is not None:
+        pts = np.stack([x[ri], y[rj], np.full(len(ri), p0[2])], axis=-1)
+        ok &= volume.contains(pts, margin_m=volume_margin_m)
+    if not ok.any():
+        return None
+    score = np.where(ok, along * (1.0 - 0.25 * off / max(cfg.look_cone_rad, 1e-9)), -np.inf)
+    k = int(np.argmax(score))
+    return np.array([x[ri[k]], y[rj[k]], p0[2]])
+
+
+def _look_along_rays(p0, look_yaw, field_map, cfg, volume, volume_margin_m) -> np.ndarray | None:
+    """:func:`look_target` along straight rays (a field without a distance layer)."""
     n = max(1, int(round(cfg.look_cone_rad / math.radians(5.0))))
     offsets = np.linspace(-cfg.look_cone_rad, cfg.look_cone_rad, 2 * n + 1)
-    reach, dirs = _free_runs(p0, look_yaw + offsets, field_map, clearance_m=cfg.explore_clearance_m,
+    reach, dirs = _free_runs(p0, look_yaw + offsets, field_map, clearance_m=cfg.look_clearance_m,
                              max_m=cfg.open_ray_max_m, volume=volume, volume_margin_m=volume_margin_m)
     weight = 1.0 - 0.25 * np.abs(offsets) / max(cfg.look_cone_rad, 1e-9)
     score = np.where(reach >= cfg.look_min_leg_m, reach * weight, -np.inf)
     k = int(np.argmax(score))
     if not np.isfinite(score[k]):
         return None
-    tgt = p0 + reach[k] * dirs[k]
-    if _visited_near(visited, tgt, cfg.visit_radius_m) >= cfg.look_visited_max:
-        return None
-    return tgt
+    return p0 + reach[k] * dirs[k]
 
 
 def _reach_grid(field_map, p0: np.ndarray, clearance_m: float, stride: int = 2):

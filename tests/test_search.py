@@ -234,11 +234,11 @@ def test_the_look_leg_is_the_longest_free_run_near_the_heading_the_model_looked(
     # 15 deg off, where the run ends after 2 m
     t = look_target(p, math.radians(15.0), f, visited=none, **common)
     assert t is not None and np.linalg.norm(t - p) == pytest.approx(6.0) and abs(t[1]) <= 0.55
-    assert corridor.distance(np.linspace(p, t, 60)).min() >= cfg.explore_clearance_m
+    assert corridor.distance(np.linspace(p, t, 60)).min() >= cfg.look_clearance_m
     # the model looked at a wall: no run in the cone reaches look_min_leg_m, no leg
     assert look_target(p, math.radians(90.0), f, visited=none, **common) is None
-    # outside the cone the axis is not considered: 40 deg off with a 20 deg cone finds nothing
-    assert look_target(p, math.radians(40.0), f, visited=none, **common) is None
+    # outside the cone the axis is not considered: 60 deg off with a 20 deg cone finds nothing
+    assert look_target(p, math.radians(60.0), f, visited=none, **common) is None
     # the leg's end is where the vehicle has been: the model looks back the way it came, no leg
     been = np.array([[5.5, 0.0, 1.5], [6.0, 0.0, 1.5], [6.5, 0.0, 1.5]])
     assert look_target(p, 0.0, f, visited=been, **common) is None
@@ -514,6 +514,25 @@ def test_the_frontier_target_is_the_reachable_doorway_not_the_frontier_behind_a_
     m.field = AnalyticField(boxes=[*m.field.boxes, Box(center=[2.0, 1.5, 1.5], half_extents=[0.1, 1.1, 2.0])])
     assert frontier_target(np.array([-2.0, -3.0, 1.5]), 0.0, m, config=SearchConfig(), volume=None, volume_margin_m=0.45,
                            visited=np.zeros((0, 3)), z_m=1.5) is None
+
+
+def test_a_look_through_a_doorway_is_a_leg_through_it_on_the_maps_free_layer():
+    """With a map that has a distance layer the look leg is a place reached through the free
+    layer: the model looked through the doorway at an angle, the leg ends beyond the wall; with
+    the door shut it ends in front of the wall, never behind it."""
+    m = FrontierMap()
+    p = np.array([-1.0, -2.0, 1.5])
+    cfg = SearchConfig()
+    look = math.atan2(1.5 - p[1], 4.0 - p[0])  # toward a point 2 m beyond the doorway's middle
+    common = dict(config=cfg, volume=None, volume_margin_m=0.45, visited=np.zeros((0, 3)), z_m=1.5)
+    t = look_target(p, look, m, **common)
+    assert t is not None and t[0] > 2.1 + cfg.look_clearance_m  # beyond the wall, so through the door
+    assert float(m.field.distance(t[None])[0]) >= cfg.look_clearance_m
+    bearing = math.atan2(t[1] - p[1], t[0] - p[0])
+    assert abs(wrap_angle(bearing - look)) <= cfg.look_cone_rad + 1e-9
+    m.field = AnalyticField(boxes=[*m.field.boxes, Box(center=[2.0, 1.5, 1.5], half_extents=[0.1, 1.1, 2.0])])
+    shut = look_target(p, look, m, **common)
+    assert shut is not None and shut[0] < 2.0 - cfg.look_clearance_m
 
 
 def test_a_withdrawn_stop_resumes_the_search_and_a_lost_without_a_sighting_does_not_end_it(planner):
