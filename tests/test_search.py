@@ -174,6 +174,15 @@ def pocket_field():
     return AnalyticField(boxes=boxes, half_spaces=[HalfSpace(point=[0, 0, 0], normal=[0, 0, 1])])
 
 
+def corridor_field():
+    """A corridor along +x: walls at y = +-1.0, from x = -1 to 20, over a floor."""
+    boxes = [
+        Box(center=[9.5, 1.1, 1.5], half_extents=[10.5, 0.1, 1.5]),
+        Box(center=[9.5, -1.1, 1.5], half_extents=[10.5, 0.1, 1.5]),
+    ]
+    return AnalyticField(boxes=boxes, half_spaces=[HalfSpace(point=[0, 0, 0], normal=[0, 0, 1])])
+
+
 def test_from_a_dead_end_the_only_reachable_way_out_is_chosen():
     f = KnownField(pocket_field(), [-1.0, -1.2, 0.0], [4.0, 1.2, 3.0])  # seen: the pocket
     target = explore_target(
@@ -188,13 +197,8 @@ def test_from_a_dead_end_the_only_reachable_way_out_is_chosen():
 
 
 def test_the_open_ray_leg_goes_down_the_longest_line_of_sight_and_stops_short_of_its_end():
-    # a corridor along +x (walls at y = +-1.0, from x = -1 to 20), the vehicle at its mouth; the
-    # camera has seen it to x = 9 and a little beyond the mouth
-    boxes = [
-        Box(center=[9.5, 1.1, 1.5], half_extents=[10.5, 0.1, 1.5]),
-        Box(center=[9.5, -1.1, 1.5], half_extents=[10.5, 0.1, 1.5]),
-    ]
-    corridor = AnalyticField(boxes=boxes, half_spaces=[HalfSpace(point=[0, 0, 0], normal=[0, 0, 1])])
+    # the vehicle at the corridor's mouth; the camera has seen it to x = 9 and a little beyond
+    corridor = corridor_field()
     f = KnownField(corridor, [-1.0, -1.0, 0.0], [9.0, 1.0, 3.0])
     cfg = SearchConfig(open_ray_max_m=6.0)
     p = np.array([0.0, 0.0, 1.5])
@@ -218,12 +222,7 @@ def test_the_open_ray_leg_goes_down_the_longest_line_of_sight_and_stops_short_of
 
 
 def test_the_look_leg_is_the_longest_free_run_near_the_heading_the_model_looked():
-    # the corridor of the open-ray test: walls at y = +-1.0 along +x, seen to x = 9
-    boxes = [
-        Box(center=[9.5, 1.1, 1.5], half_extents=[10.5, 0.1, 1.5]),
-        Box(center=[9.5, -1.1, 1.5], half_extents=[10.5, 0.1, 1.5]),
-    ]
-    corridor = AnalyticField(boxes=boxes, half_spaces=[HalfSpace(point=[0, 0, 0], normal=[0, 0, 1])])
+    corridor = corridor_field()  # seen to x = 9
     f = KnownField(corridor, [-1.0, -1.0, 0.0], [9.0, 1.0, 3.0])
     cfg = SearchConfig(open_ray_max_m=6.0)
     p = np.array([0.0, 0.0, 1.5])
@@ -602,7 +601,11 @@ def test_a_look_point_starts_the_search_on_a_leg_that_way_without_a_scan(planner
         observer=lambda st: track.append((st.t_s, st.state.p.copy(), st.state.yaw)),
     )
     ev = m.pilot.events
-    first_decision = next(e.t_s for e in ev if e.kind == "decision")
+    # the first answer on a subtask (the one on the whole instruction, before the decomposition,
+    # is about the last target and starts nothing)
+    instruction = "Find the red crate and stop next to it."
+    first_decision = next(e.t_s for e in ev if e.kind == "decision" and e.data["subtask"] != instruction)
+    assert any(e.kind == "decision" and e.data["subtask"] == instruction and e.t_s < first_decision for e in ev)
     start_ev = next(e for e in ev if e.kind == "search_start")
     assert start_ev.t_s == pytest.approx(first_decision) and start_ev.data["trigger"] == "not_visible"
     after = [e for e in ev if e.t_s >= start_ev.t_s and e.kind.startswith("search_")]

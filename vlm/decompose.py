@@ -267,19 +267,7 @@ def attach_context(subtasks: list[str] | tuple[str, ...]) -> tuple[str, ...]:
     ``("You're at the end of the hall, Fly back past the snack machine",)``. A statement with
     nothing after it stays; order and words are kept.
     """
-    out: list[str] = []
-    carry: str | None = None
-    for sub in subtasks:
-        if carry is not None:
-            sub = f"{carry}, {sub}"
-            carry = None
-        if _is_context(sub):
-            carry = sub
-        else:
-            out.append(sub)
-    if carry is not None:
-        out.append(carry)
-    return tuple(out)
+    return _join_to_next(subtasks, _is_context)
 
 
 def attach_transit(subtasks: list[str] | tuple[str, ...]) -> tuple[str, ...]:
@@ -293,13 +281,19 @@ def attach_transit(subtasks: list[str] | tuple[str, ...]) -> tuple[str, ...]:
     ``("Leave the study, go past the ironing board",)``. The last subtask stays (nothing after
     it to arrive at); order and words are kept.
     """
+    return _join_to_next(subtasks, lambda sub: not _names_target(sub))
+
+
+def _join_to_next(subtasks, joins) -> tuple[str, ...]:
+    """Join every subtask for which ``joins(subtask)`` holds (after any joining before it) to
+    the one after it with ``", "``; one with nothing after it stays."""
     out: list[str] = []
     carry: str | None = None
     for sub in subtasks:
         if carry is not None:
             sub = f"{carry}, {sub}"
             carry = None
-        if not _names_target(sub):
+        if joins(sub):
             carry = sub
         else:
             out.append(sub)
