@@ -681,8 +681,10 @@ class OnFlyPilot:
             # a target seen moments ago and missed now (far, small, occluded for a frame): keep
             # flying its goal; when that goal times out the streak starts the search
             return
-        if out.not_visible and self._look_leg(t_s, state) is not None:
-            # the model says where it would look: go there now, no scan (it has just seen this view)
+        if out.not_visible and self.tasks is not None and self._look_leg(t_s, state) is not None:
+            # the model says where it would look: go there now, no scan (it has just seen this
+            # view). Not on an answer about the whole instruction before the decomposition: that
+            # one is about the last target, not the first subtask's
             self._start_search(t_s, state, SearchTrigger.NOT_VISIBLE, explore_first=True)
         elif self._not_visible_streak >= scfg.not_visible_streak:
             self._start_search(t_s, state, SearchTrigger.NOT_VISIBLE)
