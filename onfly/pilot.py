@@ -51,6 +51,7 @@ from onfly.search import (
     SearchConfig,
     SearchPhase,
     SearchTrigger,
+    best_look_target,
     explore_target,
     frontier_target,
     look_target,
@@ -294,6 +295,7 @@ class OnFlyPilot:
         self._no_goal_streak = 0  # decisions in a row without a goal (current subtask)
         self._not_visible_streak = 0  # "target not visible" answers in a row
         self._look: tuple[float, float] | None = None  # (t_s, heading) where the model would look
+        self._scan_looks: list[float] = []  # headings where the model would look, during a scan
         self._rejected_streak = 0  # of the decisions without a goal, those the verifier rejected
         self._answered_s = -np.inf  # when the decision agent last gave a parseable answer
         self._last_seen: np.ndarray | None = None  # last verified goal of the current subtask
@@ -671,6 +673,8 @@ class OnFlyPilot:
         scfg = self.config.search
         if out.not_visible and out.look_yaw is not None and scfg.enabled and scfg.look_hints:
             self._look = (t_s, float(out.look_yaw))
+            if self.search.phase is SearchPhase.SCAN:
+                self._scan_looks.append(float(out.look_yaw))
         if self.search.active and self.search.phase is SearchPhase.EXPLORE and self.search.leg_kind == "look":
             target = self._look_leg(t_s, state)  # a fresher look point re-aims the leg
             if target is not None:
@@ -681,7 +685,11 @@ class OnFlyPilot:
             # a target seen moments ago and missed now (far, small, occluded for a frame): keep
             # flying its goal; when that goal times out the streak starts the search
             return
-        if out.not_visible and self.tasks is not None and self._look_leg(t_s, state) is not None:
+        if out.not_visible and self.tasks is not None and self.search.searches == 0 and scfg.scan_first_search:
+            # the episode's first search turns all round before any leg (the start view is a
+            # quarter of the horizon)
+            self._start_search(t_s, state, SearchTrigger.NOT_VISIBLE)
+        elif out.not_visible and self.tasks is not None and self._look_leg(t_s, state) is not None:
             # the model says where it would look: go there now, no scan (it has just seen this
             # view). Not on an answer about the whole instruction before the decomposition: that
             # one is about the last target, not the first subtask's
@@ -720,6 +728,7 @@ class OnFlyPilot:
             return unknown_fraction(state.p, yaw, self.esdf, self.volume, scfg.gain_lookahead_m) >= scfg.scan_gain_min
 
         self.search.start(t_s, state.p, state.yaw, trigger, toward_yaw=toward, worth_scanning=worth_scanning)
+        self._scan_looks = []
         if fresh:
             # keep going the way the vehicle was going, unless that way is closed (a dead end:
             # its heading when it stalled); a vehicle that was not under way (the start, a
@@ -742,6 +751,16 @@ class OnFlyPilot:
         if explore_first:
             self._explore(t_s, state)
 
+    def _best_scan_look(self, t_s: float, state: VehicleState) -> np.ndarray | None:
+        """After a scan: the best leg toward where the model would look from each heading
+        (:func:`onfly.search.best_look_target`), or None; the scan's look points are used once."""
+        looks, self._scan_looks = self._scan_looks, []
+        keep = self.search.heading0 if self.search.heading0 is not None else self.search.yaw0
+        return best_look_target(
+            state.p, looks, self.esdf, config=self.config.search, volume=self.volume, volume_margin_m=self._volume_margin_m,
+            visited=self.search.visited, z_m=self._cruise_z(state), keep_yaw=keep,
+        )  # fmt: skip
+
     def _explore(self, t_s: float, state: VehicleState) -> None:
         """Pick the next exploration point and fly toward it (or scan again if none)."""
         z = self._cruise_z(state)
@@ -750,7 +769,9 @@ class OnFlyPilot:
         )
         # where the model would look first; then the most promising frontier of the map; the
         # ring of straight legs where the map has no reachable frontier at this height
-        target, how = self._look_leg(t_s, state), "look"
+        target, how = (self._best_scan_look(t_s, state) if self._scan_looks else None), "look"
+        if target is None:
+            target = self._look_leg(t_s, state)
         if target is None and self.config.search.explore_policy == "open_ray":
             target, how = open_ray_target(state.p, self.search.heading0, self.esdf, **common), "open_ray"
         if target is None:

@@ -21,6 +21,7 @@ from onfly.search import (
     SearchConfigError,
     SearchPhase,
     SearchTrigger,
+    best_look_target,
     explore_target,
     look_target,
     open_heading,
@@ -112,6 +113,28 @@ def test_exploration_arrival_and_timeout_end_the_leg():
     assert ev is None and yaw_ref is None and point.tolist() == [4.0, 0.0, 1.0]
     assert s.control(1.5, np.array([3.7, 0.1, 1.0]), 0.0)[2] == "explore_done"
     assert s.control(3.5, np.array([1.0, 0.0, 1.0]), 0.0)[2] == "explore_done"
+
+
+def test_a_reaim_lengthens_or_bends_a_leg_but_never_turns_it_round():
+    """A fresher look point moves the leg's end within twice the look cone of the leg's first
+    bearing (from where the leg began); one further round is refused and the leg keeps its end.
+    Chained re-aims cannot walk the bearing round either: the bound is on the first bearing."""
+    cfg = SearchConfig(look_cone_rad=math.radians(20.0), explore_timeout_s=10.0)
+    s = Search(cfg)
+    s.start(0.0, np.zeros(3), 0.0, SearchTrigger.NOT_VISIBLE)
+    s.explore_from(0.0, np.array([4.0, 0.0, 1.5]), np.zeros(3), 0.0, kind="look")  # bearing 0
+    here = np.array([1.0, 0.0, 1.5])
+    ahead = np.array([8.0, 0.0, 1.5])
+    assert s.reaim(5.0, ahead)  # further the same way: taken, and its timeout counts from now
+    assert s.control(14.0, here, 0.0)[0].tolist() == ahead.tolist()
+    bent = np.array([6.0 * math.cos(0.6), 6.0 * math.sin(0.6), 1.5])  # 34 deg off: inside 40 deg
+    assert s.reaim(6.0, bent)
+    for deg in (45.0, 90.0, 180.0):  # past twice the cone, measured from the first bearing
+        a = math.radians(deg)
+        assert not s.reaim(7.0, np.array([6.0 * math.cos(a), 6.0 * math.sin(a), 1.5]))
+    assert s.control(7.5, here, 0.0)[0].tolist() == bent.tolist()
+    # the refused re-aims did not restart the leg's timeout (still counted from t = 6)
+    assert s.control(16.5, here, 0.0)[2] == "explore_done"
 
 
 def test_the_weave_swings_the_camera_about_the_leg_bearing_within_the_yaw_rate():
@@ -245,6 +268,30 @@ def test_the_look_leg_is_the_longest_free_run_near_the_heading_the_model_looked(
     vol = FlightVolume(np.array([-5.0, -5.0, 0.0]), np.array([4.0, 5.0, 5.0]))
     t_vol = look_target(p, 0.0, f, visited=none, **{**common, "volume": vol})
     assert t_vol is not None and bool(vol.contains(t_vol, margin_m=0.45)[0]) and 2.5 <= t_vol[0] <= 3.55
+
+
+def test_after_a_scan_the_leg_is_the_longest_look_weighted_by_the_way_kept():
+    """Walls 1.6 m ahead (+x), 2.6 m to the left (+y) and 4.6 m to the right (-y); open 6 m
+    behind. The model looked one way from each heading of a scan: with no way to keep the leg is
+    the longest (behind); keeping +x, the right (4 m at 0.6 of its length) beats behind (6 m at a
+    fifth); a look into a wall gives no leg, and no looks give none."""
+    boxes = [Box(center=[2.1, 0.0, 1.5], half_extents=[0.1, 9.0, 1.5]), Box(center=[0.0, 3.1, 1.5], half_extents=[9.0, 0.1, 1.5]),
+             Box(center=[0.0, -5.1, 1.5], half_extents=[9.0, 0.1, 1.5])]
+    field = AnalyticField(boxes=boxes, half_spaces=[HalfSpace(point=[0, 0, 0], normal=[0, 0, 1])])
+    cfg = SearchConfig(open_ray_max_m=6.0, look_cone_rad=0.0)
+    p = np.array([0.0, 0.0, 1.5])
+    common = dict(config=cfg, volume=None, volume_margin_m=0.45, visited=np.zeros((0, 3)), z_m=1.5)
+    looks = [0.0, math.pi / 2, math.pi, -math.pi / 2]
+    free = {y: look_target(p, y, field, **common) for y in looks}
+    assert free[0.0] is None  # 1.6 m to the wall: no run reaches look_min_leg_m past the clearance
+    run = {y: float(np.linalg.norm(t[:2])) for y, t in free.items() if t is not None}
+    assert run[math.pi] == pytest.approx(6.0) and run[-math.pi / 2] > run[math.pi / 2]
+    best = best_look_target(p, looks, field, keep_yaw=None, **common)
+    assert best is not None and best[0] == pytest.approx(-6.0) and abs(best[1]) < 1e-9
+    kept = best_look_target(p, looks, field, keep_yaw=0.0, **common)
+    assert kept is not None and kept[1] == pytest.approx(-run[-math.pi / 2]) and abs(kept[0]) < 1e-9
+    assert best_look_target(p, [0.0], field, keep_yaw=0.0, **common) is None
+    assert best_look_target(p, [], field, keep_yaw=None, **common) is None
 
 
 def test_exploration_prefers_unknown_space_and_never_leaves_the_volume():
@@ -538,6 +585,8 @@ def test_a_withdrawn_stop_resumes_the_search_and_a_lost_without_a_sighting_does_
     # the target is behind: every decision says "not visible" until the scan shows it. The
     # monitor (scripted) answers STOP once, then CONTINUE (the STOP is withdrawn), then LOST
     # (nothing was ever pointed at: no sighting to turn back to), then the simulated answers.
+    # The decisions stay blind until the script has played out, so the first scan may well end
+    # before they see anything: the search has explored on by then, hence the 100 s limit.
     script = {2: "STOP", 3: "CONTINUE", 4: "LOST"}  # calls 0, 1 (before the search): CONTINUE
 
     def monitor(i, resp):
@@ -563,7 +612,7 @@ def test_a_withdrawn_stop_resumes_the_search_and_a_lost_without_a_sighting_does_
     modes = []
     r = run_episode(
         world, m, instruction="Fly over to the red van and stop right next to it.", goal=region, reference_path_m=10.0,
-        seed=0, error_model="test", config=EpisodeConfig(time_limit_s=70.0, frame_period_s=0.5),
+        seed=0, error_model="test", config=EpisodeConfig(time_limit_s=100.0, frame_period_s=0.5),
         observer=lambda st: modes.append((st.t_s, st.method.pilot.mode)),
     )
     ev = m.pilot.events
@@ -586,13 +635,15 @@ def test_a_withdrawn_stop_resumes_the_search_and_a_lost_without_a_sighting_does_
 
 
 def test_a_look_point_starts_the_search_on_a_leg_that_way_without_a_scan(planner):
-    """The first "not visible" answer that says where to look starts the search straight on a
-    leg that way (no scan: the model has just looked at this view); the vehicle then gets out
-    of the pocket and finds the crate. Without look hints the same answers start a scan."""
+    """A "not visible" answer that says where to look starts a search straight on a leg that way
+    (no scan: the model has just looked at this view); the vehicle then gets out of the pocket
+    and finds the crate. The episode's first search scans first by default
+    (``scan_first_search``), so here it is off: the rule is that of every later search. Without
+    look hints the same answers start a scan."""
     scene = pocket_scene()
     start = VehicleState(0.0, np.array([3.0, 0.0, 1.5]), np.zeros(3), math.pi)  # facing out of the pocket
     world = World(scene, camera=CAM, initial_state=start)
-    m = PilotMethod(LookingVlm(3), planner=planner)
+    m = PilotMethod(LookingVlm(3), config=PilotConfig(search=SearchConfig(scan_first_search=False)), planner=planner)
     track = []
     region = GoalRegion([-2.0, 5.0, 0.6], [0.6, 0.6, 0.6])
     r = run_episode(
@@ -619,9 +670,37 @@ def test_a_look_point_starts_the_search_on_a_leg_that_way_without_a_scan(planner
     assert r.end_reason == "stopped" and r.metrics.success and not r.metrics.collided
 
     # look hints off: the same answers start a scan in place first
-    cfg = PilotConfig(search=SearchConfig(look_hints=False))
+    cfg = PilotConfig(search=SearchConfig(look_hints=False, scan_first_search=False))
     m2 = PilotMethod(LookingVlm(3), config=cfg, planner=planner)
     world2 = World(scene, camera=CAM, initial_state=start)
     fly(world2, m2, "Find the red crate and stop next to it.", region, limit_s=12.0)
     assert "look" not in [e.data.get("how") for e in m2.pilot.events if e.kind == "search_explore"]
     assert any(e.kind == "search_start" for e in m2.pilot.events)
+
+
+def test_scan_first_search_turns_all_round_then_takes_the_best_look_of_the_scan(planner):
+    """With ``scan_first_search`` the first "not visible" answer on a subtask starts a scan even
+    though it carries a look point: the vehicle holds its place and turns before any leg; the
+    leg after the scan is the look from the one heading that gave a leg (out of the pocket),
+    not the last heading's look (into a wall)."""
+    scene = pocket_scene()
+    start = VehicleState(0.0, np.array([3.0, 0.0, 1.5]), np.zeros(3), math.pi)  # facing out of the pocket
+    world = World(scene, camera=CAM, initial_state=start)
+    m = PilotMethod(LookingVlm(3), planner=planner)  # scan_first_search is the default
+    track = []
+    r = run_episode(
+        world, m, instruction="Find the red crate and stop next to it.", goal=GoalRegion([-2.0, 5.0, 0.6], [0.6, 0.6, 0.6]),
+        reference_path_m=10.0, seed=0, error_model="test", config=EpisodeConfig(time_limit_s=40.0, frame_period_s=0.5),
+        observer=lambda st: track.append((st.t_s, st.state.p.copy(), st.state.yaw)),
+    )
+    ev = m.pilot.events
+    start_ev = next(e for e in ev if e.kind == "search_start")
+    assert start_ev.data["trigger"] == "not_visible"
+    leg = next(e for e in ev if e.kind == "search_explore")
+    assert leg.data["how"] == "look" and leg.t_s > start_ev.t_s + 5.0
+    scan = [(p, y) for t, p, y in track if start_ev.t_s <= t <= leg.t_s]
+    assert max(np.linalg.norm(p[:2] - start_ev.data["position"][:2]) for p, _ in scan) < 0.3  # turned in place
+    assert max(abs(wrap_angle(y - math.pi)) for _, y in scan) > 0.75 * math.pi  # three quarters round
+    end = np.asarray(leg.data["target"])
+    assert end[0] <= 3.0 - SearchConfig().look_min_leg_m and abs(end[1]) < 1.0  # out of the pocket
+    assert not r.metrics.collided
