@@ -194,10 +194,11 @@ class SearchConfig:
         away from a target beside or behind the start. Measured at one code version, simulated
         VLM ``nominal``, realism ``ideal``, 1 run per task, on versus off: the paper's 150 80.7
         against 72.0 % SR (goal out of view at the start 72.7 against 33.3 %, in view 82.9 each);
-        the hard set 34.8 against 46.4 % (out of view 25.5 against 39.2 %): its starts face the
-        doorway that leads on, its rooms hold look-alikes that the turn shows the decision agent
-        (``parking_garage-p07`` stopped at a second level sign behind the start), and at 0.6 m/s
-        the 12 s of turning is a sixth of the 70 s limit
+        the hard set 34.8 against 46.4 % (out of view 25.5 against 39.2 %): its way on lies
+        ahead (the first 3 m of the reference path within 45 deg of the start heading in 93 % of
+        its tasks, 80 % of the 150's), its rooms hold look-alikes that the turn shows the
+        decision agent (``parking_garage-p07`` stopped at a second level sign behind the start),
+        and at 0.6 m/s the 12 s of turning is a sixth of the 70 s limit
     look_visited_max : a leg whose end has this much of the track near it (see
         :func:`explore_target`'s visit measure: about one remembered point right there) is not
         taken: the model looks the way it came from
