@@ -751,7 +751,7 @@ class OnFlyPilot:
         if explore_first:
             self._explore(t_s, state)
 
-    def _best_scan_look(self, t_s: float, state: VehicleState) -> np.ndarray | None:
+    def _best_scan_look(self, state: VehicleState) -> np.ndarray | None:
         """After a scan: the best leg toward where the model would look from each heading
         (:func:`onfly.search.best_look_target`), or None; the scan's look points are used once."""
         looks, self._scan_looks = self._scan_looks, []
@@ -769,7 +769,7 @@ class OnFlyPilot:
         )
         # where the model would look first; then the most promising frontier of the map; the
         # ring of straight legs where the map has no reachable frontier at this height
-        target, how = (self._best_scan_look(t_s, state) if self._scan_looks else None), "look"
+        target, how = (self._best_scan_look(state) if self._scan_looks else None), "look"
         if target is None:
             target = self._look_leg(t_s, state)
         if target is None and self.config.search.explore_policy == "open_ray":
