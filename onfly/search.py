@@ -186,9 +186,9 @@ class SearchConfig:
         inference engine a decomposition or monitoring call can hold the next decision ~3 s;
         the look's heading is in the world frame, so it stays meaningful while the vehicle
         flies a few metres)
-    scan_first_search : the episode's first search (the first subtask's first "not visible"
-        answer) scans all round before any leg, even when the answer carries a look point; later
-        searches go straight on a look leg. The start view is a quarter of the horizon and the
+    scan_first_search : the episode's first search, when a "not visible" answer about a
+        subtask starts it (before any other search of the episode), scans all round before any
+        leg, even when the answer carries a look point; later searches go straight on a look leg. The start view is a quarter of the horizon and the
         heading a vehicle starts with says nothing of where the target is, so the first turn
         looks at the other three quarters (about 12 s at the paper's 0.4 rad/s) before flying
         away from a target beside or behind the start. Measured at one code version, simulated
