@@ -22,7 +22,7 @@ import numpy as np
 from onfly.memory import FrameRecord, HybridMemory, MemorySnapshot, SlidingWindowMemory, TimeSamplingMemory
 from onfly.observation import Observation
 from planning.frames import invert_transform, transform_points
-from planning.verifier import CandidateGoal, VerifiedGoal, Verifier, VerifierInputError
+from planning.verifier import CandidateGoal, RejectionReason, VerifiedGoal, Verifier, VerifierInputError
 from vlm.feature_cache import FeatureCache
 from vlm.parsing import CoordFormat, MonitorStatus, PointParse, StatusParse, parse_point, parse_status
 from vlm.prompts import build_decision_prompt, build_monitor_prompt, decision_schema, status_schema
@@ -122,6 +122,10 @@ class DecisionOutcome:
     frame_t_s : capture time of the frame the decision was made on, seconds (NaN if unknown)
     look_yaw : with ``not_visible``, the world heading (radians) of the viewing ray of the point
         where the model would look for the target instead (``decision/v3``), or None
+    blocked_target_world : (3,) metres, world ENU, or None: when the verifier rejected the
+        pixel because no pixel of the target has a clear straight ray (``no_feasible_pixel``:
+        something stands in between), the pointed object's point (:func:`pointed_point`); the
+        pilot may route around what is in between (:func:`planning.approach.approach_point`)
     """
 
     frame_id: str
@@ -137,6 +141,7 @@ class DecisionOutcome:
     target_world: np.ndarray | None = None
     frame_t_s: float = float("nan")
     look_yaw: float | None = None
+    blocked_target_world: np.ndarray | None = None
 
     @property
     def latency_s(self) -> float:
@@ -237,8 +242,10 @@ class DecisionAgent:
             yaw = pixel_yaw(parse.uv, obs) if parse is not None and parse.ok else None
             target = pointed_point(parse.uv, obs) if goal is not None else None
             look = getattr(parse, "look_uv", None) if not_visible else None
+            blocked = verified is not None and verified.record.rejection is RejectionReason.NO_FEASIBLE_PIXEL
             return DecisionOutcome(obs.frame_id, subtask, response, hist, parse, verified, goal, reason, yaw, not_visible,
-                                   target, float(obs.t_s), pixel_yaw(look, obs) if look is not None else None)
+                                   target, float(obs.t_s), pixel_yaw(look, obs) if look is not None else None,
+                                   pointed_point(parse.uv, obs) if blocked else None)
 
         if response.status is not CallStatus.OK:
             log.info("decision call %s: %s", response.status.value, response.error)

@@ -62,6 +62,7 @@ from onfly.search import (
 )
 from onfly.serialize import config_from_tables, to_jsonable
 from onfly.task_manager import Status, TaskEvent, TaskManager
+from planning.approach import approach_point
 from planning.esdf import EsdfMap
 from planning.esdf_config import EsdfConfig
 from planning.frames import wrap_angle
@@ -79,6 +80,10 @@ from vlm.types import VlmBackend
 __all__ = ["PilotConfig", "PilotConfigError", "PilotMode", "PilotEvent", "PilotTick", "OnFlyPilot"]
 
 log = logging.getLogger(__name__)
+
+# a routed goal keeps this much more than the planner's safety distance from every obstacle and
+# from the target: the guide search needs a cell of slack around the goal to end on
+_ROUTE_MARGIN_M = 0.15
 
 DECISION = "decision"
 MONITORING = "monitoring"
@@ -129,6 +134,11 @@ class PilotConfig:
         vehicle, and unobserved space counts as free in the ESDF, so a goal lifted from a pixel
         at an object's base would otherwise pull the vehicle onto unseen ground. Default 0.7 m =
         body radius 0.25 m + the planner's 0.45 m safety distance. None disables it.
+    route_blocked : a decision the verifier rejects because no pixel of the target has a
+        clear straight ray (something stands in between) flies to the free point in front of
+        the target instead (:func:`planning.approach.approach_point`; the planner's guide
+        search routes around what is in between). Ours, not the paper's: its verifier rejects
+        and the vehicle hovers with the target in view. False = the paper's rule
     search : the pilot's own search when the target is not being found (``onfly.search``;
         ours, not the paper's). ``SearchConfig(enabled=False)`` is the paper's pilot.
     follow : the follow mode for a subtask that follows a moving person (``onfly.follow``)
@@ -149,6 +159,7 @@ class PilotConfig:
     vlm_deadline_s: float | None = None
     early_start: bool = True
     goal_min_z_m: float | None = 0.7
+    route_blocked: bool = True
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     verifier: VerifierConfig = field(default_factory=VerifierConfig)
     esdf: EsdfConfig = field(default_factory=EsdfConfig)
@@ -446,6 +457,8 @@ class OnFlyPilot:
         if not speculative and out.subtask != self.tasks.current:
             return  # answered about a subtask that has since advanced
         out = self.follow.on_decision(t_s, out)  # following: the goal is the person, predicted to now
+        if out.goal_world is None and out.blocked_target_world is not None and self.config.route_blocked:
+            out = self._route_blocked(t_s, out, state)
         if out.goal_world is not None and self.config.goal_min_z_m is not None and out.goal_world[2] < self.config.goal_min_z_m:
             raised = np.array(out.goal_world, float)
             raised[2] = self.config.goal_min_z_m
@@ -636,6 +649,22 @@ class OnFlyPilot:
     def _volume_margin_m(self) -> float:
         """Goals keep the planner's safety distance from the volume's faces."""
         return float(self.config.planner.d_safe_m)
+
+    def _route_blocked(self, t_s: float, out: DecisionOutcome, state: VehicleState) -> DecisionOutcome:
+        """A decision rejected for a blocked ray, with the free point in front of its target as
+        the goal (:func:`planning.approach.approach_point`), or unchanged when there is none."""
+        if self.follow.intent(out.subtask) is not None:
+            return out  # a person is followed at the follower's standoff, never routed to
+        cfg = self.config
+        goal = approach_point(
+            out.blocked_target_world, state.p, self.esdf,
+            clearance_m=cfg.planner.d_safe_m + _ROUTE_MARGIN_M, standoff_m=cfg.planner.d_safe_m + _ROUTE_MARGIN_M,
+            z_min_m=cfg.goal_min_z_m, volume=self.volume, volume_margin_m=self._volume_margin_m,
+        )  # fmt: skip
+        if goal is None:
+            return out
+        self._event(t_s, "goal_routed", {"target": out.blocked_target_world, "goal": goal, "position": state.p})
+        return replace(out, goal_world=goal, reason="")
 
     def _clamp_to_volume(self, t_s: float, goal, source: str) -> np.ndarray:
         g = np.asarray(goal, dtype=float)
