@@ -73,6 +73,7 @@ from planning.trajectory import Trajectory, VehicleState
 from planning.verifier import Verifier, VerifierConfig
 from planning.volume import FlightVolume
 from vlm.decompose import decompose_detailed
+from vlm.following import follow_intent
 from vlm.feature_cache import FeatureCache
 from vlm.parsing import CoordFormat
 from vlm.types import VlmBackend
@@ -139,6 +140,12 @@ class PilotConfig:
         the target instead (:func:`planning.approach.approach_point`; the planner's guide
         search routes around what is in between). Ours, not the paper's: its verifier rejects
         and the vehicle hovers with the target in view. False = the paper's rule
+    subtask_lookahead : both agents are asked about the current subtask with this many of the
+        next ones as its later steps ("X, then Y"): the decision points at the last step's
+        target when it is in view, and the monitor judges the subtask done when that target is
+        reached, as every baseline reads its whole instruction (ours; the paper asks about the
+        current subtask alone, which flies an intermediate leg such as "along the aisle" past a
+        final target in plain view). 0 = the paper's prompts
     search : the pilot's own search when the target is not being found (``onfly.search``;
         ours, not the paper's). ``SearchConfig(enabled=False)`` is the paper's pilot.
     follow : the follow mode for a subtask that follows a moving person (``onfly.follow``)
@@ -160,6 +167,7 @@ class PilotConfig:
     early_start: bool = True
     goal_min_z_m: float | None = 0.7
     route_blocked: bool = True
+    subtask_lookahead: int = 1
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     verifier: VerifierConfig = field(default_factory=VerifierConfig)
     esdf: EsdfConfig = field(default_factory=EsdfConfig)
@@ -178,6 +186,8 @@ class PilotConfig:
             raise PilotConfigError(f"PilotConfig.goal_min_z_m must be finite or None, got {self.goal_min_z_m}")
         if self.stop_confirmations < 1:
             raise PilotConfigError(f"PilotConfig.stop_confirmations must be >= 1, got {self.stop_confirmations}")
+        if not (isinstance(self.subtask_lookahead, int) and self.subtask_lookahead >= 0):
+            raise PilotConfigError(f"PilotConfig.subtask_lookahead must be an integer >= 0, got {self.subtask_lookahead!r}")
         if self.intermediate_stop_confirmations is not None and self.intermediate_stop_confirmations < 1:
             raise PilotConfigError(
                 f"PilotConfig.intermediate_stop_confirmations must be >= 1 or None, got {self.intermediate_stop_confirmations}"
@@ -366,6 +376,16 @@ class OnFlyPilot:
         self.monitor.observe(obs)
         self.latest = obs
 
+    def _asked_subtask(self) -> str:
+        """What both agents are asked about: the current subtask with the next
+        ``subtask_lookahead`` ones as its later steps (:meth:`TaskManager.with_next`). A
+        subtask that follows a person, or is followed by one that does, is asked alone."""
+        n = self.config.subtask_lookahead
+        later = self.tasks.subtasks[self.tasks.index : self.tasks.index + 1 + n]
+        if any(follow_intent(t) is not None for t in later):
+            return self.tasks.current
+        return self.tasks.with_next(n)
+
     def _start_agents(self, t_s: float) -> None:
         obs = self.latest
         if obs is None:
@@ -373,7 +393,7 @@ class OnFlyPilot:
         if self.tasks is None:
             self._start_early_decision(obs)
             return
-        subtask = self.tasks.current
+        subtask = self._asked_subtask()
         recovering = self.mode is PilotMode.RECOVERING
         if not self.config.dual_agent:
             if not self.runtime.busy(SINGLE) and obs.frame_id != self._decision_frame and not recovering:
@@ -454,7 +474,7 @@ class OnFlyPilot:
         speculative = out.subtask == self.instruction and (self.tasks is None or self._speculative)
         if self.tasks is None and not speculative:
             return
-        if not speculative and out.subtask != self.tasks.current:
+        if not speculative and out.subtask != self._asked_subtask():
             return  # answered about a subtask that has since advanced
         out = self.follow.on_decision(t_s, out)  # following: the goal is the person, predicted to now
         if out.goal_world is None and out.blocked_target_world is not None and self.config.route_blocked:
@@ -501,7 +521,7 @@ class OnFlyPilot:
         )
         if out.status is None or self.tasks is None or self.mode is PilotMode.FINISHED:
             return
-        if out.subtask != self.tasks.current:
+        if out.subtask != self._asked_subtask():
             return
         if self.mode is PilotMode.RECOVERING and out.status.value != Status.STOP.value:
             return
@@ -509,11 +529,12 @@ class OnFlyPilot:
             self._event(t_s, "stop_ignored", {"reason": "following without an end", "position": state.p})
             return
         status = Status(out.status.value)
+        joined = out.subtask != self.tasks.current  # asked with the next subtask as its later step
         if out.judged_position is not None:
             # the normal point is where the judged frame was taken, not where the answer landed
-            event = self.tasks.on_status(status, out.judged_t_s, out.judged_position, out.judged_yaw)
+            event = self.tasks.on_status(status, out.judged_t_s, out.judged_position, out.judged_yaw, joined=joined)
         else:
-            event = self.tasks.on_status(status, t_s, state.p, state.yaw)
+            event = self.tasks.on_status(status, t_s, state.p, state.yaw, joined=joined)
         if event is TaskEvent.NONE and status is Status.STOP:
             if self.mode is not PilotMode.CONFIRMING:
                 # a search is paused, not ended (nothing starts or ends one while confirming but
@@ -551,6 +572,12 @@ class OnFlyPilot:
             self._no_goal_streak = self._not_visible_streak = self._rejected_streak = 0
             self.mode = PilotMode.HOLDING
             self._event(t_s, "advanced", {"subtask": self.tasks.current, "index": self.tasks.index})
+            if self.tasks.pending_stops:
+                # the STOP judged the joined text: the last subtask's target is reached, and that
+                # STOP is the first of its confirmations; confirm on the next frame
+                self.mode = PilotMode.CONFIRMING
+                self._hold_p = state.p.copy()
+                self._event(t_s, "stop_heard", {"position": state.p, "stops": self.tasks.pending_stops})
         elif event is TaskEvent.LOST:
             self.goal_world = None
             self._face_yaw = None

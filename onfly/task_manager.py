@@ -87,6 +87,20 @@ class TaskManager:
         """The current subtask (the last one once finished)."""
         return self.subtasks[min(self.index, len(self.subtasks) - 1)]
 
+    def with_next(self, n: int) -> str:
+        """The current subtask with the next ``n`` subtasks as its later steps, one text
+        (``"Fly along the aisle, then stop beside the whiteboard"``): the form in which the
+        prompts read a subtask of several steps (the target is the last step's object). The
+        current subtask alone when ``n`` is 0 or it is the last."""
+        if n < 0:
+            raise TaskManagerError(f"n must be >= 0, got {n}")
+        steps = self.subtasks[min(self.index, len(self.subtasks) - 1) :][: n + 1]
+        text = steps[0].strip().rstrip(".").rstrip()
+        for step in steps[1:]:
+            step = step.strip().rstrip(".").rstrip()
+            text += ", then " + step[:1].lower() + step[1:]
+        return text if len(steps) > 1 else steps[0]
+
     @property
     def pending_stops(self) -> int:
         """Consecutive STOPs heard on the current subtask that are not yet stable (0 after any
@@ -97,8 +111,14 @@ class TaskManager:
     def is_last(self) -> bool:
         return self.index == len(self.subtasks) - 1
 
-    def on_status(self, status: Status | str, t_s: float, position, yaw: float) -> TaskEvent:
-        """Feed one monitoring status observed at ``t_s`` with the body pose at that time."""
+    def on_status(self, status: Status | str, t_s: float, position, yaw: float, joined: bool = False) -> TaskEvent:
+        """Feed one monitoring status observed at ``t_s`` with the body pose at that time.
+
+        ``joined``: the status judged the current subtask with the next as its later step
+        (:meth:`with_next`), so a STOP says the *next* subtask's target is reached. It advances
+        past the current one; when the next is the last, it also counts as the first of the
+        last's confirmations (the monitor would only be asked the same question again).
+        """
         status = Status(status)
         if self.finished:
             return TaskEvent.NONE
@@ -121,6 +141,8 @@ class TaskManager:
                     self.last_normal = None
                     self._recovered = False
                     event = TaskEvent.ADVANCED
+                    if joined and self.is_last and self.stop_confirmations > 1:
+                        self._stops = 1
         else:
             self._stops = 0
             if not self._recovered:  # one recovery per normal point (module docstring)

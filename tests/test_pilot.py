@@ -109,11 +109,13 @@ def test_multi_subtask_instruction_advances_subtask_by_subtask(planner):
     assert len(p.tasks.subtasks) == 2
     advanced = [e for e in p.events if e.kind == "advanced"]
     assert len(advanced) == 1 and advanced[0].data["index"] == 1
-    # decisions asked about subtask 0 until the advance, about subtask 1 after it
+    # decisions asked about subtask 0 (with subtask 1 as its later step) until the advance,
+    # about subtask 1 alone after it
     t_adv = advanced[0].t_s
+    first = f"{p.tasks.subtasks[0].rstrip('.')}, then {p.tasks.subtasks[1][:1].lower()}{p.tasks.subtasks[1][1:].rstrip('.')}"
     for e in p.events:
         if e.kind == "decision" and e.data["subtask"] != p.instruction:  # early decisions: whole instruction
-            expect = p.tasks.subtasks[0] if e.t_s <= t_adv else p.tasks.subtasks[1]
+            expect = first if e.t_s <= t_adv else p.tasks.subtasks[1]
             if e.t_s > t_adv + 1.0 or e.t_s < t_adv - 1.0:
                 assert e.data["subtask"] == expect
     assert r.end_reason == "stopped" and r.metrics.success

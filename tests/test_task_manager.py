@@ -96,3 +96,43 @@ def test_an_intermediate_subtask_advances_on_fewer_stops_than_the_last_one_finis
     assert same.on_status("STOP", 2, [0, 0, 1], 0.0) is TaskEvent.ADVANCED
     with pytest.raises(TaskManagerError):
         TaskManager(["a"], intermediate_confirmations=0)
+
+
+def test_with_next_reads_the_next_subtasks_as_later_steps_until_the_last():
+    tm = TaskManager(["Fly along the aisle between the desks.", "Stop beside the whiteboard", "land"], stop_confirmations=1)
+    assert tm.with_next(0) == "Fly along the aisle between the desks."
+    assert tm.with_next(1) == "Fly along the aisle between the desks, then stop beside the whiteboard"
+    assert tm.with_next(5) == "Fly along the aisle between the desks, then stop beside the whiteboard, then land"
+    tm.on_status("STOP", 0, [0, 0, 1], 0.0)
+    assert tm.with_next(1) == "Stop beside the whiteboard, then land"
+    tm.on_status("STOP", 1, [0, 0, 1], 0.0)
+    assert tm.is_last and tm.with_next(1) == "land"
+    with pytest.raises(TaskManagerError):
+        tm.with_next(-1)
+
+
+def test_the_joined_text_splits_back_into_the_same_legs():
+    from vlm.decompose import split_instruction
+
+    tm = TaskManager(["Leave the living room through the doorway by the dining table", "stop in front of the storage cabinet"])
+    assert split_instruction(tm.with_next(1)) == tm.subtasks
+
+
+def test_a_stop_on_the_joined_text_advances_and_counts_toward_the_last_subtask():
+    tm = TaskManager(["a", "b"], stop_confirmations=2, intermediate_confirmations=1)
+    assert tm.on_status("STOP", 0, [0, 0, 1], 0.0, joined=True) is TaskEvent.ADVANCED
+    assert tm.is_last and tm.pending_stops == 1
+    assert tm.on_status("STOP", 1, [0, 0, 1], 0.0) is TaskEvent.FINISHED
+    # not joined (the paper's prompts): the last subtask needs both of its own STOPs
+    tm = TaskManager(["a", "b"], stop_confirmations=2, intermediate_confirmations=1)
+    assert tm.on_status("STOP", 0, [0, 0, 1], 0.0) is TaskEvent.ADVANCED
+    assert tm.pending_stops == 0
+    assert tm.on_status("STOP", 1, [0, 0, 1], 0.0) is TaskEvent.NONE
+    # a CONTINUE between them resets the carried STOP
+    tm = TaskManager(["a", "b", "c"], stop_confirmations=2, intermediate_confirmations=1)
+    assert tm.on_status("STOP", 0, [0, 0, 1], 0.0, joined=True) is TaskEvent.ADVANCED
+    assert tm.pending_stops == 0  # "b" is not the last: its own STOP advances it
+    assert tm.on_status("STOP", 1, [0, 0, 1], 0.0, joined=True) is TaskEvent.ADVANCED
+    assert tm.pending_stops == 1
+    tm.on_status("CONTINUE", 2, [0, 0, 1], 0.0)
+    assert tm.on_status("STOP", 3, [0, 0, 1], 0.0) is TaskEvent.NONE and not tm.finished
