@@ -381,8 +381,8 @@ class OnFlyPilot:
         ``subtask_lookahead`` ones as its later steps (:meth:`TaskManager.with_next`). A
         subtask that follows a person, or is followed by one that does, is asked alone."""
         n = self.config.subtask_lookahead
-        later = self.tasks.subtasks[self.tasks.index : self.tasks.index + 1 + n]
-        if any(follow_intent(t) is not None for t in later):
+        steps = self.tasks.subtasks[self.tasks.index : self.tasks.index + 1 + n]
+        if any(follow_intent(t) is not None for t in steps):
             return self.tasks.current
         return self.tasks.with_next(n)
 

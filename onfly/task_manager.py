@@ -141,8 +141,12 @@ class TaskManager:
                     self.last_normal = None
                     self._recovered = False
                     event = TaskEvent.ADVANCED
-                    if joined and self.is_last and self.stop_confirmations > 1:
+                    if joined and self.is_last:
                         self._stops = 1
+                        if self._stops >= self.stop_confirmations:
+                            self._stops = 0
+                            self.finished = True
+                            event = TaskEvent.FINISHED
         else:
             self._stops = 0
             if not self._recovered:  # one recovery per normal point (module docstring)

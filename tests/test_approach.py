@@ -47,11 +47,14 @@ def test_a_car_in_front_of_the_target_turns_the_approach_to_its_side():
     r = float(np.hypot(*(goal - TARGET)[:2]))
     assert 0.6 - 1e-9 <= r <= 2.6 + 1e-9
     assert r <= float(np.hypot(*(START - TARGET)[:2])) - 0.5
-    # the nearest passing point on its way: one step nearer the target fails
+    # the straight way back has no point that keeps the clearance
+    way = TARGET + np.outer(0.6 + np.arange(0.0, 2.01, 0.25), [-1.0, 0.0, 0.0])
+    assert np.all(field.query(way)[0] < 0.55)
+    # and the goal is the nearest passing point on its own way: every one before it fails
     a = math.atan2(goal[1] - TARGET[1], goal[0] - TARGET[0])
-    nearer = TARGET + np.array([(r - 0.25) * math.cos(a), (r - 0.25) * math.sin(a), 0.0])
-    if r - 0.25 >= 0.6 - 1e-9:
-        assert field.query(nearer[None])[0][0] < 0.55
+    before = np.arange(0.6, r - 1e-6, 0.25)
+    pts = TARGET + np.column_stack([before * math.cos(a), before * math.sin(a), np.zeros(before.size)])
+    assert np.all(field.query(pts)[0] < 0.55) if before.size else r == pytest.approx(0.6)
 
 
 def test_unknown_space_is_never_a_goal():

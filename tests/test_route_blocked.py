@@ -5,11 +5,14 @@ The verifier rejects such a target (no pixel of it has a ray clear of the car in
 (:func:`planning.approach.approach_point`) and the planner's guide goes round the car.
 """
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from onfly.bench.metrics import GoalRegion
 from onfly.pilot import PilotConfig
+from onfly.search import SearchConfig
 from onfly.world.scene import parse_scene
 from onfly.world.world import World
 from planning.analytic_field import AnalyticField, Box
@@ -71,10 +74,6 @@ def test_a_target_behind_a_car_is_reached_round_the_car(planner):
 
 
 def test_the_papers_rule_hovers_with_the_target_in_view(planner):
-    from dataclasses import replace
-
-    from onfly.search import SearchConfig
-
     world = World(car_scene(), camera=CAM)
     cfg = replace(PilotConfig(), route_blocked=False, search=SearchConfig(enabled=False))
     m = PilotMethod(SeeingVlm(3, min_px=20), config=cfg, planner=planner)

@@ -136,3 +136,9 @@ def test_a_stop_on_the_joined_text_advances_and_counts_toward_the_last_subtask()
     assert tm.pending_stops == 1
     tm.on_status("CONTINUE", 2, [0, 0, 1], 0.0)
     assert tm.on_status("STOP", 3, [0, 0, 1], 0.0) is TaskEvent.NONE and not tm.finished
+
+
+def test_with_one_confirmation_a_joined_stop_finishes_the_last_subtask_at_once():
+    tm = TaskManager(["a", "b"], stop_confirmations=1)
+    assert tm.on_status("STOP", 0, [0, 0, 1], 0.0, joined=True) is TaskEvent.FINISHED
+    assert tm.finished and tm.pending_stops == 0
