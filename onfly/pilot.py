@@ -61,7 +61,7 @@ from onfly.search import (
     unknown_fraction,
 )
 from onfly.serialize import config_from_tables, to_jsonable
-from onfly.task_manager import Status, TaskEvent, TaskManager
+from onfly.task_manager import Status, TaskEvent, TaskManager, same_subtask
 from planning.approach import approach_point
 from planning.esdf import EsdfMap
 from planning.esdf_config import EsdfConfig
@@ -72,7 +72,7 @@ from planning.straight_line import straight_line_plan
 from planning.trajectory import Trajectory, VehicleState
 from planning.verifier import Verifier, VerifierConfig
 from planning.volume import FlightVolume
-from vlm.decompose import decompose_detailed
+from vlm.decompose import DecompositionError, decompose_detailed, split_instruction
 from vlm.following import follow_intent
 from vlm.feature_cache import FeatureCache
 from vlm.parsing import CoordFormat
@@ -322,6 +322,7 @@ class OnFlyPilot:
         self._last_seen: np.ndarray | None = None  # last verified goal of the current subtask
         self._start_z: float | None = None  # altitude at the first tick (the search's cruise default)
         self._pending_decomposition = None  # the decomposition call, until it is submitted
+        self._one_step = False  # the instruction has one step: an answer about it is about the first subtask
 
     # -- lifecycle ------------------------------------------------------------------------------
     def begin(self, instruction: str, t_s: float) -> None:
@@ -334,6 +335,10 @@ class OnFlyPilot:
         latency (about 3 s) before any goal.
         """
         self.instruction = instruction
+        try:
+            self._one_step = len(split_instruction(instruction)) == 1
+        except DecompositionError:
+            self._one_step = False  # the decomposition call reports it
 
         def call():
             dec = decompose_detailed(instruction, self.backend, deadline_s=self.config.vlm_deadline_s)
@@ -471,10 +476,10 @@ class OnFlyPilot:
         )
         if self.mode in (PilotMode.FINISHED, PilotMode.RECOVERING):
             return
-        speculative = out.subtask == self.instruction and (self.tasks is None or self._speculative)
+        speculative = same_subtask(out.subtask, self.instruction) and (self.tasks is None or self._speculative)
         if self.tasks is None and not speculative:
             return
-        if not speculative and out.subtask != self._asked_subtask():
+        if not speculative and not same_subtask(out.subtask, self._asked_subtask()):
             return  # answered about a subtask that has since advanced
         out = self.follow.on_decision(t_s, out)  # following: the goal is the person, predicted to now
         if out.goal_world is None and out.blocked_target_world is not None and self.config.route_blocked:
@@ -521,7 +526,7 @@ class OnFlyPilot:
         )
         if out.status is None or self.tasks is None or self.mode is PilotMode.FINISHED:
             return
-        if out.subtask != self._asked_subtask():
+        if not same_subtask(out.subtask, self._asked_subtask()):
             return
         if self.mode is PilotMode.RECOVERING and out.status.value != Status.STOP.value:
             return
@@ -529,7 +534,7 @@ class OnFlyPilot:
             self._event(t_s, "stop_ignored", {"reason": "following without an end", "position": state.p})
             return
         status = Status(out.status.value)
-        joined = out.subtask != self.tasks.current  # asked with the next subtask as its later step
+        joined = not same_subtask(out.subtask, self.tasks.current)  # asked with the next subtask as its later step
         if out.judged_position is not None:
             # the normal point is where the judged frame was taken, not where the answer landed
             event = self.tasks.on_status(status, out.judged_t_s, out.judged_position, out.judged_yaw, joined=joined)
@@ -741,14 +746,15 @@ class OnFlyPilot:
             # a target seen moments ago and missed now (far, small, occluded for a frame): keep
             # flying its goal; when that goal times out the streak starts the search
             return
-        if out.not_visible and self.tasks is not None and self.search.searches == 0 and scfg.scan_first_search:
+        # an answer about the whole instruction before the decomposition is about its last
+        # target, which is the first subtask's only when the instruction has one step
+        about_current = self.tasks is not None or self._one_step
+        if out.not_visible and about_current and self.search.searches == 0 and scfg.scan_first_search:
             # the episode's first search turns all round before any leg (the start view is a
             # quarter of the horizon)
             self._start_search(t_s, state, SearchTrigger.NOT_VISIBLE)
-        elif out.not_visible and self.tasks is not None and self._look_leg(t_s, state) is not None:
-            # the model says where it would look: go there now, no scan (it has just seen this
-            # view). Not on an answer about the whole instruction before the decomposition: that
-            # one is about the last target, not the first subtask's
+        elif out.not_visible and about_current and self._look_leg(t_s, state) is not None:
+            # the model says where it would look: go there now, no scan (it has just seen this view)
             self._start_search(t_s, state, SearchTrigger.NOT_VISIBLE, explore_first=True)
         elif self._not_visible_streak >= scfg.not_visible_streak:
             self._start_search(t_s, state, SearchTrigger.NOT_VISIBLE)

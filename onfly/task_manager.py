@@ -20,7 +20,20 @@ from enum import Enum
 
 import numpy as np
 
-__all__ = ["Status", "TaskEvent", "TaskManager", "TaskManagerError"]
+__all__ = ["Status", "TaskEvent", "TaskManager", "TaskManagerError", "same_subtask"]
+
+
+def _subtask_key(text: str) -> str:
+    return " ".join(text.split()).rstrip(" .!?;,").casefold()
+
+
+def same_subtask(a: str | None, b: str | None) -> bool:
+    """Whether two subtask texts are the same step, up to case, spacing and closing
+    punctuation: a decomposition may return "Fly to the yellow car" for the instruction
+    "Fly to the yellow car.", and an answer about one is an answer about the other."""
+    if a is None or b is None:
+        return a is b
+    return _subtask_key(a) == _subtask_key(b)
 
 
 class TaskManagerError(ValueError):

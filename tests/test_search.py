@@ -678,6 +678,28 @@ def test_a_look_point_starts_the_search_on_a_leg_that_way_without_a_scan(planner
     assert any(e.kind == "search_start" for e in m2.pilot.events)
 
 
+def test_a_one_step_instruction_starts_its_scan_on_the_first_answer_before_the_decomposition(planner):
+    """An instruction of one step ("Find the red crate.") names the first subtask's target, so
+    the first "not visible" answer about it starts the scan at once; it is not dropped as stale
+    when the decomposition returns the step without its full stop. An instruction of two steps
+    waits for an answer about its first subtask (the whole instruction's target is the last)."""
+    scene = pocket_scene()
+    start = VehicleState(0.0, np.array([3.0, 0.0, 1.5]), np.zeros(3), math.pi)
+    region = GoalRegion([-2.0, 5.0, 0.6], [0.6, 0.6, 0.6])
+    firsts = {}
+    for instruction in ("Find the red crate.", "Find the red crate and stop next to it."):
+        m = PilotMethod(LookingVlm(3), planner=planner)
+        fly(World(scene, camera=CAM, initial_state=start), m, instruction, region, limit_s=8.0)
+        ev = m.pilot.events
+        t_dec = next(e.t_s for e in ev if e.kind == "decomposition")
+        first_answer = next(e.t_s for e in ev if e.kind == "decision")
+        firsts[instruction] = (next(e.t_s for e in ev if e.kind == "search_start"), t_dec, first_answer)
+    t_search, t_dec, first_answer = firsts["Find the red crate."]
+    assert t_search == pytest.approx(first_answer) and t_search < 1.5 < t_dec
+    t_search, t_dec, _ = firsts["Find the red crate and stop next to it."]
+    assert t_search > t_dec
+
+
 def test_scan_first_search_turns_all_round_then_takes_the_best_look_of_the_scan(planner):
     """With ``scan_first_search`` the first "not visible" answer on a subtask starts a scan even
     though it carries a look point: the vehicle holds its place and turns before any leg; the

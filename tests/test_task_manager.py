@@ -142,3 +142,16 @@ def test_with_one_confirmation_a_joined_stop_finishes_the_last_subtask_at_once()
     tm = TaskManager(["a", "b"], stop_confirmations=1)
     assert tm.on_status("STOP", 0, [0, 0, 1], 0.0, joined=True) is TaskEvent.FINISHED
     assert tm.finished and tm.pending_stops == 0
+
+
+def test_same_subtask_ignores_case_spacing_and_closing_punctuation_only():
+    from onfly.task_manager import same_subtask
+
+    # a decomposition returns "Fly to the yellow car" for "Fly to the yellow car."
+    assert same_subtask("Fly to the yellow car.", "Fly to the yellow car")
+    assert same_subtask("  fly to the  Yellow car!", "Fly to the yellow car")
+    assert same_subtask(None, None)
+    # any other difference is another subtask
+    assert not same_subtask("Fly to the yellow car", "Fly to the yellow cart")
+    assert not same_subtask("Fly to the car, then stop", "Fly to the car")
+    assert not same_subtask("Fly to the yellow car", None)
