@@ -243,7 +243,7 @@ class Follower:
 
     def where_now(self, t_s: float, fallback):
         """Where to look for the person now (LOST recovery): the prediction on a following
-        subtask with sightings, else ``fallback`` (the last verified goal)."""
+        subtask with sightings, else ``fallback`` (where the target was last pointed at)."""
         if not self.active:
             return fallback
         return self.predict(t_s)

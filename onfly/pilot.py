@@ -319,7 +319,7 @@ class OnFlyPilot:
         self._scan_looks: list[float] = []  # headings where the model would look, during a scan
         self._rejected_streak = 0  # of the decisions without a goal, those the verifier rejected
         self._answered_s = -np.inf  # when the decision agent last gave a parseable answer
-        self._last_seen: np.ndarray | None = None  # last verified goal of the current subtask
+        self._last_seen: np.ndarray | None = None  # where the current subtask's target was last pointed at
         self._start_z: float | None = None  # altitude at the first tick (the search's cruise default)
         self._pending_decomposition = None  # the decomposition call, until it is submitted
         self._one_step = False  # the instruction has one step: an answer about it is about the first subtask
@@ -722,7 +722,10 @@ class OnFlyPilot:
         """Streaks of decisions without a goal; start a search when one is long enough."""
         if out.goal_world is not None:
             self._no_goal_streak = self._not_visible_streak = self._rejected_streak = 0
-            self._last_seen = np.asarray(out.goal_world, float).copy()
+            # the pointed object itself, not the goal: a goal shortened by the bearing gating or
+            # the verifier can lie a few decimetres from the vehicle, in any direction
+            seen = next(p for p in (out.target_world, out.blocked_target_world, out.goal_world) if p is not None)
+            self._last_seen = np.asarray(seen, float).copy()
             return
         if out.parse is None:
             return  # the call itself failed: a search cannot hand back without a working model

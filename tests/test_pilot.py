@@ -355,3 +355,28 @@ def test_summary_counts_moved_goals_and_survives_missing_shifts():
     m.pilot = P()
     s = m.summary()
     assert s["decisions"] == 3 and s["verifier_moved"] == 1 and s["decision_failures"] == {"rejected": 1}
+
+
+def test_the_last_sighting_is_the_pointed_object_not_a_goal_beside_the_vehicle(planner):
+    """A goal can lie a few decimetres from the vehicle in any direction (the bearing gating
+    shortens an off-axis goal, the verifier refines it): LOST recovery and the search turn
+    toward the object the model pointed at, 10 m east, not toward the goal 0.6 m north."""
+    from onfly.agents import DecisionOutcome
+    from onfly.runtime import ClockRuntime
+    from planning.trajectory import VehicleState
+    from vlm.parsing import PointParse
+
+    pilot = OnFlyPilot(PilotConfig(), ScriptedVlm("perfect"), ClockRuntime(), planner=planner)
+    pilot.begin("Fly to the TV screen.", 0.0)
+    state = VehicleState(1.0, np.array([8.0, 4.0, 1.5]), np.zeros(3), 0.0)
+    parse = PointParse(ok=True, uv=(200.0, 100.0), candidates=((200.0, 100.0),), raw="", reason="", source="json:point_2d")
+    out = DecisionOutcome(
+        "f1", "Fly to the TV screen.", text(""), None, parse, None,
+        goal_world=np.array([8.0, 4.6, 1.5]), target_world=np.array([18.0, 4.0, 1.5]),
+    )  # fmt: skip
+    pilot._count_decision(1.0, out, state)
+    assert pilot._last_seen_yaw(state) == pytest.approx(0.0, abs=1e-9)  # east, at the screen
+    # without the object's point (no depth reading there) the goal is the sighting
+    pilot._count_decision(2.0, DecisionOutcome("f2", "Fly to the TV screen.", text(""), None, parse, None,
+                                               goal_world=np.array([8.0, 6.0, 1.5])), state)
+    assert pilot._last_seen_yaw(state) == pytest.approx(np.pi / 2)
