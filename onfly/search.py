@@ -125,8 +125,10 @@ class SearchConfig:
         taken while turning: at 0.4 rad/s and 2 Hz frames the view moves 11.5 deg a frame)
     explore_ranges_m : distances of the candidate exploration points, metres
     explore_headings : number of candidate headings on the ring
-    explore_clearance_m : clearance the segment to a candidate must keep, metres (the planner's
-        safety distance by default)
+    explore_clearance_m : clearance the way to a frontier or ring leg's end, and a line of
+        sight's run, must keep, metres: the default planner's guide clearance (``d_safe_m`` 0.45
+        plus ``guide_clearance_margin_m`` 0.1). With less, a leg can end in a pocket of the map
+        that the guide search cannot enter, and the vehicle hovers there until it stalls
     explore_arrive_m : an exploration point is reached within this, metres
     explore_timeout_s : give up on one exploration point after this long, seconds
     visit_radius_m : a candidate this close to a visited place is penalized, metres
@@ -214,7 +216,7 @@ class SearchConfig:
     scan_dwell_s: float = 0.5
     explore_ranges_m: tuple[float, ...] = (2.0, 3.5, 5.0)
     explore_headings: int = 16
-    explore_clearance_m: float = 0.45
+    explore_clearance_m: float = 0.55
     explore_arrive_m: float = 0.8
     explore_timeout_s: float = 15.0
     visit_radius_m: float = 1.5

@@ -562,6 +562,32 @@ def test_the_frontier_target_is_the_reachable_doorway_not_the_frontier_behind_a_
                            visited=np.zeros((0, 3)), z_m=1.5) is None
 
 
+def test_a_frontier_leg_never_ends_where_the_planners_guide_search_cannot_go():
+    """A 1.1 m doorway (0.55 m clearance on its middle line only) is narrower than the planner's
+    guide search passes (``d_safe_m`` + ``guide_clearance_margin_m`` = 0.55 m on its grid's
+    cells): a leg through it would
+    hover until the stall window ends. With the default clearance there is no frontier leg; with
+    the safety distance alone (0.45 m) there was one, which the guide search cannot reach."""
+    from onfly.search import frontier_target
+    from planning.guide_path import guide_search
+    from planning.planner_config import PlannerConfig
+
+    m = FrontierMap()
+    m.field = AnalyticField(boxes=[
+        Box(center=[2.0, -4.5, 1.5], half_extents=[0.1, 5.5, 2.0]),  # the wall up to y = 1.0
+        Box(center=[2.0, 7.05, 1.5], half_extents=[0.1, 4.95, 2.0]),  # and from y = 2.1
+    ])  # fmt: skip
+    start = np.array([-2.0, -3.0, 1.5])
+    pc = PlannerConfig()
+    guide_clear = pc.d_safe_m + pc.guide_clearance_margin_m
+    assert SearchConfig().explore_clearance_m >= guide_clear
+    kw = dict(volume=None, volume_margin_m=0.45, visited=np.zeros((0, 3)), z_m=1.5)
+    assert frontier_target(start, 0.0, m, config=SearchConfig(), **kw) is None
+    narrow = frontier_target(start, 0.0, m, config=SearchConfig(explore_clearance_m=pc.d_safe_m), **kw)
+    assert narrow is not None and narrow[0] > 2.0  # through the doorway
+    assert guide_search(m, start, narrow, clearance_m=guide_clear, preferred_clearance_m=1.0).status == "unreachable"
+
+
 def test_a_look_through_a_doorway_is_a_leg_through_it_on_the_maps_free_layer():
     """With a map that has a distance layer the look leg is a place reached through the free
     layer: the model looked through the doorway at an angle, the leg ends beyond the wall; with
