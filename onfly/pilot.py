@@ -57,6 +57,7 @@ from onfly.search import (
     look_target,
     open_heading,
     open_ray_target,
+    side_opening,
     side_to_look,
     unknown_fraction,
 )
@@ -85,6 +86,8 @@ log = logging.getLogger(__name__)
 # a routed goal keeps this much more than the planner's safety distance from every obstacle and
 # from the target: the guide search needs a cell of slack around the goal to end on
 _ROUTE_MARGIN_M = 0.15
+#: how often a leg's sides are checked for an opening to glance into, seconds (a frame's period)
+_GLANCE_CHECK_PERIOD_S = 0.5
 
 DECISION = "decision"
 MONITORING = "monitoring"
@@ -316,6 +319,7 @@ class OnFlyPilot:
         self._no_goal_streak = 0  # decisions in a row without a goal (current subtask)
         self._not_visible_streak = 0  # "target not visible" answers in a row
         self._look: tuple[float, float] | None = None  # (t_s, heading) where the model would look
+        self._glance_check_s = -np.inf  # when the leg's sides were last checked for an opening
         self._scan_looks: list[float] = []  # headings where the model would look, during a scan
         self._rejected_streak = 0  # of the decisions without a goal, those the verifier rejected
         self._answered_s = -np.inf  # when the decision agent last gave a parseable answer
@@ -671,6 +675,17 @@ class OnFlyPilot:
             )
             self._straight_ref = traj
         self._last_plan = plan
+        if plan is not None and search_goal is not None and self.mode is PilotMode.SEARCHING:
+            # a leg whose end the goal check holds back where the vehicle already is (behind a
+            # wall, inside an obstacle's clearance) is over: the next leg, not a hover to a stall
+            arrive = cfg.search.explore_arrive_m
+            held = (
+                plan.goal_adjusted
+                and float(np.linalg.norm(plan.goal_used[:2] - state.p[:2])) <= arrive
+                and float(np.linalg.norm(search_goal[:2] - state.p[:2])) > arrive + 0.5
+            )
+            if self.search.leg_blocked(t_s, held):
+                self._event(t_s, "search_leg_blocked", {"target": search_goal, "position": state.p, "held_at": plan.goal_used})
         if plan is not None and not plan.ok:
             key = plan.fallback.value
             self.planner_fallbacks[key] = self.planner_fallbacks.get(key, 0) + 1
@@ -735,9 +750,12 @@ class OnFlyPilot:
             self._rejected_streak += 1
         self._not_visible_streak = self._not_visible_streak + 1 if out.not_visible else 0
         scfg = self.config.search
-        if out.not_visible and out.look_yaw is not None and scfg.enabled and scfg.look_hints:
+        if (
+            out.not_visible and out.look_yaw is not None and scfg.enabled and scfg.look_hints
+            and not self.search.during_glance(out.frame_t_s)
+        ):  # fmt: skip
             self._look = (t_s, float(out.look_yaw))
-            if self.search.phase is SearchPhase.SCAN:
+            if self.search.phase is SearchPhase.SCAN and not self.search.glancing:
                 self._scan_looks.append(float(out.look_yaw))
         if self.search.active and self.search.phase is SearchPhase.EXPLORE and self.search.leg_kind == "look":
             target = self._look_leg(t_s, state)  # a fresher look point re-aims the leg
@@ -852,6 +870,14 @@ class OnFlyPilot:
         self._event(t_s, "search_explore", {"target": target, "position": state.p, "how": how})
 
     def _search_control(self, t_s: float, state: VehicleState) -> tuple[np.ndarray, float | None]:
+        if self.search.may_glance(state.p) and t_s - self._glance_check_s >= _GLANCE_CHECK_PERIOD_S:
+            # an opening beside the leg (a doorway passed): look in, then go on with the leg
+            self._glance_check_s = t_s
+            to = self.search.leg_end[:2] - state.p[:2]
+            side = side_opening(state.p, float(np.arctan2(to[1], to[0])), self.esdf, config=self.config.search, volume=self.volume)
+            if side is not None:
+                self.search.glance(t_s, state.p, side)
+                self._event(t_s, "search_glance", {"yaw": side, "position": state.p})
         point, yaw_ref, ev = self.search.control(t_s, state.p, state.yaw)
         if ev == "scan_done":
             self._explore(t_s, state)

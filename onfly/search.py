@@ -49,6 +49,22 @@ Policy (parameters in :class:`SearchConfig`):
    scans before any leg, so a target beside or behind the start is seen without flying away
    from it (about 12 s of turning at the paper's 0.4 rad/s; the attribute says what it
    measured).
+3c. **Glances** (``glance``): on a leg the camera faces the way of travel, and a doorway or a
+   gap beside the way goes by unseen (the hard set's ``office_floor-o04``: a corridor leg past
+   the copy room's door, the printer never in a frame). Every frame period the pilot checks
+   both sides of the leg (:func:`side_opening`): a fan of rays that meets unseen space within
+   ``glance_open_within_m``, before any seen obstacle, is an opening. The vehicle then holds,
+   faces it for ``glance_dwell_s`` (one decision on a frame that shows it) and goes on with
+   the same leg, at most once every ``glance_spacing_m`` and not in the leg's first
+   ``glance_open_within_m`` (the walls beside its start are not yet in view). The unseen side
+   of a wall already seen is no opening; a side wall the camera has not yet seen is (it may be
+   a door). Look points from frames taken from a glance until the camera faces the leg again
+   do not re-aim the leg (:meth:`Search.during_glance`): those views are oblique, and their
+   deepest directions pull the leg sideways.
+3d. **A leg that cannot be flown ends**: when the planner's goal check holds the leg's end
+   back where the vehicle already is (an end behind a wall) for ``leg_blocked_s``, the leg is
+   over (:meth:`Search.leg_blocked`) and the next one is chosen, instead of a hover until the
+   stall window ends.
 4. **Hand back**: any decision that yields a verified goal for the current subtask ends the
    search (the pilot flies that goal). A STOP from the monitor pauses it (the vehicle hovers
    while the STOP is confirmed) and a withdrawn STOP resumes it where it was; a LOST while
@@ -90,10 +106,15 @@ __all__ = [
     "open_heading",
     "open_ray_target",
     "seen_obstacle_near",
+    "side_opening",
     "side_to_look",
+    "opening_gain",
     "unknown_fraction",
 ]
 
+
+#: a camera within this of a leg's bearing faces the leg, radians (half a 90 deg field of view)
+_FACING_RAD = math.pi / 4
 
 #: how exploration legs are chosen (:class:`SearchConfig`.explore_policy)
 EXPLORE_POLICIES = ("frontier", "open_ray")
@@ -201,6 +222,19 @@ class SearchConfig:
         its tasks, 80 % of the 150's), its rooms hold look-alikes that the turn shows the
         decision agent (``parking_garage-p07`` stopped at a second level sign behind the start),
         and at 0.6 m/s the 12 s of turning is a sixth of the 70 s limit
+    leg_blocked_s : a leg ends when the planner has held its end back at the vehicle this long,
+        seconds (:meth:`Search.leg_blocked`)
+    glance : on a leg, look into an opening the vehicle passes (step 3c of the module
+        docstring); False = look aside only after a leg
+    glance_reach_m : how far the rays that look for an opening beside the leg reach, metres
+    glance_open_within_m : a ray is an opening when the first space it meets that is not seen
+        free is unseen (not a seen obstacle) and lies within this, metres: a doorway beside the
+        vehicle, not the unseen side of a wall it passes
+    glance_gain_min : the fan's opening measure (the mean over its rays of the unseen fraction
+        of an opening ray, 0 for a blocked one) that makes a side worth a glance, in (0, 1]
+    glance_spacing_m : no second glance within this of the last one, metres (one per doorway)
+    glance_dwell_s : time held facing the opening, seconds: long enough for one decision on a
+        frame that shows it (2 Hz frames, a 0.8 s decision call)
     look_visited_max : a leg whose end has this much of the track near it (see
         :func:`explore_target`'s visit measure: about one remembered point right there) is not
         taken: the model looks the way it came from
@@ -241,6 +275,13 @@ class SearchConfig:
     look_max_age_s: float = 5.0
     look_visited_max: float = 1.0
     scan_first_search: bool = True
+    leg_blocked_s: float = 2.0
+    glance: bool = True
+    glance_reach_m: float = 4.0
+    glance_open_within_m: float = 2.5
+    glance_gain_min: float = 0.4
+    glance_spacing_m: float = 2.0
+    glance_dwell_s: float = 1.0
 
     def __post_init__(self) -> None:
         for name in ("not_visible_streak", "fail_streak", "reject_streak", "explore_headings"):
@@ -264,6 +305,10 @@ class SearchConfig:
             "look_min_leg_m",
             "look_max_age_s",
             "look_visited_max",
+            "glance_reach_m",
+            "leg_blocked_s",
+            "glance_open_within_m",
+            "glance_spacing_m",
         ):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
@@ -282,6 +327,10 @@ class SearchConfig:
             raise SearchConfigError(f"SearchConfig.explore_policy must be one of {EXPLORE_POLICIES}, got {self.explore_policy!r}")
         if not (0.0 <= self.scan_gain_min <= 1.0):
             raise SearchConfigError(f"SearchConfig.scan_gain_min must be in [0, 1], got {self.scan_gain_min}")
+        if not (0.0 < self.glance_gain_min <= 1.0):
+            raise SearchConfigError(f"SearchConfig.glance_gain_min must be in (0, 1], got {self.glance_gain_min}")
+        if not (np.isfinite(self.glance_dwell_s) and self.glance_dwell_s >= 0):
+            raise SearchConfigError(f"SearchConfig.glance_dwell_s must be >= 0, got {self.glance_dwell_s}")
         if not (0.0 <= self.side_gain_min <= 1.0):
             raise SearchConfigError(f"SearchConfig.side_gain_min must be in [0, 1], got {self.side_gain_min}")
         if not (0.0 <= self.forward_weight <= 1.0):
@@ -693,6 +742,49 @@ def side_to_look(
     return best
 
 
+def opening_gain(p: np.ndarray, heading: float, field_map, *, config: SearchConfig, volume: FlightVolume | None) -> float:
+    """How much unseen space an opening toward ``heading`` (radians, world ENU) shows from
+    ``p`` (3,), in [0, 1]: the mean over a fan of horizontal rays (+-20 deg, 5 cm steps out to
+    ``glance_reach_m``: half the map's 0.1 m voxel, so no ray steps over a wall's surface voxel
+    into the unseen space behind it) of each ray's unseen fraction, counting a ray only when the first
+    sample on it that is not seen free is unseen and within ``glance_open_within_m`` (a doorway
+    or a gap in a row of shelves); a ray that meets a seen obstacle first, or leaves the flight
+    volume, counts 0 (the unseen side of a wall is not an opening)."""
+    cfg = config
+    fan = heading + np.deg2rad([-20.0, -10.0, 0.0, 10.0, 20.0])
+    steps = np.arange(0.5, cfg.glance_reach_m + 1e-9, 0.05)
+    dirs = np.stack([np.cos(fan), np.sin(fan), np.zeros(len(fan))], axis=-1)
+    pts = (np.asarray(p, float)[None, None, :] + steps[None, :, None] * dirs[:, None, :]).reshape(-1, 3)
+    known = known_mask(field_map, pts).reshape(len(fan), len(steps))
+    seen_free = getattr(field_map, "observed_free", None)
+    free = (np.asarray(seen_free(pts), dtype=bool) if callable(seen_free) else np.ones(len(pts), dtype=bool)).reshape(known.shape)
+    inside = (volume.contains(pts) if volume is not None else np.ones(len(pts), dtype=bool)).reshape(known.shape)
+    gain = 0.0
+    for k in range(len(fan)):
+        not_free = np.nonzero(~(known[k] & free[k]) | ~inside[k])[0]
+        if not len(not_free):
+            continue  # seen free all the way: nothing hidden there
+        j = int(not_free[0])
+        if known[k, j] or not inside[k, j] or steps[j] > cfg.glance_open_within_m:
+            continue  # a seen obstacle, the volume's edge, or unseen space only far beyond
+        gain += float(np.mean(~known[k, j:] & inside[k, j:]))
+    return gain / len(fan)
+
+
+def side_opening(
+    position: np.ndarray, bearing: float, field_map, *, config: SearchConfig, volume: FlightVolume | None
+) -> float | None:
+    """On a leg with ``bearing`` (radians): the side heading (``bearing +- 90 deg``) through which
+    the vehicle passes an opening into unseen space (:func:`opening_gain` at least
+    ``glance_gain_min``; the larger when both qualify), or None."""
+    best, best_gain = None, config.glance_gain_min
+    for side in (bearing + np.pi / 2, bearing - np.pi / 2):
+        g = opening_gain(position, side, field_map, config=config, volume=volume)
+        if g >= best_gain:
+            best, best_gain = float(wrap_angle(side)), g
+    return best
+
+
 _PROBES = np.array(
     [[0, 0, 0], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1],
      [0.7071, 0.7071, 0], [0.7071, -0.7071, 0], [-0.7071, 0.7071, 0], [-0.7071, -0.7071, 0]],
@@ -757,6 +849,12 @@ class Search:
     _explore_start_s: float = 0.0
     _visited: list[np.ndarray] = field(default_factory=list)
     _track: list[tuple[float, np.ndarray]] = field(default_factory=list)
+    _dwell_s: float | None = None  # this scan's dwell (None: ``scan_dwell_s``)
+    _resume: tuple | None = None  # the leg a glance interrupted: (end, start, bearing, kind, t_s)
+    _glanced: list[np.ndarray] = field(default_factory=list)  # where glances were taken
+    _blocked_since_s: float | None = None  # since when the planner holds the leg's end back
+    _leg_over: bool = False  # the leg ends at the next tick (its end cannot be approached)
+    _glance_window: tuple[float, float] = (np.inf, -np.inf)  # the last glance, (began, ended) seconds
 
     @property
     def active(self) -> bool:
@@ -820,6 +918,8 @@ class Search:
             # pilot replaces it with its reverse in a dead end, see ``open_heading``)
         self.phase = SearchPhase.SCAN
         self.leg_kind = None
+        self._resume = None
+        self._dwell_s = None
         self.trigger = trigger
         self.started_s = float(t_s)
         self.searches += 1
@@ -849,9 +949,74 @@ class Search:
         """A short scan of the given headings from ``position`` (then ``"scan_done"``)."""
         self.phase = SearchPhase.SCAN
         self.leg_kind = None
+        self._resume = None
+        self._dwell_s = None
         self._hold_p = np.asarray(position, dtype=float).copy()
         self._scan_reached_s = None
         self._scan_yaws = [float(y) for y in yaws]
+
+    @property
+    def leg_end(self) -> np.ndarray | None:
+        """Where the current exploration leg goes (3,), or None."""
+        return self._explore_p
+
+    @property
+    def glancing(self) -> bool:
+        """True while a glance holds the leg it interrupted."""
+        return self._resume is not None
+
+    def during_glance(self, t_s: float) -> bool:
+        """True if ``t_s`` (a frame's capture time) falls in the last glance, from its start
+        until the camera faces the leg again (within 45 deg of the bearing to its end): the
+        camera faced the side, so what the model says of those frames is no guide to where the
+        leg goes."""
+        return self._glance_window[0] <= t_s <= self._glance_window[1]
+
+    def may_glance(self, position: np.ndarray) -> bool:
+        """True on an exploration leg, with glances on, farther than ``glance_spacing_m`` from
+        the last glance, at least ``glance_open_within_m`` from where the leg began (the camera,
+        facing the way of travel, has not yet seen the walls beside the start: unseen, they
+        would read as openings; and a leg mostly begins where the vehicle has just looked
+        round) and more than a leg's arrival radius plus a metre from its end (where the look
+        after the leg takes over)."""
+        cfg = self.config
+        if not cfg.glance or self.phase is not SearchPhase.EXPLORE or self._explore_p is None:
+            return False
+        p = np.asarray(position, dtype=float)
+        if float(np.linalg.norm(self._explore_p[:2] - p[:2])) <= cfg.explore_arrive_m + 1.0:
+            return False
+        if self.leg_length_m(p) < cfg.glance_open_within_m:
+            return False
+        return not self._glanced or float(np.linalg.norm(self._glanced[-1][:2] - p[:2])) > cfg.glance_spacing_m
+
+    def glance(self, t_s: float, position: np.ndarray, yaw: float) -> None:
+        """Interrupt the leg: hold at ``position``, face ``yaw`` for ``glance_dwell_s``, then go
+        on with the same leg (its timeout paused meanwhile)."""
+        self._resume = (self._explore_p, self._leg_start, self._leg_bearing, self.leg_kind, float(t_s))
+        self._glance_window = (float(t_s), np.inf)
+        self._glanced.append(np.asarray(position, dtype=float).copy())
+        self.phase = SearchPhase.SCAN
+        self._hold_p = np.asarray(position, dtype=float).copy()
+        self._scan_reached_s = None
+        self._scan_yaws = [float(yaw)]
+        self._dwell_s = self.config.glance_dwell_s
+
+    def leg_blocked(self, t_s: float, blocked: bool) -> bool:
+        """Report, each tick of a leg, whether the planner holds the leg's end back at the
+        vehicle (its goal check moved an end behind a wall or inside an obstacle's clearance to
+        the nearest feasible point, and that point is where the vehicle already is). After
+        ``leg_blocked_s`` of it the leg ends (the next :meth:`control` says
+        ``"explore_done"``) and True is returned once: the vehicle would otherwise hover there
+        until the stall window ends."""
+        if not blocked or self.phase is not SearchPhase.EXPLORE:
+            self._blocked_since_s = None
+            return False
+        if self._blocked_since_s is None:
+            self._blocked_since_s = float(t_s)
+        if self._leg_over or t_s - self._blocked_since_s < self.config.leg_blocked_s:
+            return False
+        self._leg_over = True
+        return True
 
     def _weave_yaw(self, t_s: float, to_go: np.ndarray) -> float | None:
         """Yaw reference on a leg: the bearing to the exploration point plus a triangle wave of
@@ -869,6 +1034,8 @@ class Search:
         self.phase = None
         self.trigger = None
         self.leg_kind = None
+        self._resume = None
+        self._dwell_s = None
         self._scan_yaws = []
         self._explore_p = None
         self.reset_stall()
@@ -884,6 +1051,10 @@ class Search:
             return
         self.phase = SearchPhase.EXPLORE
         self.leg_kind = kind
+        self._resume = None
+        self._dwell_s = None
+        self._blocked_since_s = None
+        self._leg_over = False
         self._leg_start = np.asarray(position, dtype=float).copy()
         self._explore_p = np.asarray(target, dtype=float).copy()
         to = self._explore_p[:2] - self._leg_start[:2]
@@ -924,15 +1095,28 @@ class Search:
                     return self._hold_p, target, None
                 if self._scan_reached_s is None:
                     self._scan_reached_s = float(t_s)
-                if t_s - self._scan_reached_s < cfg.scan_dwell_s:
+                dwell = cfg.scan_dwell_s if self._dwell_s is None else self._dwell_s
+                if t_s - self._scan_reached_s < dwell:
                     return self._hold_p, target, None
                 self._scan_yaws.pop(0)
                 self._scan_reached_s = None
+            if self._resume is not None:  # a glance is over: back on the leg it interrupted
+                end, start, bearing, kind, t0 = self._resume
+                self._resume = None
+                self._dwell_s = None
+                self.phase = SearchPhase.EXPLORE
+                self._explore_p, self._leg_start, self._leg_bearing, self.leg_kind = end, start, bearing, kind
+                self._explore_start_s += float(t_s) - t0
+                self._glance_window = (t0, np.inf)  # closed when the camera faces the leg again
+                self.reset_stall()
+                return self.control(t_s, position, yaw)
             return self._hold_p, None, "scan_done"
         if self.phase is SearchPhase.EXPLORE and self._explore_p is not None:
             to_go = self._explore_p[:2] - np.asarray(position, float)[:2]
+            if self._glance_window[1] == np.inf and abs(wrap_angle(yaw - np.arctan2(to_go[1], to_go[0]))) <= _FACING_RAD:
+                self._glance_window = (self._glance_window[0], float(t_s))
             near = float(np.hypot(*to_go)) <= cfg.explore_arrive_m
-            if near or t_s - self._explore_start_s > cfg.explore_timeout_s:
+            if near or self._leg_over or t_s - self._explore_start_s > cfg.explore_timeout_s:
                 return np.asarray(position, float).copy(), None, "explore_done"
             return self._explore_p, self._weave_yaw(t_s, to_go), None
         return np.asarray(position, float).copy(), None, None

@@ -26,6 +26,8 @@ from onfly.search import (
     look_target,
     open_heading,
     open_ray_target,
+    opening_gain,
+    side_opening,
     side_to_look,
 )
 from onfly.world.scene import parse_scene
@@ -358,6 +360,137 @@ def test_after_a_leg_the_side_with_unknown_space_is_looked_at():
     assert side_to_look(np.array([0, 0, 1.5]), 0.0, f, config=cfg, volume=vol) is None
 
 
+class SeenField:
+    """An analytic field whose camera has seen only the given boxes of space (lo, hi): known
+    there, free where the field is clear of every obstacle."""
+
+    def __init__(self, field, seen):
+        self.field, self.seen = field, [(np.asarray(lo, float), np.asarray(hi, float)) for lo, hi in seen]
+
+    def query(self, points):
+        return self.field.query(points)
+
+    def known(self, points):
+        P = np.atleast_2d(points)
+        return np.any([np.all((P >= lo) & (P <= hi), axis=1) for lo, hi in self.seen], axis=0)
+
+    def observed_free(self, points):
+        return self.known(points) & (self.field.query(np.atleast_2d(points))[0] > 0.0)
+
+
+def doorway_corridor(room_seen=False):
+    """The corridor of :func:`corridor_field` with a 1 m doorway in its left wall (x in [4, 5]);
+    seen: the corridor and its walls, the doorway's frame, and the room beyond when
+    ``room_seen``."""
+    boxes = [
+        Box(center=[1.5, 1.1, 1.5], half_extents=[2.5, 0.1, 1.5]),
+        Box(center=[12.5, 1.1, 1.5], half_extents=[7.5, 0.1, 1.5]),
+        Box(center=[9.5, -1.1, 1.5], half_extents=[10.5, 0.1, 1.5]),
+    ]
+    f = AnalyticField(boxes=boxes, half_spaces=[HalfSpace(point=[0, 0, 0], normal=[0, 0, 1])])
+    seen = [([-1.0, -1.2, 0.0], [20.0, 1.2, 3.0])]
+    if room_seen:
+        seen.append(([-1.0, 1.2, 0.0], [20.0, 8.0, 3.0]))
+    return SeenField(f, seen)
+
+
+def test_passing_a_doorway_opens_a_side_to_glance_but_the_unseen_side_of_a_wall_does_not():
+    cfg = SearchConfig()
+    f = doorway_corridor()
+    # abreast of the doorway: the unseen room beyond it is to the left of a +x leg
+    assert side_opening(np.array([4.5, 0.0, 1.5]), 0.0, f, config=cfg, volume=None) == pytest.approx(math.pi / 2)
+    assert opening_gain(np.array([4.5, 0.0, 1.5]), math.pi / 2, f, config=cfg, volume=None) > 0.5
+    # beside a seen wall: the space behind it is as unseen as the room, but it is no opening
+    # (the rays meet the wall's seen surface first; 5 cm steps never step over it)
+    assert side_opening(np.array([10.0, 0.0, 1.5]), 0.0, f, config=cfg, volume=None) is None
+    for yaw in (math.pi / 2, -math.pi / 2):
+        assert opening_gain(np.array([10.0, 0.0, 1.5]), yaw, f, config=cfg, volume=None) == 0.0
+    # a room already seen through the doorway: nothing left to glance at
+    assert side_opening(np.array([4.5, 0.0, 1.5]), 0.0, doorway_corridor(room_seen=True), config=cfg, volume=None) is None
+    # the room lies outside the flight volume: nothing to find there
+    vol = FlightVolume(np.array([-20.0, -20.0, 0.0]), np.array([30.0, 1.3, 5.0]))
+    assert side_opening(np.array([4.5, 0.0, 1.5]), 0.0, f, config=cfg, volume=vol) is None
+
+
+def test_a_glance_holds_faces_the_opening_for_the_dwell_then_resumes_the_same_leg():
+    cfg = SearchConfig(glance_dwell_s=1.0, explore_timeout_s=15.0, weave_rad=0.0)
+    s = Search(cfg)
+    s.start(0.0, np.zeros(3), 0.0, SearchTrigger.NOT_VISIBLE)
+    end = np.array([10.0, 0.0, 1.5])
+    s.explore_from(0.0, end, np.array([0.0, 0.0, 1.5]), 0.0, kind="frontier")
+    p = np.array([4.5, 0.0, 1.5])
+    assert s.may_glance(p)
+    # not near where the leg began: its sides were not yet in view
+    assert not s.may_glance(np.array([cfg.glance_open_within_m - 0.1, 0.0, 1.5]))
+    s.glance(8.0, p, math.pi / 2)
+    assert s.glancing and not s.may_glance(p)
+    t, yaw = 8.0, 0.0
+    while True:
+        point, yaw_ref, ev = s.control(t, p, yaw)
+        assert ev is None  # a glance is no scan: it never asks the pilot for a new leg
+        if not s.glancing:
+            break
+        np.testing.assert_allclose(point, p)  # held where it began
+        assert yaw_ref == pytest.approx(math.pi / 2)
+        yaw = yaw_ref  # an ideal turn
+        t += 0.1
+        assert t < 20.0, "the glance never ended"
+    assert t == pytest.approx(9.1, abs=0.15)  # facing it from 8.1 s, then the 1 s dwell
+    # back on the same leg, its kind kept, its timeout paused for the glance
+    assert s.phase is SearchPhase.EXPLORE and s.leg_kind == "frontier"
+    np.testing.assert_allclose(point, end)
+    assert s.control(15.5, p, 0.0)[2] is None  # 15.5 s after the leg began, 14.5 s of it flown
+    # one glance per opening: not again within the spacing, again past it
+    assert not s.may_glance(p + [cfg.glance_spacing_m - 0.1, 0.0, 0.0])
+    assert s.may_glance(p + [cfg.glance_spacing_m + 0.1, 0.0, 0.0])
+    # near the leg's end the look after the leg takes over
+    assert not s.may_glance(end - [cfg.explore_arrive_m + 0.5, 0.0, 0.0])
+
+
+def test_frames_from_a_glance_until_the_camera_faces_the_leg_again_are_marked():
+    s = Search(SearchConfig(glance_dwell_s=0.5))
+    s.start(0.0, np.zeros(3), 0.0, SearchTrigger.NOT_VISIBLE)
+    s.explore_from(0.0, np.array([10.0, 0.0, 1.5]), np.array([0.0, 0.0, 1.5]), 0.0)
+    p = np.array([4.5, 0.0, 1.5])
+    assert not s.during_glance(3.0)
+    s.glance(4.0, p, math.pi / 2)
+    t = 4.0
+    while s.glancing:
+        s.control(t, p, math.pi / 2)
+        t += 0.1
+    # back on the leg but still facing the side: the window stays open
+    s.control(t, p, math.pi / 2)
+    assert s.during_glance(4.0) and s.during_glance(t + 5.0)
+    # the camera swings back within 45 deg of the leg's bearing: the window closes there
+    s.control(t + 2.0, p, math.radians(40.0))
+    assert s.during_glance(t + 2.0) and not s.during_glance(t + 2.1) and not s.during_glance(3.9)
+
+
+def test_a_leg_whose_end_the_planner_holds_back_ends_after_the_grace_time():
+    cfg = SearchConfig(leg_blocked_s=2.0, explore_timeout_s=30.0)
+    s = Search(cfg)
+    s.start(0.0, np.zeros(3), 0.0, SearchTrigger.NOT_VISIBLE)
+    s.explore_from(0.0, np.array([10.0, 0.0, 1.5]), np.zeros(3), 0.0)
+    p = np.array([3.0, 0.0, 1.5])
+    assert not s.leg_blocked(1.0, True)
+    assert not s.leg_blocked(2.0, False)  # a free tick restarts the count
+    assert not s.leg_blocked(2.5, True) and not s.leg_blocked(4.4, True)
+    assert s.control(4.4, p, 0.0)[2] is None
+    assert s.leg_blocked(4.5, True)  # 2 s held back: over, reported once
+    assert not s.leg_blocked(4.6, True)
+    assert s.control(4.6, p, 0.0)[2] == "explore_done"
+    # a new leg starts afresh
+    s.explore_from(5.0, np.array([0.0, 10.0, 1.5]), p, 0.0)
+    assert s.control(5.1, p, 0.0)[2] is None and not s.leg_blocked(5.1, True)
+
+
+def test_glances_are_off_with_the_switch():
+    s = Search(SearchConfig(glance=False))
+    s.start(0.0, np.zeros(3), 0.0, SearchTrigger.NOT_VISIBLE)
+    s.explore_from(0.0, np.array([10.0, 0.0, 1.5]), np.zeros(3), 0.0)
+    assert not s.may_glance(np.array([4.0, 0.0, 1.5]))
+
+
 def test_travel_heading_is_the_recent_displacement():
     s = Search(SearchConfig())
     for k in range(30):
@@ -510,6 +643,69 @@ def test_a_vehicle_in_a_dead_end_corner_gets_out_and_finds_the_target(planner):
     # out of the pocket (x < 0) and at the crate
     assert r.end_reason == "stopped" and r.metrics.success, (r.end_reason, kinds[-12:])
     assert_plans_inside(world, plans)
+
+
+def doorway_scene():
+    """A corridor along +x (walls at y = +-1.3, x in [-1, 14], closed at both ends) with a
+    1.2 m doorway in its left wall at x in [5.0, 6.2] into a room (y up to 6.5); a red crate in
+    the room, hidden by the corridor's wall from everywhere in the corridor but abreast of the
+    doorway."""
+    walls = [
+        _box([2.0, 1.3, 1.5], [6.0, 0.2, 3.0]), _box([10.1, 1.3, 1.5], [7.8, 0.2, 3.0]),  # left, doorway between
+        _box([6.5, -1.3, 1.5], [15.0, 0.2, 3.0]),  # right
+        _box([-1.1, 0.0, 1.5], [0.2, 2.8, 3.0]), _box([14.1, 0.0, 1.5], [0.2, 2.8, 3.0]),  # ends
+        _box([1.9, 3.9, 1.5], [0.2, 5.0, 3.0]), _box([9.1, 3.9, 1.5], [0.2, 5.0, 3.0]),  # the room's sides
+        _box([5.5, 6.5, 1.5], [7.4, 0.2, 3.0]),  # its back
+    ]
+    objects = [
+        {"name": "ground", "label": "ground", "instance_id": 1, "color": "#777777", "target": False,
+         "parts": [{"type": "plane", "center_m": [5, 0, 0], "size_m": [40, 40]}]},
+        {"name": "walls", "label": "wall", "instance_id": 2, "color": "#bbbbaa", "target": False, "parts": walls},
+        {"name": "red crate", "label": "crate", "instance_id": 3, "color": "#cc2222",
+         "parts": [_box([5.6, 5.0, 0.9], [1.0, 1.0, 1.0])]},
+    ]
+    data = {
+        "format": "onfly-scene/1", "name": "doorway",
+        "bounds": {"min_m": [-1.0, -1.3, 0.0], "max_m": [14.0, 6.5, 3.0]},
+        "start": {"position_m": [0.0, 0.0, 1.5], "yaw_deg": 0},
+        "objects": objects,
+    }
+    return parse_scene(data, "<doorway>")
+
+
+def test_a_doorway_passed_on_a_leg_is_glanced_into_and_the_target_behind_it_found(planner):
+    """The model looks down the corridor (the deepest way on), so the leg passes the doorway
+    with the camera facing ahead; the glance turns it to the doorway and the crate is pointed
+    at, which ends the search with a goal in the room. With glances off the vehicle flies past
+    the doorway without a sight of the crate."""
+    scene = doorway_scene()
+    start = VehicleState(0.0, np.array([0.0, 0.0, 1.5]), np.zeros(3), 0.0)
+    region = GoalRegion([5.6, 5.0, 0.9], [0.5, 0.5, 0.5])
+    instruction = "Find the red crate and stop next to it."
+    m = PilotMethod(LookingVlm(3), config=PilotConfig(search=SearchConfig(scan_first_search=False)), planner=planner)
+    world = World(scene, camera=CAM, initial_state=start)
+    r, plans = fly(world, m, instruction, region, limit_s=24.0)
+    ev = m.pilot.events
+    glances = [e for e in ev if e.kind == "search_glance"]
+    end = next(e for e in ev if e.kind == "search_end")
+    assert glances and end.data["reason"] == "target_pointed"
+    doorway = next(e for e in glances if e.t_s <= end.t_s)
+    assert 4.0 <= doorway.data["position"][0] <= 7.0 and doorway.data["yaw"] == pytest.approx(math.pi / 2, abs=0.2)
+    goals = [e.data["goal_world"] for e in ev if e.kind == "decision" and e.t_s >= end.t_s and e.data["goal_world"] is not None]
+    assert max(g[1] for g in goals) > 1.3  # through the doorway, into the room
+    assert not r.metrics.collided
+    assert_plans_inside(world, plans)
+
+    m2 = PilotMethod(LookingVlm(3), config=PilotConfig(search=SearchConfig(scan_first_search=False, glance=False)), planner=planner)
+    track = []
+    world2 = World(scene, camera=CAM, initial_state=start)
+    run_episode(
+        world2, m2, instruction=instruction, goal=region, reference_path_m=10.0, seed=0, error_model="test",
+        config=EpisodeConfig(time_limit_s=end.t_s + 2.0, frame_period_s=0.5),
+        observer=lambda st: track.append(st.state.p[0]),
+    )  # fmt: skip
+    assert max(track) > 7.0  # past the doorway
+    assert not any(e.kind == "search_end" for e in m2.pilot.events)
 
 
 class FrontierMap:
