@@ -438,9 +438,7 @@ _format = st.sampled_from(list(CoordFormat))
 _size = st.tuples(st.integers(1, 4000), st.integers(1, 4000))
 
 
-@settings(max_examples=3000, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(text=_any_text, size=_size, fmt=_format, order=st.sampled_from(["xy", "yx"]), model=_size)
-def test_fuzz_parse_point_never_raises_and_stays_inside(text, size, fmt, order, model):
+def _check_parse_point(text, size, fmt, order, model):
     res = parse_point(text, size, fmt, order=order, model_input_size=model)
     assert res.raw == text
     w, h = size
@@ -456,6 +454,23 @@ def test_fuzz_parse_point_never_raises_and_stays_inside(text, size, fmt, order, 
         assert re.search(r"visible|see|view|sight|image|frame", text, re.IGNORECASE)
     for u, v in res.candidates:
         assert 0.0 <= u <= w - 1 and 0.0 <= v <= h - 1
+
+
+_point_args = dict(text=_any_text, size=_size, fmt=_format, order=st.sampled_from(["xy", "yx"]), model=_size)
+
+
+# the default run draws 1000 cases; the slow run 10000 (``-m slow``)
+@settings(max_examples=1000, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(**_point_args)
+def test_fuzz_parse_point_never_raises_and_stays_inside(text, size, fmt, order, model):
+    _check_parse_point(text, size, fmt, order, model)
+
+
+@pytest.mark.slow
+@settings(max_examples=10000, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(**_point_args)
+def test_fuzz_parse_point_never_raises_and_stays_inside_long(text, size, fmt, order, model):
+    _check_parse_point(text, size, fmt, order, model)
 
 
 _flag_shapes = st.sampled_from(
