@@ -159,9 +159,9 @@ class SearchConfig:
     forward_weight : how much a leg's value depends on its direction, in [0, 1]: the value (the
         gain plus a small bonus for length) is scaled by ``1 - w + w (1 + cos d) / 2``, ``d``
         the angle to the heading the search keeps (so ``1 - w`` of it straight behind)
-    side_gain_min : after a leg, look a quarter turn to the side whose unknown fraction is at
-        least this (the camera faced forward all the leg; a target beside the way is missed
-        otherwise)
+    side_gain_min : after a leg, look a quarter turn to the side whose opening measure
+        (:func:`opening_gain`) is at least this (the camera faced forward all the leg; a target
+        beside the way is missed otherwise)
     min_leg_m : frontiers nearer than this (path metres) are taken only when no farther one is
         reachable, and a leg shorter than this ends without a side look: short hops spend the
         time on turning, not on seeing new space
@@ -731,12 +731,13 @@ def side_to_look(
     position: np.ndarray, yaw: float, field_map, *, config: SearchConfig, volume: FlightVolume | None
 ) -> float | None:
     """After an exploration leg (camera facing the way it flew): the side heading (yaw +- 90
-    deg) with the most unknown space, or None when neither side's unknown fraction reaches
-    ``config.side_gain_min``."""
+    deg) that opens on the most unseen space (:func:`opening_gain`, as a glance judges it: the
+    unseen side of a wall seen on the way in is nothing to look at), or None when neither
+    side's measure reaches ``config.side_gain_min``."""
     p = np.asarray(position, dtype=float)
     best, best_gain = None, config.side_gain_min
     for side in (yaw + np.pi / 2, yaw - np.pi / 2):
-        g = unknown_fraction(p, side, field_map, volume, config.gain_lookahead_m)
+        g = opening_gain(p, side, field_map, config=config, volume=volume)
         if g >= best_gain:
             best, best_gain = float(wrap_angle(side)), g
     return best

@@ -346,7 +346,7 @@ def test_a_dead_end_reverses_the_heading_to_keep_and_an_open_way_keeps_it():
     assert open_heading(np.zeros(3) + [0, 0, 1.5], 0.0, post, clearance_m=0.45) == pytest.approx(0.0)
 
 
-def test_after_a_leg_the_side_with_unknown_space_is_looked_at():
+def test_after_a_leg_the_side_that_opens_on_unseen_space_is_looked_at():
     free = AnalyticField(half_spaces=[HalfSpace(point=[0, 0, 0], normal=[0, 0, 1])])
     cfg = SearchConfig()
     # known everywhere but y > 1: the left side (yaw 0 -> +90 deg)
@@ -358,6 +358,11 @@ def test_after_a_leg_the_side_with_unknown_space_is_looked_at():
     # the unknown side lies outside the flight volume: nothing to find there
     vol = FlightVolume(np.array([-20.0, -20.0, 0.0]), np.array([20.0, 0.5, 5.0]))
     assert side_to_look(np.array([0, 0, 1.5]), 0.0, f, config=cfg, volume=vol) is None
+    # beside walls seen on the way in there is nothing to look at, however unseen the space
+    # behind them; abreast of a doorway the side it opens on is looked at
+    corridor = doorway_corridor()
+    assert side_to_look(np.array([10.0, 0.0, 1.5]), 0.0, corridor, config=cfg, volume=None) is None
+    assert side_to_look(np.array([4.5, 0.0, 1.5]), 0.0, corridor, config=cfg, volume=None) == pytest.approx(math.pi / 2)
 
 
 class SeenField:
@@ -609,25 +614,28 @@ def _box(c, size):
     return {"type": "box", "center_m": list(c), "size_m": list(size)}
 
 
-def pocket_scene():
-    """A 2.4 m wide dead-end pocket open toward -x; a red crate around the corner outside it,
-    hidden from anywhere inside the pocket by its left wall."""
+def _crate_scene(name, walls, crate, bounds, start_m):
+    """A scene of ``walls`` (box parts) over a ground plane, with one red crate (a box part)."""
     objects = [
         {"name": "ground", "label": "ground", "instance_id": 1, "color": "#777777", "target": False,
          "parts": [{"type": "plane", "center_m": [0, 0, 0], "size_m": [40, 40]}]},
-        {"name": "pocket walls", "label": "wall", "instance_id": 2, "color": "#bbbbaa", "target": False,
-         "parts": [_box([2.0, 1.3, 1.5], [4.0, 0.2, 3.0]), _box([2.0, -1.3, 1.5], [4.0, 0.2, 3.0]),
-                   _box([4.1, 0.0, 1.5], [0.2, 2.8, 3.0])]},
-        {"name": "red crate", "label": "crate", "instance_id": 3, "color": "#cc2222",
-         "parts": [_box([-2.0, 5.0, 0.6], [1.2, 1.2, 1.2])]},
+        {"name": "walls", "label": "wall", "instance_id": 2, "color": "#bbbbaa", "target": False, "parts": walls},
+        {"name": "red crate", "label": "crate", "instance_id": 3, "color": "#cc2222", "parts": [crate]},
     ]
     data = {
-        "format": "onfly-scene/1", "name": "pocket",
-        "bounds": {"min_m": [-8, -8, 0], "max_m": [6, 10, 5]},
-        "start": {"position_m": [3.0, 0.0, 1.5], "yaw_deg": 0},
+        "format": "onfly-scene/1", "name": name,
+        "bounds": {"min_m": list(bounds[0]), "max_m": list(bounds[1])},
+        "start": {"position_m": list(start_m), "yaw_deg": 0},
         "objects": objects,
-    }
-    return parse_scene(data, "<pocket>")
+    }  # fmt: skip
+    return parse_scene(data, f"<{name}>")
+
+
+def pocket_scene():
+    """A 2.4 m wide dead-end pocket open toward -x; a red crate around the corner outside it,
+    hidden from anywhere inside the pocket by its left wall."""
+    walls = [_box([2.0, 1.3, 1.5], [4.0, 0.2, 3.0]), _box([2.0, -1.3, 1.5], [4.0, 0.2, 3.0]), _box([4.1, 0.0, 1.5], [0.2, 2.8, 3.0])]
+    return _crate_scene("pocket", walls, _box([-2.0, 5.0, 0.6], [1.2, 1.2, 1.2]), ([-8, -8, 0], [6, 10, 5]), [3.0, 0.0, 1.5])
 
 
 def test_a_vehicle_in_a_dead_end_corner_gets_out_and_finds_the_target(planner):
@@ -657,20 +665,8 @@ def doorway_scene():
         _box([1.9, 3.9, 1.5], [0.2, 5.0, 3.0]), _box([9.1, 3.9, 1.5], [0.2, 5.0, 3.0]),  # the room's sides
         _box([5.5, 6.5, 1.5], [7.4, 0.2, 3.0]),  # its back
     ]
-    objects = [
-        {"name": "ground", "label": "ground", "instance_id": 1, "color": "#777777", "target": False,
-         "parts": [{"type": "plane", "center_m": [5, 0, 0], "size_m": [40, 40]}]},
-        {"name": "walls", "label": "wall", "instance_id": 2, "color": "#bbbbaa", "target": False, "parts": walls},
-        {"name": "red crate", "label": "crate", "instance_id": 3, "color": "#cc2222",
-         "parts": [_box([5.6, 5.0, 0.9], [1.0, 1.0, 1.0])]},
-    ]
-    data = {
-        "format": "onfly-scene/1", "name": "doorway",
-        "bounds": {"min_m": [-1.0, -1.3, 0.0], "max_m": [14.0, 6.5, 3.0]},
-        "start": {"position_m": [0.0, 0.0, 1.5], "yaw_deg": 0},
-        "objects": objects,
-    }
-    return parse_scene(data, "<doorway>")
+    crate = _box([5.6, 5.0, 0.9], [1.0, 1.0, 1.0])
+    return _crate_scene("doorway", walls, crate, ([-1.0, -1.3, 0.0], [14.0, 6.5, 3.0]), [0.0, 0.0, 1.5])
 
 
 def test_a_doorway_passed_on_a_leg_is_glanced_into_and_the_target_behind_it_found(planner):
