@@ -28,7 +28,7 @@ Policy (parameters in :class:`SearchConfig`):
    weaves ``weave_rad`` either side of the leg's bearing (a triangle wave inside the yaw-rate
    limit), so the flight itself looks for the target over a wider field of regard than the
    camera's (off by default, see ``weave_rad``); without a weave the vehicle looks a quarter
-   turn to the side with the most unknown space after each leg. Legs prefer the heading the search began with
+   turn to the side that opens on the most unseen space after each leg (:func:`side_to_look`). Legs prefer the heading the search began with
    when the way ahead was open then (a route goes on), and its reverse when it was not (a dead
    end: back out).
 3b. **Where the model would look** (``look_hints``): a decision answer that says the target is
