@@ -177,3 +177,34 @@ def test_state_reader_never_raises_and_never_holds_non_finite_state(kind, vals, 
     reader.handle(dec.parse_char(msg.pack(enc)))
     s = reader.state()
     assert s is not None and np.all(np.isfinite(s.p)) and np.all(np.isfinite(s.v)) and np.isfinite(s.yaw)
+
+
+def test_a_udpin_read_never_runs_while_another_thread_sends():
+    """pymavlink's udpin read adds each new peer to the set its write iterates; a read on the
+    bridge's reader thread during a send on its setpoint thread raised "Set changed size during
+    iteration" in the sender (the setpoint stream stopped and PX4 left OFFBOARD). Reads and
+    sends of one link are serialized."""
+    link = MavlinkLink("udpin:127.0.0.1:0", 1, 191)
+    link.connect()
+    try:
+        port = link.local_address[1]
+        conn = link._conn
+        held = []
+        real_recv, real_write = conn.recv_msg, conn.write
+        conn.recv_msg = lambda: (held.append(("read", link._send_lock.locked())), real_recv())[1]
+        conn.write = lambda buf: (held.append(("write", link._send_lock.locked())), real_write(buf))[1]
+        peers = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(3)]
+        hb = link.mav.heartbeat_encode(6, 8, 0, 0, 0)
+        for s in peers:  # three peers, each new to the server's client set
+            s.sendto(hb.pack(link.mav), ("127.0.0.1", port))
+        time.sleep(0.05)
+        while link.recv(0.0) is not None:
+            pass
+        link.send(hb)
+        assert {k for k, _ in held} == {"read", "write"}
+        assert all(locked for _, locked in held)
+        assert len(conn.clients) == 3
+        for s in peers:
+            s.close()
+    finally:
+        link.close()

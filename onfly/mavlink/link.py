@@ -244,7 +244,12 @@ class MavlinkLink(Link):
         if conn is None:
             raise LinkLostError(f"link {self.url!r} closed while reading")
         try:
-            return conn.recv_msg()
+            # under the send lock: a udpin connection's read adds each new peer to the set its
+            # write iterates (pymavlink's mavudp), and a read on the reader thread while another
+            # thread sends raised "Set changed size during iteration" in the sender. Reads are
+            # non-blocking (pymavlink opens its sockets and ports so), so the lock is held briefly
+            with self._send_lock:
+                return conn.recv_msg()
         except mavlink2.MAVError:  # a frame even robust parsing could not turn into BAD_DATA
             self.stats.bad_in += 1
             return None
