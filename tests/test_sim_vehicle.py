@@ -388,9 +388,10 @@ def test_px4_per_axis_type_mask_preflight_disarm_and_land_detector_in_any_mode()
     c, v = rig(autopilot="px4", params=(("COM_DISARM_PRFLT", 0.6), ("LNDMC_TRIG_TIME", 0.2), ("COM_DISARM_LAND", 0.3)))
     try:
         assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
-        t_arm = time.monotonic()
         assert _wait(lambda: not v.armed, 2.0)  # no take-off within COM_DISARM_PRFLT
-        assert 0.6 <= v.first_event("disarmed: no take-off") - t_arm <= 0.9
+        # on the vehicle's own clock: the client's time after the ACK is later than the arming
+        # by the ACK's trip (a loaded machine measured 0.597 s from it)
+        assert 0.6 <= v.first_event("disarmed: no take-off") - v.first_event("armed") <= 0.9
         # x/y position with z velocity (PX4 takes each axis on its own)
         mask = 0x0DE0 | M.POSITION_TARGET_TYPEMASK_Z_IGNORE  # ignore accelerations, yaw rate, z position
         mask &= ~(M.POSITION_TARGET_TYPEMASK_VZ_IGNORE)
