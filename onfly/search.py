@@ -734,13 +734,7 @@ def side_to_look(
     deg) that opens on the most unseen space (:func:`opening_gain`, as a glance judges it: the
     unseen side of a wall seen on the way in is nothing to look at), or None when neither
     side's measure reaches ``config.side_gain_min``."""
-    p = np.asarray(position, dtype=float)
-    best, best_gain = None, config.side_gain_min
-    for side in (yaw + np.pi / 2, yaw - np.pi / 2):
-        g = opening_gain(p, side, field_map, config=config, volume=volume)
-        if g >= best_gain:
-            best, best_gain = float(wrap_angle(side)), g
-    return best
+    return _most_open_side(position, yaw, field_map, config, volume, config.side_gain_min)
 
 
 def opening_gain(p: np.ndarray, heading: float, field_map, *, config: SearchConfig, volume: FlightVolume | None) -> float:
@@ -778,9 +772,16 @@ def side_opening(
     """On a leg with ``bearing`` (radians): the side heading (``bearing +- 90 deg``) through which
     the vehicle passes an opening into unseen space (:func:`opening_gain` at least
     ``glance_gain_min``; the larger when both qualify), or None."""
-    best, best_gain = None, config.glance_gain_min
-    for side in (bearing + np.pi / 2, bearing - np.pi / 2):
-        g = opening_gain(position, side, field_map, config=config, volume=volume)
+    return _most_open_side(position, bearing, field_map, config, volume, config.glance_gain_min)
+
+
+def _most_open_side(position, heading: float, field_map, config: SearchConfig, volume, min_gain: float) -> float | None:
+    """Of ``heading +- 90 deg``, the side with the larger :func:`opening_gain`, if at least
+    ``min_gain``; else None."""
+    p = np.asarray(position, dtype=float)
+    best, best_gain = None, min_gain
+    for side in (heading + np.pi / 2, heading - np.pi / 2):
+        g = opening_gain(p, side, field_map, config=config, volume=volume)
         if g >= best_gain:
             best, best_gain = float(wrap_angle(side)), g
     return best
@@ -856,6 +857,7 @@ class Search:
     _blocked_since_s: float | None = None  # since when the planner holds the leg's end back
     _leg_over: bool = False  # the leg ends at the next tick (its end cannot be approached)
     _glance_window: tuple[float, float] = (np.inf, -np.inf)  # the last glance, (began, ended) seconds
+    _last_tick_s: float = -np.inf  # the time of the last :meth:`control` call
 
     @property
     def active(self) -> bool:
@@ -922,6 +924,7 @@ class Search:
         self._resume = None
         self._dwell_s = None
         self.trigger = trigger
+        self._end_glance_window()
         self.started_s = float(t_s)
         self.searches += 1
         self._hold_p = np.asarray(position, dtype=float).copy()
@@ -952,6 +955,7 @@ class Search:
         self.leg_kind = None
         self._resume = None
         self._dwell_s = None
+        self._end_glance_window()
         self._hold_p = np.asarray(position, dtype=float).copy()
         self._scan_reached_s = None
         self._scan_yaws = [float(y) for y in yaws]
@@ -965,6 +969,12 @@ class Search:
     def glancing(self) -> bool:
         """True while a glance holds the leg it interrupted."""
         return self._resume is not None
+
+    def _end_glance_window(self) -> None:
+        """The leg a glance interrupted is over: its window ends at the last tick (else a leg
+        that ended before the camera faced it again would leave the window open for good)."""
+        if self._glance_window[1] == np.inf:
+            self._glance_window = (self._glance_window[0], self._last_tick_s)
 
     def during_glance(self, t_s: float) -> bool:
         """True if ``t_s`` (a frame's capture time) falls in the last glance, from its start
@@ -1037,6 +1047,7 @@ class Search:
         self.leg_kind = None
         self._resume = None
         self._dwell_s = None
+        self._end_glance_window()
         self._scan_yaws = []
         self._explore_p = None
         self.reset_stall()
@@ -1054,6 +1065,7 @@ class Search:
         self.leg_kind = kind
         self._resume = None
         self._dwell_s = None
+        self._end_glance_window()
         self._blocked_since_s = None
         self._leg_over = False
         self._leg_start = np.asarray(position, dtype=float).copy()
@@ -1088,6 +1100,7 @@ class Search:
         ``"explore_done"`` when the exploration point was reached or timed out, else None.
         """
         cfg = self.config
+        self._last_tick_s = float(t_s)
         if self.phase is SearchPhase.SCAN:
             while self._scan_yaws:
                 target = self._scan_yaws[0]

@@ -469,6 +469,15 @@ def test_frames_from_a_glance_until_the_camera_faces_the_leg_again_are_marked():
     # the camera swings back within 45 deg of the leg's bearing: the window closes there
     s.control(t + 2.0, p, math.radians(40.0))
     assert s.during_glance(t + 2.0) and not s.during_glance(t + 2.1) and not s.during_glance(3.9)
+    # a leg that ends before the camera faces it again closes the window at its last tick
+    s.glance(20.0, p + [3.0, 0.0, 0.0], math.pi / 2)
+    t = 20.0
+    while s.glancing:
+        s.control(t, p, math.pi / 2)
+        t += 0.1
+    s.control(t, p, math.pi / 2)
+    s.explore_from(t + 0.5, np.array([0.0, 10.0, 1.5]), p, math.pi / 2)
+    assert s.during_glance(t) and not s.during_glance(t + 0.1) and not s.during_glance(60.0)
 
 
 def test_a_leg_whose_end_the_planner_holds_back_ends_after_the_grace_time():
