@@ -62,16 +62,17 @@ def motion_of(kind: str, at_m: float, speed_mps: float, start_s: float) -> dict:
     return {"type": "path", "loop": True, "start_s": start_s, "waypoints": [{"position_m": p, "speed_mps": speed_mps} for p in wps]}
 
 
-def fly(motion: dict | None) -> dict:
+def fly(motion: dict | None, movers: bool = True) -> dict:
     world = World(street(motion), camera=CAM)
     goal = np.array([16.0, 0.0, 1.5])
-    res = run_episode(world, make_oracle("sim:nominal", 0), instruction="fly to the end of the street", goal=GoalRegion(goal, np.full(3, 0.5)),
+    oracle = make_oracle("sim:nominal", 0, movers={"enabled": movers})
+    res = run_episode(world, oracle, instruction="fly to the end of the street", goal=GoalRegion(goal, np.full(3, 0.5)),
                       reference_path_m=16.0, seed=0, error_model="none",
                       privileged=PrivilegedGoal(goal, np.full(3, 0.5), np.array([[0.0, 0.0, 1.5], goal])),
                       config=EpisodeConfig(frame_period_s=0.5))
     tr = res.trace
     out = {"end": res.end_reason, "success": bool(res.metrics.success), "collided": bool(res.metrics.collided),
-           "flight_time_s": float(res.metrics.flight_time_s)}
+           "flight_time_s": float(res.metrics.flight_time_s), "movers": oracle.movers.summary()}
     if motion is not None:
         out["min_to_person_m"] = float(distance_to_actor(world, tr.positions, tr.t_s).min())
     return out
@@ -101,18 +102,30 @@ SCENARIOS = [
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--json", default=None)
+    ap.add_argument("--json", default=None, help="write the rows to this JSON file")
+    ap.add_argument("--scenarios", default=None, help="comma-separated row indices of SCENARIOS (default: all)")
     args = ap.parse_args(argv)
+    picked = SCENARIOS if args.scenarios is None else [SCENARIOS[int(i)] for i in args.scenarios.split(",")]
     base = fly(None)
     rows = []
     print(f"nobody in the street: {base['end']}, flight time {base['flight_time_s']:.1f} s")
-    print(f"{'scenario':<10} {'at m':>5} {'m/s':>5} {'start s':>7} {'end':<10} {'success':>7} {'collided':>8} {'min to person m':>15} {'extra time s':>12}")
-    for kind, at_m, v, s0 in SCENARIOS:
-        r = fly(motion_of(kind, at_m, v, s0))
-        r.update({"scenario": kind, "at_m": at_m, "speed_mps": v, "start_s": s0, "extra_time_s": r["flight_time_s"] - base["flight_time_s"]})
-        rows.append(r)
-        print(f"{kind:<10} {at_m:>5.1f} {v:>5.2f} {s0:>7.1f} {r['end']:<10} {str(r['success']):>7} {str(r['collided']):>8} "
-              f"{r['min_to_person_m']:>15.2f} {r['extra_time_s']:>12.1f}")
+    print(f"{'scenario':<10} {'at m':>5} {'m/s':>5} {'start s':>7} | {'prediction: end':<16} {'min m':>6} {'extra s':>7} | "
+          f"{'map alone: end':<16} {'min m':>6} {'extra s':>7}")
+    for kind, at_m, v, s0 in picked:
+        row = {"scenario": kind, "at_m": at_m, "speed_mps": v, "start_s": s0}
+        cells = []
+        for label, movers in (("prediction", True), ("map_alone", False)):
+            r = fly(motion_of(kind, at_m, v, s0), movers)
+            r["extra_time_s"] = r["flight_time_s"] - base["flight_time_s"]
+            row[label] = r
+            end = "collision" if r["collided"] else ("success" if r["success"] else r["end"])
+            extra = "-" if r["collided"] else f"{r['extra_time_s']:.1f}"
+            cells.append(f"{end:<16} {r['min_to_person_m']:>6.2f} {extra:>7}")
+        rows.append(row)
+        print(f"{kind:<10} {at_m:>5.1f} {v:>5.2f} {s0:>7.1f} | {cells[0]} | {cells[1]}", flush=True)
+    for label in ("prediction", "map_alone"):
+        n = sum(r[label]["collided"] for r in rows)
+        print(f"{label}: {n} collision(s) in {len(rows)}")
     if args.json:
         with open(args.json, "w") as fh:
             json.dump({"baseline": base, "rows": rows}, fh, indent=2)

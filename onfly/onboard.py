@@ -577,7 +577,8 @@ class OnboardFlight:
         d = goal[:2] - state.p[:2]
         yaw_ref = float(np.arctan2(d[1], d[0])) if face_goal and np.linalg.norm(d) > 0.5 else state.yaw
         if getattr(pilot.config, "use_planner", False) and getattr(pilot, "planner", None) is not None:
-            return pilot.planner.step(state, goal, pilot.esdf, yaw_ref=yaw_ref, volume=pilot.volume).trajectory
+            field = pilot.planning_field(state.t_s) if hasattr(pilot, "planning_field") else pilot.esdf
+            return pilot.planner.step(state, goal, field, yaw_ref=yaw_ref, volume=pilot.volume).trajectory
         return straight_line_plan(state, goal, v_max_mps=pc.v_max_mps, a_max_mps2=pc.a_max_mps2, yaw_rate_max_rps=pc.yaw_rate_max_rps,
                                   dt_s=pc.dt_s, steps=pc.horizon_steps, yaw_ref=yaw_ref)
 

@@ -76,6 +76,7 @@ from onfly.task_manager import Status, TaskEvent, TaskManager
 from planning.esdf import EsdfMap
 from planning.esdf_config import EsdfConfig
 from planning.frames import unwrap_near
+from planning.movers import MoverConfig, MoverTracker
 from planning.planner import Planner, PlanResult
 from planning.planner_config import PlannerConfig
 from planning.trajectory import VehicleState
@@ -150,6 +151,8 @@ class ReplayConfig:
         log's world frame, or None; goals are clamped into it (shrunk by the planner's safety
         distance) before the planner sees them, as in flight
     planner, esdf, verifier, memory : the nested configs
+    movers : moving obstacles tracked from the logged depth, which the planner avoids besides
+        the map (:mod:`planning.movers`), as in flight
     """
 
     goal_mode: str = "future_pose"
@@ -173,6 +176,7 @@ class ReplayConfig:
     esdf: EsdfConfig = field(default_factory=EsdfConfig)
     verifier: VerifierConfig = field(default_factory=VerifierConfig)
     memory: MemoryConfig = field(default_factory=MemoryConfig)
+    movers: MoverConfig = field(default_factory=MoverConfig)
 
     @property
     def flight_volume(self) -> FlightVolume | None:
@@ -232,7 +236,7 @@ class ReplayConfig:
     def from_dict(cls, data: Mapping[str, Any]) -> "ReplayConfig":
         """Build from a plain dict (e.g. a TOML ``[replay]`` table); nested tables fill the
         nested configs. Unknown keys raise :class:`ReplayConfigError` listing the valid ones."""
-        nested = {"planner": PlannerConfig, "esdf": EsdfConfig, "verifier": VerifierConfig, "memory": MemoryConfig}
+        nested = {"planner": PlannerConfig, "esdf": EsdfConfig, "verifier": VerifierConfig, "memory": MemoryConfig, "movers": MoverConfig}
         return config_from_tables(cls, data, nested, ReplayConfigError, "replay", convert={"goal_world": tuple})
 
 
@@ -265,11 +269,12 @@ class FrameResult:
     position_m : (3,) logged body position, world frame of the log
     speed_mps : finite-difference speed handed to the planner
     goal_m : (3,) goal the planner was given, or None
-    esdf_ms, planner_ms : stage wall times
+    esdf_ms, planner_ms : stage wall times (``esdf_ms`` includes the mover tracker's update)
     path_clearance_m : ESDF distance at the logged camera position after this frame's update
     planner_clearance_m : the plan's minimum predicted clearance (knots 1..N)
     slack_m : the plan's largest clearance slack
     fallback : ``"none"`` | ``"shifted"`` | ``"brake"``
+    movers : moving obstacles the planner avoided at this frame (:mod:`planning.movers`)
     """
 
     index: int
@@ -283,6 +288,7 @@ class FrameResult:
     planner_clearance_m: float
     slack_m: float
     fallback: str
+    movers: int = 0
 
 
 @dataclass(frozen=True)
@@ -701,6 +707,7 @@ def replay(
     t_wall = time.perf_counter()
     samples: dict[str, list[float]] = {name: [] for name in STAGES}
     esdf = EsdfMap(config.esdf)
+    movers = MoverTracker(config.movers)
     # open loop: the recorded vehicle never flew our plans, so every plan starts at the recorded
     # state and a "tracking error" against them would be meaningless (planning/planner_config.py)
     planner = Planner(replace(config.planner, reference_start=False, tracking_margin_max_m=0.0))
@@ -732,7 +739,7 @@ def replay(
             speeds.append(float(np.linalg.norm(state.v)))
             if index % config.every_n:
                 continue
-            frames.append(_process(index, obs, state, future, config, esdf, planner, agents, samples, recorder))
+            frames.append(_process(index, obs, state, future, config, esdf, movers, planner, agents, samples, recorder))
             if bar is not None:
                 bar.update(1)
             if config.max_frames is not None and len(frames) >= config.max_frames:
@@ -759,13 +766,17 @@ def _process(
     future: np.ndarray | None,
     config: ReplayConfig,
     esdf: EsdfMap,
+    movers: MoverTracker,
     planner: Planner,
     agents: _Agents | None,
     samples: dict[str, list[float]],
     recorder,
 ) -> FrameResult:
+    t0 = time.perf_counter()
+    tracked = movers.observe(float(obs.t_s), obs.depth_m, obs.camera, obs.T_world_cam, esdf)  # before the map has the frame
+    mover_ms = (time.perf_counter() - t0) * 1e3
     update = esdf.integrate(obs.depth_m, obs.camera, obs.T_world_cam, center_world=obs.position)
-    samples["esdf"].append(update.total_ms)
+    samples["esdf"].append(update.total_ms + mover_ms)
     cam_p = obs.T_world_cam[:3, 3]
     clearance = float(esdf.query(cam_p[None])[0][0])
 
@@ -780,7 +791,7 @@ def _process(
         goal = agents.goal_world if agents is not None and agents.goal_world is not None else state.p
     if config.volume is not None:
         goal = config.flight_volume.clamp(goal, margin_m=config.planner.d_safe_m)
-    plan = planner.step(state, goal, esdf, volume=config.flight_volume)
+    plan = planner.step(state, goal, movers.field(esdf, float(obs.t_s)), volume=config.flight_volume)
     samples["planner"].append(plan.solve_time_ms)
     if recorder is not None:
         _record(recorder, index, obs, state, goal, plan, clearance, esdf, decision, monitor)
@@ -790,12 +801,13 @@ def _process(
         position_m=tuple(float(x) for x in state.p),
         speed_mps=float(np.linalg.norm(state.v)),
         goal_m=tuple(float(x) for x in goal),
-        esdf_ms=float(update.total_ms),
+        esdf_ms=float(update.total_ms + mover_ms),
         planner_ms=float(plan.solve_time_ms),
         path_clearance_m=clearance,
         planner_clearance_m=float(plan.min_predicted_clearance_m),
         slack_m=float(plan.slack_max_m),
         fallback=plan.fallback.value,
+        movers=len(tracked),
     )
 
 

@@ -46,6 +46,7 @@ Knownness queries (for guide searches, frontier exploration and the verifier), w
 
 - :meth:`EsdfMap.known` ``(n, 3) -> bool (n,)``: the voxel holding the point was observed.
 - :meth:`EsdfMap.observed_free` ``(n, 3) -> bool (n,)``: observed and not occupied.
+- :meth:`EsdfMap.logodds` ``(n, 3) -> float32 (n,)``: the voxel's log-odds, NaN where unknown.
 - :attr:`EsdfMap.known_grid`, :attr:`EsdfMap.occupied_grid`: bool (nx, ny, nz) grids (voxel
   centres from :meth:`EsdfMap.voxel_centers`).
 - :meth:`EsdfMap.frontier_points` ``-> (m, 3)``: observed-free voxels next to unknown ones.
@@ -539,6 +540,15 @@ class EsdfMap:
         occ = self._occ
         free = occ.observed.reshape(-1)[flat] & ~(occ.logodds.reshape(-1)[flat] > np.float32(self.config.occupied_logodds))
         return inside & free
+
+    def logodds(self, points) -> np.ndarray:
+        """Occupancy log-odds (float32 (n,)) of the voxel holding each point (n, 3), world
+        metres; NaN where the voxel was never observed or lies outside the window. Negative =
+        seen free (each miss adds ``miss_logodds``), above ``occupied_logodds`` = obstacle."""
+        flat, inside = self._voxel_lookup(points)
+        occ = self._occ
+        seen = inside & occ.observed.reshape(-1)[flat]
+        return np.where(seen, occ.logodds.reshape(-1)[flat], np.float32(np.nan)).astype(np.float32)
 
     @property
     def known_grid(self) -> np.ndarray:

@@ -23,6 +23,7 @@ from onfly.world.world import World
 from planning.camera import PinholeCamera
 from planning.esdf import EsdfMap
 from planning.esdf_config import EsdfConfig
+from street_scene import person, street
 
 CAM = PinholeCamera.from_fov(320, 214, 90.0, 60.0)  # the benchmark's frames (experiments/configs)
 CFG = EsdfConfig()
@@ -38,18 +39,6 @@ def _misses_to_clear(cfg: EsdfConfig) -> int:
 
 
 FREE_OBS_TO_CLEAR = _misses_to_clear(CFG)
-
-
-def person(motion):
-    return {
-        "name": "walker", "label": "person", "instance_id": 9, "color": "#C62828",
-        "parts": [
-            {"type": "cylinder", "base_m": [0, 0, 0], "radius_m": 0.2, "height_m": 0.85, "segments": 8},
-            {"type": "cylinder", "base_m": [0, 0, 0.85], "radius_m": 0.24, "height_m": 0.62, "segments": 8},
-            {"type": "sphere", "center_m": [0, 0, 1.6], "radius_m": 0.13, "rings": 4},
-        ],
-        "motion": motion,
-    }
 
 
 def hall(motion, start=(0.0, 0.0, 1.5)):
@@ -136,24 +125,6 @@ def test_walker_trail_is_cleared_within_the_stated_free_observations(frame_perio
     assert all(p == 0 for p in phantoms[left + FREE_OBS_TO_CLEAR + 1:])
 
 
-def _corridor_with_walker(motion):
-    """A 10 m wide street (floor, two long walls, an end wall) with one walker; start (0, 0, 1.5)."""
-    return parse_scene({
-        "format": "onfly-scene/1", "name": "street",
-        "bounds": {"min_m": [-2, -5, 0], "max_m": [20, 5, 4]},
-        "start": {"position_m": [0.0, 0.0, 1.5], "yaw_deg": 0},
-        "objects": [
-            {"name": "floor", "label": "floor", "instance_id": 1, "color": "#808080", "target": False,
-             "parts": [{"type": "plane", "center_m": [9, 0, 0], "size_m": [40, 20]}]},
-            {"name": "walls", "label": "wall", "instance_id": 2, "color": "#A0A0A0", "target": False,
-             "parts": [{"type": "box", "center_m": [9, 5.2, 2], "size_m": [26, 0.2, 4]},
-                       {"type": "box", "center_m": [9, -5.2, 2], "size_m": [26, 0.2, 4]},
-                       {"type": "box", "center_m": [21.2, 0, 2], "size_m": [0.2, 10.6, 4]}]},
-            person(motion),
-        ],
-    })
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("case", ["steps_into_the_path", "walks_across_ahead"])
 def test_oracle_avoids_a_person_walking_into_its_path(case):
@@ -161,9 +132,9 @@ def test_oracle_avoids_a_person_walking_into_its_path(case):
     (16, 0, 1.5) that the static checker drew through where the person will be): a person walks
     into the path ahead and stops there, or crosses it well ahead; the vehicle goes around,
     reaches the goal without a collision and keeps the planner's clearance from the person.
-    (Crossings that start when the vehicle is 1-2 m from the line, and people pacing back and
-    forth, are not avoided: the planner has no prediction of people. experiments/avoid_walker.py
-    and docs/actors.md measure those cases.)"""
+    (The planner's field holds the tracked walker's predicted sweep, planning.movers;
+    tests/test_movers.py flies a pacing walker that the map alone does not avoid, and
+    experiments/avoid_walker.py and docs/actors.md measure more cases.)"""
     from onfly.bench.episode import EpisodeConfig, run_episode
     from onfly.bench.method import PrivilegedGoal
     from onfly.bench.metrics import GoalRegion
@@ -176,7 +147,7 @@ def test_oracle_avoids_a_person_walking_into_its_path(case):
     else:  # crosses the path 5-6 m ahead of the vehicle, back and forth at walking speed
         wps = [[8.0, -4.0, 0.0], [8.0, 4.0, 0.0], [8.6, 4.0, 0.0], [8.6, -4.0, 0.0]]
         motion = {"type": "path", "loop": True, "waypoints": [{"position_m": p, "speed_mps": 1.3} for p in wps]}
-    world = World(_corridor_with_walker(motion), camera=CAM)
+    world = World(street(motion), camera=CAM)
     goal_c = np.array([16.0, 0.0, 1.5])
     path = np.array([[0.0, 0.0, 1.5], goal_c])
     result = run_episode(

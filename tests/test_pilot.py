@@ -380,3 +380,30 @@ def test_the_last_sighting_is_the_pointed_object_not_a_goal_beside_the_vehicle(p
     pilot._count_decision(2.0, DecisionOutcome("f2", "Fly to the TV screen.", text(""), None, parse, None,
                                                goal_world=np.array([8.0, 6.0, 1.5])), state)
     assert pilot._last_seen_yaw(state) == pytest.approx(np.pi / 2)
+
+
+def test_a_goal_outside_the_view_is_turned_to_before_the_vehicle_flies():
+    from planning.trajectory import VehicleState
+
+    pilot = OnFlyPilot(PilotConfig(), ScriptedVlm("perfect"), ClockRuntime())
+    here = np.array([2.0, 1.0, 1.5])
+    behind = np.array([-4.0, 1.5, 1.5])
+
+    def at(yaw):
+        return VehicleState(3.0, here, np.zeros(3), yaw)
+
+    goal, yaw = pilot._turn_first(3.0, at(0.0), behind, None)
+    assert np.array_equal(goal, here) and yaw == pytest.approx(np.arctan2(0.5, -6.0))
+    assert [e.kind for e in pilot.events] == ["turn_first"]
+    # still turning: the hold point stays where the turn began, wherever the vehicle drifts
+    goal, _ = pilot._turn_first(3.1, VehicleState(3.1, here + 0.05, np.zeros(3), 1.0), behind, None)
+    assert np.array_equal(goal, here)
+    # within a quarter of the 90 deg view of the goal's bearing: fly
+    goal, yaw = pilot._turn_first(6.0, at(np.pi - 0.3), behind, None)
+    assert goal is behind and yaw is None
+    # a goal in view, a goal within 1 m, a glance (the pilot looks elsewhere on purpose), and off
+    assert pilot._turn_first(7.0, at(0.0), np.array([6.0, 2.0, 1.5]), None)[0][0] == 6.0
+    assert pilot._turn_first(7.0, at(0.0), here + np.array([-0.8, 0.0, 0.0]), None)[1] is None
+    assert pilot._turn_first(7.0, at(0.0), behind, 1.5)[1] == 1.5
+    off = OnFlyPilot(PilotConfig(turn_first=False), ScriptedVlm("perfect"), ClockRuntime())
+    assert off._turn_first(3.0, at(0.0), behind, None)[0] is behind

@@ -64,17 +64,19 @@ class FlightLimits:
 def split_options(options: dict[str, Any], config_cls, method: str) -> tuple[PlannerConfig, dict, Any]:
     """Split factory options into ``(planner config, esdf overrides, method config)``.
 
-    ``verifier`` is accepted (shared table of the benchmark config) and unused by baselines.
+    ``verifier`` and ``movers`` are accepted (shared tables of the benchmark config); a baseline
+    that flies our planner reads ``movers`` from the options itself, the others ignore them.
     Unknown keys raise :class:`BaselineOptionError` listing the valid ones.
     """
     opts = dict(options)
     planner = PlannerConfig.from_dict(dict(opts.pop("planner", {}) or {}))
     esdf = dict(opts.pop("esdf", {}) or {})
     opts.pop("verifier", None)
+    opts.pop("movers", None)
     valid = {f.name for f in fields(config_cls)}
     bad = sorted(set(opts) - valid)
     if bad:
-        raise BaselineOptionError(f"unknown {method} option(s) {bad}; valid: {sorted(valid | {'planner', 'esdf', 'verifier'})}")
+        raise BaselineOptionError(f"unknown {method} option(s) {bad}; valid: {sorted(valid | {'planner', 'esdf', 'verifier', 'movers'})}")
     return planner, esdf, config_cls(**opts)
 
 

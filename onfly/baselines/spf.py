@@ -42,6 +42,7 @@ from onfly.bench.method import EpisodeSpec, MethodStep
 from onfly.observation import Observation
 from planning.esdf import EsdfMap
 from planning.esdf_config import EsdfConfig
+from planning.movers import MoverConfig, MoverTracker
 from planning.frames import transform_points
 from planning.planner import Planner
 from planning.trajectory import VehicleState
@@ -105,7 +106,8 @@ class SpfMethod:
     vlm_spec : backend spec
     config : SpfConfig
     limits : FlightLimits (straight-line motion)
-    planner : None (no map at all) or a Planner, with ``esdf_config`` for its map
+    planner : None (no map at all) or a Planner, with ``esdf_config`` for its map and
+        ``mover_config`` for the moving obstacles it avoids besides the map (as OnFly's pilot)
     backend : a VLM backend to use instead of building one from ``vlm_spec`` per episode
     """
 
@@ -119,6 +121,7 @@ class SpfMethod:
         planner: Planner | None = None,
         esdf_config: EsdfConfig | None = None,
         backend: VlmBackend | None = None,
+        mover_config: MoverConfig | None = None,
     ) -> None:
         self.vlm_spec = vlm_spec
         self._backend = backend
@@ -126,6 +129,7 @@ class SpfMethod:
         self.limits = limits
         self.planner = planner
         self.esdf_config = esdf_config if esdf_config is not None else EsdfConfig()
+        self.mover_config = mover_config if mover_config is not None else MoverConfig()
         self.name = "spf_planner" if planner is not None else "spf"
         self.esdf: EsdfMap | None = None
 
@@ -143,11 +147,13 @@ class SpfMethod:
         if self.planner is not None:
             self.planner.reset()
             self.esdf = EsdfMap(self.esdf_config)
+            self.movers = MoverTracker(self.mover_config)
 
     def step(self, t_s: float, state: VehicleState, obs: Observation | None) -> MethodStep:
         if obs is not None:
             self.latest = obs
             if self.esdf is not None:
+                self.movers.observe(obs.t_s, obs.depth_m, obs.camera, obs.T_world_cam, self.esdf)
                 self.esdf.integrate(obs.depth_m, obs.camera, obs.T_world_cam, center_world=obs.position)
         for landed in self.runtime.poll():
             if self._on_answer(landed.outcome):
@@ -161,7 +167,7 @@ class SpfMethod:
                 # the operator's flight volume: every method that flies our planner honours it
                 goal = volume.clamp(goal, margin_m=self.planner.config.d_safe_m)
                 self.stats["goals_clamped"] += 1
-            plan = self.planner.step(state, goal, self.esdf, volume=volume)
+            plan = self.planner.step(state, goal, self.movers.field(self.esdf, t_s), volume=volume)
             if not plan.ok:
                 self.fallbacks[plan.fallback.value] += 1
             return MethodStep(plan.trajectory, False)
@@ -206,6 +212,8 @@ class SpfMethod:
     def summary(self) -> dict[str, Any]:
         out: dict[str, Any] = {k: int(v) for k, v in self.stats.items()}
         out["uses_map"] = self.esdf is not None
+        if self.esdf is not None:
+            out["movers"] = self.movers.summary()
         if self.planner is not None:
             out["planner_fallbacks"] = dict(self.fallbacks)
         return out
@@ -219,7 +227,10 @@ def make_spf(vlm_spec: str, seed: int, **options) -> SpfMethod:
 
 
 def make_spf_planner(vlm_spec: str, seed: int, **options) -> SpfMethod:
-    """Registry factory of SPF with OnFly's ESDF + MPC. Options: the shared ``planner`` and
-    ``esdf`` tables, ``verifier`` (unused) and :class:`SpfConfig` fields."""
+    """Registry factory of SPF with OnFly's ESDF + MPC. Options: the shared ``planner``,
+    ``esdf`` and ``movers`` tables, ``verifier`` (unused) and :class:`SpfConfig` fields."""
+    movers = MoverConfig(**dict(options.get("movers", {}) or {}))
     planner_cfg, esdf, cfg = split_options(options, SpfConfig, "spf_planner")
-    return SpfMethod(vlm_spec, cfg, FlightLimits.from_planner(planner_cfg), shared_planner(planner_cfg), EsdfConfig(**esdf))
+    return SpfMethod(
+        vlm_spec, cfg, FlightLimits.from_planner(planner_cfg), shared_planner(planner_cfg), EsdfConfig(**esdf), mover_config=movers
+    )

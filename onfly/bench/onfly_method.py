@@ -97,6 +97,7 @@ class OnFlyMethod:
             "search_triggers": dict(Counter(e.data.get("trigger") for e in p.events if e.kind == "search_start")),
             "goals_clamped": kinds.get("goal_clamped", 0),
             "follow": p.follow.summary() if hasattr(p, "follow") else {},
+            "movers": p.movers.summary() if hasattr(p, "movers") else {},
         }
 
 
@@ -114,14 +115,14 @@ def _shared_planner(config) -> Planner:
 def make_onfly_factory(variant: str):
     """Registry factory of an OnFly variant: ``factory(vlm_spec, seed, **options)``.
 
-    Options: the shared tables ``planner`` / ``esdf`` / ``verifier`` and the variant's own
+    Options: the shared tables ``planner`` / ``esdf`` / ``verifier`` / ``movers`` and the variant's own
     ``[methods.<name>]`` table, all :class:`PilotConfig` fields (``memory`` as a table too).
     """
     if variant not in ABLATIONS:
         raise ValueError(f"unknown OnFly variant {variant!r}; valid: {sorted(ABLATIONS)}")
 
     def factory(vlm_spec: str, seed: int, **options) -> OnFlyMethod:
-        data = {k: dict(v or {}) if k in ("planner", "esdf", "verifier", "memory") else v for k, v in options.items()}
+        data = {k: dict(v or {}) if k in ("planner", "esdf", "verifier", "memory", "movers") else v for k, v in options.items()}
         base = PilotConfig.from_dict(data)
         cfg = ablation_config(variant, base)
         planner = _shared_planner(cfg.planner) if cfg.use_planner else None

@@ -38,6 +38,7 @@ from onfly.bench.method import EpisodeSpec, MethodStep
 from onfly.bench.metrics import GoalRegion
 from onfly.observation import Observation
 from planning.esdf import EsdfMap
+from planning.movers import MoverConfig, MoverTracker
 from planning.esdf_config import EsdfConfig
 from planning.planner import Fallback, Planner
 from planning.planner_config import PlannerConfig
@@ -118,10 +119,12 @@ class OraclePilot:
         planner_config: PlannerConfig | None = None,
         esdf_config: EsdfConfig | None = None,
         planner: Planner | None = None,
+        mover_config: MoverConfig | None = None,
     ) -> None:
         self.config = config if config is not None else OracleConfig()
         self.planner_config = planner_config if planner_config is not None else PlannerConfig()
         self.esdf_config = esdf_config if esdf_config is not None else EsdfConfig()
+        self.mover_config = mover_config if mover_config is not None else MoverConfig()
         self._planner = planner
         self._reset_counters()
 
@@ -156,6 +159,7 @@ class OraclePilot:
         self._done_gap_m = max(self.config.done_radius_m, float(self.region.distance(self.goal_point)) + 0.3)
         self._progress = 0
         self.esdf = EsdfMap(self.esdf_config)
+        self.movers = MoverTracker(self.mover_config)
         if self._planner is None:
             self.planner = _PLANNERS.get(self.planner_config)
         else:
@@ -174,6 +178,7 @@ class OraclePilot:
 
     def step(self, t_s: float, state: VehicleState, obs: Observation | None) -> MethodStep:
         if obs is not None:
+            self.movers.observe(t_s, obs.depth_m, obs.camera, obs.T_world_cam, self.esdf)
             upd = self.esdf.integrate(obs.depth_m, obs.camera, obs.T_world_cam, center_world=state.p)
             self._frames += 1
             self._esdf_ms.append(float(upd.total_ms))
@@ -185,7 +190,7 @@ class OraclePilot:
         if gap <= self._done_gap_m and speed <= self.config.done_speed_mps:
             return MethodStep(None, True, {"goal_gap_m": gap})
         carrot = self._carrot(state.p)
-        plan = self.planner.step(state, carrot, self.esdf)
+        plan = self.planner.step(state, carrot, self.movers.field(self.esdf, t_s))
         self._fallbacks[plan.fallback.value] += 1
         self._min_pred_clearance = min(self._min_pred_clearance, float(plan.min_predicted_clearance_m))
         self._plan_ms.append(float(plan.solve_time_ms))
@@ -213,7 +218,7 @@ class OraclePilot:
         goal = np.array([*(ahead.position_m[:2] + standoff * away / dist), self._z_m])
         face = now.position_m[:2] - state.p[:2]
         yaw = float(np.arctan2(face[1], face[0])) if np.hypot(*face) > 1e-6 else float(state.yaw)
-        plan = self.planner.step(state, goal, self.esdf, yaw_ref=yaw)
+        plan = self.planner.step(state, goal, self.movers.field(self.esdf, t_s), yaw_ref=yaw)
         self._fallbacks[plan.fallback.value] += 1
         self._min_pred_clearance = min(self._min_pred_clearance, float(plan.min_predicted_clearance_m))
         self._plan_ms.append(float(plan.solve_time_ms))
@@ -224,6 +229,7 @@ class OraclePilot:
             "steps": self._steps,
             "frames": self._frames,
             "fallbacks": dict(self._fallbacks),
+            "movers": self.movers.summary(),
             "min_predicted_clearance_m": None if not math.isfinite(self._min_pred_clearance) else self._min_pred_clearance,
             # wall-clock figures (machine dependent, unlike everything else in a record)
             "timing_ms": {
@@ -233,7 +239,7 @@ class OraclePilot:
         }
 
 
-_SHARED = ("planner", "esdf", "verifier")
+_SHARED = ("planner", "esdf", "verifier", "movers")
 
 
 def make_oracle(vlm_spec: str, seed: int, **options) -> OraclePilot:
@@ -242,12 +248,13 @@ def make_oracle(vlm_spec: str, seed: int, **options) -> OraclePilot:
     privileged path). The VLM spec and seed are unused: the oracle asks no VLM and draws nothing."""
     planner = PlannerConfig.from_dict(dict(options.pop("planner", {}) or {}))
     esdf = EsdfConfig(**dict(options.pop("esdf", {}) or {}))
+    movers = MoverConfig(**dict(options.pop("movers", {}) or {}))
     options.pop("verifier", None)
     valid = {f.name for f in fields(OracleConfig)}
     bad = sorted(set(options) - valid)
     if bad:
         raise OracleError(f"unknown oracle option(s) {bad}; valid: {sorted(valid | set(_SHARED))}")
-    return OraclePilot(OracleConfig(**options), planner, esdf)
+    return OraclePilot(OracleConfig(**options), planner, esdf, mover_config=movers)
 
 
 def oracle_config_dict(config: OracleConfig) -> dict:

@@ -78,7 +78,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 EPISODES_FILE = "episodes.jsonl"
-SHARED_TABLES = ("planner", "esdf", "verifier")
+SHARED_TABLES = ("planner", "esdf", "verifier", "movers")
 _WORLD_KEYS = ("width_px", "height_px", "hfov_deg", "vfov_deg", "render_threads", "realism")
 
 

@@ -1,0 +1,261 @@
+"""Moving obstacles from depth (planning.movers): detection, tracks, the capsule field, and
+the planner keeping clear of a walker in closed loop."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from onfly.world.world import World
+from planning.camera import PinholeCamera
+from planning.esdf import EsdfMap
+from planning.frames import body_transform, cam_transform_from_body
+from planning.movers import MoverConfig, MoverConfigError, MoverField, MoverTrack, MoverTracker
+from street_scene import street
+
+CAM = PinholeCamera.from_fov(320, 214, 90.0, 60.0)
+CLUTTER = {
+    "name": "crates", "label": "crate", "instance_id": 3, "color": "#8D6E63", "target": False,
+    "parts": [{"type": "box", "center_m": [7, 2.5, 0.5], "size_m": [1, 1, 1]},
+              {"type": "box", "center_m": [10, -2, 0.75], "size_m": [0.6, 2, 1.5]},
+              {"type": "cylinder", "base_m": [12, 1, 0], "radius_m": 0.3, "height_m": 3.0, "segments": 12}],
+}  # fmt: skip
+
+
+def crossing(x_m: float, speed_mps: float, start_s: float = 0.0, loop: bool = False) -> dict:
+    wps = [[x_m, -4.0, 0.0], [x_m, 4.0, 0.0]]
+    if loop:
+        wps += [[x_m + 0.6, 4.0, 0.0], [x_m + 0.6, -4.0, 0.0]]
+    return {"type": "path", "loop": loop, "start_s": start_s, "waypoints": [{"position_m": p, "speed_mps": speed_mps} for p in wps]}
+
+
+def feed(world: World, positions, times, tracker: MoverTracker, esdf: EsdfMap):
+    """Render at each (position, time) looking down +x and feed tracker then map; the active
+    tracks after each frame."""
+    out = []
+    for k, (p, t) in enumerate(zip(positions, times)):
+        T = cam_transform_from_body(body_transform(np.asarray(p, float), 0.0))
+        depth = world.renderer.render(T, noise_key=k, t_s=t).depth_m
+        out.append(tracker.observe(t, depth, CAM, T, esdf))
+        esdf.integrate(depth, CAM, T, center_world=np.asarray(p, float))
+    return out
+
+
+def test_a_walker_crossing_is_tracked_with_its_velocity():
+    world = World(street(crossing(8.0, 0.9)), camera=CAM)
+    tracker, esdf = MoverTracker(), EsdfMap()
+    times = 0.5 * np.arange(1, 13)
+    active = feed(world, [[3.0, 0.0, 1.5]] * len(times), times, tracker, esdf)
+    assert active[-1], "no track after 6 s of a person crossing 5 m ahead"
+    assert len(active[-1]) == 1
+    tr = active[-1][0]
+    truth = world.actor_pose(9, float(times[-1]))
+    assert np.allclose(tr.velocity_mps, truth.velocity_mps[:2], atol=0.1)
+    # the readings are the walker's near side: the centre sits within its radius of the truth
+    assert np.hypot(*(tr.position_m - truth.position_m[:2])) <= 0.3
+    assert tr.z_range_m[0] < 0.3 and tr.z_range_m[1] > 1.4
+    # confirmed on the second sighting: active from the third frame on at the latest
+    assert all(a for a in active[2:])
+
+
+@pytest.mark.parametrize("realism", ["ideal", "realistic"])
+def test_static_clutter_seen_from_a_moving_camera_makes_no_mover(realism):
+    world = World(street(None, extra=(CLUTTER,)), camera=CAM, realism=realism, seed=3)
+    tracker, esdf = MoverTracker(), EsdfMap()
+    times = 0.5 * np.arange(40)
+    xs = np.linspace(0.0, 12.0, len(times))  # 0.6 m/s down the street, past the clutter
+    positions = [[x, 0.3 * np.sin(x), 1.5] for x in xs]
+    active = feed(world, positions, times, tracker, esdf)
+    assert not any(active)
+
+
+def test_a_walker_who_stops_is_left_to_the_map():
+    # walks 8 m across from t = 0 at 1 m/s, then stands at y = 4
+    world = World(street(crossing(8.0, 1.0)), camera=CAM)
+    tracker, esdf = MoverTracker(), EsdfMap()
+    times = 0.5 * np.arange(1, 31)
+    active = feed(world, [[3.0, 0.0, 1.5]] * len(times), times, tracker, esdf)
+    assert any(active[:16])
+    assert not any(active[-4:])
+
+
+def _capsule_reference(P, a, b, r, z0, z1, n=4001):
+    """Brute force: distance to the core (the segment a-b times [z0, z1]) by dense sampling."""
+    s = np.linspace(0.0, 1.0, n)
+    core = a[None] + s[:, None] * (b - a)[None]
+    dh = np.min(np.hypot(P[:, None, 0] - core[None, :, 0], P[:, None, 1] - core[None, :, 1]), axis=1)
+    dz = np.maximum(np.maximum(z0 - P[:, 2], P[:, 2] - z1), 0.0)
+    return np.hypot(dh, dz) - r
+
+
+class _Far:
+    def query(self, points):
+        P = np.asarray(points, float)
+        return np.full(len(P), 10.0), np.zeros((len(P), 3))
+
+
+def test_capsule_distance_and_gradient_match_references():
+    tr = MoverTrack(0, np.array([2.0, 1.0]), np.array([1.0, -0.5]), 0.3, (0.0, 1.8), t_s=1.0, hits=3)
+    f = MoverField(_Far(), [tr], t_s=2.0, horizon_s=1.5)
+    a = tr.predicted(2.0)
+    assert np.allclose(a, [3.0, 0.5])
+    b = a + 1.5 * tr.velocity_mps
+    rng = np.random.default_rng(0)
+    P = np.column_stack([rng.uniform(0, 7, 400), rng.uniform(-3, 3, 400), rng.uniform(-1, 3.5, 400)])
+    d, g = f.capsule_distance(P)
+    ref = _capsule_reference(P, a, b, 0.3, 0.0, 1.8)
+    assert np.max(np.abs(d - ref)) < 2e-3
+    # gradient: central differences where the field is smooth (off the core)
+    h = 1e-5
+    off = d > -0.25
+    for k in range(3):
+        e = np.zeros(3)
+        e[k] = h
+        num = (f.capsule_distance(P + e)[0] - f.capsule_distance(P - e)[0]) / (2 * h)
+        assert np.allclose(g[off, k], num[off], atol=1e-4)
+    # the combined field takes the nearer obstacle, value and gradient
+    dq, gq = f.query(P)
+    near = d < 10.0
+    assert np.allclose(dq[near], d[near]) and np.allclose(gq[near], g[near])
+    assert np.allclose(dq[~near], 10.0)
+
+
+def test_a_track_the_camera_sees_through_is_dropped():
+    world = World(street(crossing(8.0, 0.9)), camera=CAM)
+    tracker, esdf = MoverTracker(), EsdfMap()
+    feed(world, [[3.0, 0.0, 1.5]] * 6, 0.5 * np.arange(1, 7), tracker, esdf)
+    assert tracker.active(3.0)
+    # the same street without the walker: the predicted position is seen empty
+    empty = World(street(None), camera=CAM)
+    T = cam_transform_from_body(body_transform(np.array([3.0, 0.0, 1.5]), 0.0))
+    tracker.observe(3.5, empty.renderer.render(T, t_s=3.5).depth_m, CAM, T, esdf)
+    assert tracker.tracks == []
+
+
+def test_tracks_expire_after_keep_s_and_disabled_tracks_nothing():
+    world = World(street(crossing(8.0, 0.9)), camera=CAM)
+    tracker, esdf = MoverTracker(MoverConfig(keep_s=1.0)), EsdfMap()
+    feed(world, [[3.0, 0.0, 1.5]] * 6, 0.5 * np.arange(1, 7), tracker, esdf)
+    assert tracker.active(3.0) and not tracker.active(4.1)
+    assert tracker.field(esdf, 4.1) is esdf
+    off = MoverTracker(MoverConfig(enabled=False))
+    assert not any(feed(world, [[3.0, 0.0, 1.5]] * 6, 0.5 * np.arange(1, 7), off, EsdfMap()))
+    assert off.field(esdf, 3.0) is esdf
+
+
+@pytest.mark.parametrize(
+    "kw",
+    [{"cell_m": 0.0}, {"keep_s": -1.0}, {"min_points": 0}, {"free_logodds_max": 0.1}, {"alpha": 1.5},
+     {"radius_min_m": 0.5, "radius_max_m": 0.4}, {"stride_px": 0}, {"horizon_s": float("nan")}],
+)  # fmt: skip
+def test_bad_mover_config_is_refused(kw):
+    with pytest.raises(MoverConfigError):
+        MoverConfig(**kw)
+
+
+def _fly_street(motion: dict, movers: dict):
+    from onfly.bench.episode import EpisodeConfig, run_episode
+    from onfly.bench.method import PrivilegedGoal
+    from onfly.bench.metrics import GoalRegion
+    from onfly.bench.oracle import make_oracle
+
+    world = World(street(motion), camera=CAM)
+    goal = np.array([16.0, 0.0, 1.5])
+    return run_episode(
+        world, make_oracle("sim:nominal", 0, movers=movers), instruction="fly to the end of the street",
+        goal=GoalRegion(goal, np.full(3, 0.5)), reference_path_m=16.0, seed=0, error_model="none",
+        privileged=PrivilegedGoal(goal, np.full(3, 0.5), np.array([[0.0, 0.0, 1.5], goal])),
+        config=EpisodeConfig(frame_period_s=0.5),
+    )  # fmt: skip
+
+
+def test_a_person_pacing_across_the_path_is_avoided_only_with_the_prediction():
+    # paces back and forth across the street 8 m ahead at 0.9 m/s: the map alone (its trail
+    # cleared, the lane entered, the person back) is walked into; the tracked prediction keeps
+    # the vehicle out of the lane until the person has passed
+    pacing = crossing(8.0, 0.9, loop=True)
+    with_prediction = _fly_street(pacing, {})
+    assert not with_prediction.metrics.collided and with_prediction.metrics.success
+    assert with_prediction.method_summary["movers"]["active_frames"] > 0
+    map_alone = _fly_street(pacing, {"enabled": False})
+    assert map_alone.metrics.collided
+
+
+def _pilot_in_street(config):
+    """OnFly's pilot with a scripted VLM pointing straight ahead, a walker pacing across the
+    street 7 m ahead at head height; (method, result, heights)."""
+    from onfly.bench.episode import EpisodeConfig, run_episode
+    from onfly.bench.metrics import GoalRegion
+    from onfly.bench.onfly_method import OnFlyMethod
+    from onfly.pilot import OnFlyPilot
+    from planning.planner import Planner
+    from vlm_fakes import ScriptedVlm, text
+
+    class Scripted(OnFlyMethod):
+        def reset(self, spec):
+            backend = ScriptedVlm(
+                "perfect", decision=lambda i, r: text('{"point_2d": [160, 107]}', 0.81), monitor=lambda i, r: text("CONTINUE", 1.15)
+            )
+            self.pilot = OnFlyPilot(self.config, backend, spec.runtime, planner=Planner(self.config.planner))
+            self.pilot.begin(spec.instruction, spec.start_state.t_s)
+
+    method = Scripted("sim:perfect", config)
+    world = World(street(crossing(7.0, 0.9, loop=True)), camera=CAM)
+    heights = []
+    result = run_episode(
+        world, method, instruction="Fly down the street.", goal=GoalRegion([19.0, 0.0, 1.5], [1.0, 4.0, 1.5]),
+        reference_path_m=19.0, seed=0, error_model="test", config=EpisodeConfig(time_limit_s=25.0, frame_period_s=0.5),
+        observer=lambda s: heights.append((s.t_s, float(s.state.p[2]))),
+    )  # fmt: skip
+    return method, result, heights
+
+
+def test_the_pilot_climbs_above_people_it_has_tracked():
+    from onfly.pilot import PilotConfig
+
+    # the scripted goal stays ~7 m ahead; the release near a target is tested on its own below
+    method, result, heights = _pilot_in_street(PilotConfig(above_movers_release_m=0.0))
+    events = [e for e in method.pilot.events if e.kind == "over_movers"]
+    assert events, "the walker was never tracked"
+    z_min = events[0].data["z_min_m"]
+    # over the walker's head (1.73 m; the readings of a 2-px stride reach within 0.15 m of it)
+    # by the planner's safety distance and the margin
+    assert z_min >= 1.73 - 0.15 + 0.45 + 0.3
+    assert not result.metrics.collided
+    # it climbs on the way (the straight line to goals ~7 m ahead): over the walker's head by
+    # more than its body radius by the end, and never back down
+    after = [z for t, z in heights if t >= events[0].t_s + 8.0]
+    assert min(after[-30:]) >= 1.73 + 0.25 + 0.15
+    assert min(after) >= max(z for t, z in heights if t <= events[0].t_s) + 0.2
+    # off: the vehicle stays at the height of its goals, level with the walker's head
+    _, off, level = _pilot_in_street(PilotConfig(above_movers_s=None))
+    assert max(z for _, z in level) < 1.8
+
+
+def test_goals_are_raised_over_recent_movers_but_not_near_the_target():
+    from onfly.pilot import OnFlyPilot, PilotConfig, PilotConfigError
+    from onfly.runtime import ClockRuntime
+    from planning.trajectory import VehicleState
+    from vlm_fakes import ScriptedVlm
+
+    cfg = PilotConfig()
+    pilot = OnFlyPilot(cfg, ScriptedVlm("perfect"), ClockRuntime())
+    state = VehicleState(10.0, np.array([0.0, 0.0, 1.5]), np.zeros(3), 0.0)
+    goal = np.array([8.0, 0.0, 1.2])
+    assert pilot._above_movers(10.0, goal, state) is goal  # no mover tracked yet
+    pilot._movers_seen_s, pilot._movers_top_m = 5.0, 1.7
+    raised = pilot._above_movers(10.0, goal, state)
+    assert raised[2] == pytest.approx(1.7 + cfg.planner.d_safe_m + cfg.above_movers_margin_m)
+    assert np.array_equal(raised[:2], goal[:2]) and goal[2] == 1.2  # a new array
+    assert [e.kind for e in pilot.events] == ["over_movers"]
+    # the last metres to the target the vehicle was sent to keep its height
+    pilot.goal_world = np.array([3.0, 1.0, 1.0])
+    assert pilot._above_movers(10.0, goal, state) is goal
+    pilot.goal_world = np.array([6.0, 0.0, 1.0])
+    assert pilot._above_movers(10.0, goal, state)[2] > 2.0
+    # above_movers_s after the last mover the rule ends
+    assert pilot._above_movers(5.0 + cfg.above_movers_s + 0.1, goal, state) is goal
+    assert pilot.events[-1].kind == "over_movers_end"
+    for bad in ({"above_movers_s": -1.0}, {"above_movers_margin_m": float("nan")}, {"above_movers_release_m": -0.5}):
+        with pytest.raises(PilotConfigError):
+            PilotConfig(**bad)
