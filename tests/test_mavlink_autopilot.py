@@ -78,7 +78,14 @@ def test_px4_offboard_streams_before_switching_then_flies(px4):
     t_first_sp = vehicle.setpoint_times[0]
     t_armed = vehicle.first_event("armed")
     t_offboard = vehicle.first_event("mode offboard")
-    assert t_offboard - t_first_sp >= FAST.prestream_s
+    # The bridge times the pre-stream from its first send; the vehicle stamps receipt, so the
+    # gap seen here differs by the link's delivery jitter (thread scheduling on a loaded host).
+    # What PX4 needs is a live stream at the switch: allow one setpoint period of jitter and
+    # require the stream's setpoints to have arrived before the switch.
+    period = bridge.config.setpoint_period_s
+    assert t_offboard - t_first_sp >= FAST.prestream_s - period
+    received_before = sum(t < t_offboard for t in vehicle.setpoint_times)
+    assert received_before >= int(FAST.prestream_s / period) - 1
     assert t_first_sp < t_armed <= t_offboard  # stream, arm, switch
     bridge.set_trajectory(climb(bridge.clock(), 1.0, n=10))
     time.sleep(1.6)
