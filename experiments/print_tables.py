@@ -1,0 +1,359 @@
+"""Print the tables of record from their records file alone (no episode runs again).
+
+``experiments/tables_of_record.py`` writes ``DIR/records.jsonl.gz``: a gzip of JSON lines, the
+first line a header (the format tag, the manifest's tables with their sets, row labels and the
+paper's numbers, the code digest and commit of the episodes, the wall time spent per table),
+then one compact line per episode (:data:`RECORD_FIELDS`). This module turns those lines into
+the tables (:func:`build_tables`) and the tables into markdown (:func:`format_document`,
+:func:`format_table`); the command writes ``DIR/tables.md`` and ``DIR/tables.json`` with these
+same functions from the file it has just written, so what this prints is what it wrote.
+
+Run::
+
+    .venv/bin/python experiments/print_tables.py runs/record/records.jsonl.gz [--table NAME] [--format md|json]
+
+Without ``--table`` it prints every table (``tables.md`` byte for byte); ``--table NAME``
+prints that table's section of it. Only the standard library is used: printing needs no
+simulator.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gzip
+import json
+import sys
+import zlib
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+__all__ = [
+    "FORMAT",
+    "RECORD_FIELDS",
+    "END_REASONS",
+    "RecordsFileError",
+    "read_records_file",
+    "build_tables",
+    "format_table",
+    "format_document",
+    "tables_json",
+    "main",
+]
+
+#: Tag of the header line; a file with another tag is refused.
+FORMAT = "onfly-tables-of-record/1"
+
+#: Fields of an episode line (``track`` only on tracking tasks, ``start_in_view`` only when a
+#: table it belongs to splits by it, ``error`` only on a method error).
+RECORD_FIELDS = (
+    "key", "tables", "method", "task", "scene", "kind", "run", "seed", "vlm", "error_model", "realism",
+    "metrics", "end_reason", "failure", "sim_s", "wall_s", "cpu_s", "min_clearance_m", "track", "start_in_view", "error",
+)  # fmt: skip
+
+#: End reasons in the order the tables list them (as :data:`onfly.bench.episode.END_REASONS`).
+END_REASONS = ("stopped", "collision", "time_limit", "out_of_bounds", "method_error")
+
+
+class RecordsFileError(ValueError):
+    """A records file that cannot be read as tables of record (names the file and the fault)."""
+
+
+def read_records_file(path: str | Path) -> tuple[dict, list[dict]]:
+    """The header and the episode records of a ``records.jsonl.gz``.
+
+    Raises RecordsFileError when the file is missing, not gzip, lacks the header line or
+    holds a line that is not JSON.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise RecordsFileError(f"records file not found: {path}")
+    try:
+        with gzip.open(path, "rt", encoding="utf-8") as f:
+            lines = [line for line in f if line.strip()]
+    except (OSError, EOFError, zlib.error, UnicodeDecodeError) as exc:
+        raise RecordsFileError(f"{path}: not a gzip file of JSON lines ({exc})") from None
+    rows = []
+    for n, line in enumerate(lines, 1):
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError as exc:
+            raise RecordsFileError(f"{path}:{n}: not JSON ({exc})") from None
+    if not rows or not isinstance(rows[0], dict) or rows[0].get("format") != FORMAT:
+        found = rows[0].get("format") if rows and isinstance(rows[0], dict) else None
+        raise RecordsFileError(f"{path}: the first line must be the header with format {FORMAT!r}, found {found!r}")
+    return rows[0], rows[1:]
+
+
+# -- statistics ------------------------------------------------------------------------------------
+
+
+def _mean(xs: Sequence[float]) -> float | None:
+    return sum(xs) / len(xs) if xs else None
+
+
+def _pct(xs: Sequence[bool]) -> float | None:
+    m = _mean([float(bool(x)) for x in xs])
+    return None if m is None else 100.0 * m
+
+
+def _end_reasons(recs: Iterable[dict]) -> dict[str, int]:
+    counts: dict[str, int] = {}
+    for r in recs:
+        counts[r["end_reason"]] = counts.get(r["end_reason"], 0) + 1
+    order = {k: i for i, k in enumerate(END_REASONS)}
+    return dict(sorted(counts.items(), key=lambda kv: (order.get(kv[0], len(order)), kv[0])))
+
+
+def _view(recs: list[dict]) -> dict:
+    """SR % and episodes with the goal in view at the start and out of view."""
+    seen = [r for r in recs if r.get("start_in_view") is True]
+    hidden = [r for r in recs if r.get("start_in_view") is False]
+    return {
+        "in_view_episodes": len(seen),
+        "SR_in_view": _pct([r["metrics"]["success"] for r in seen]),
+        "out_of_view_episodes": len(hidden),
+        "SR_out_of_view": _pct([r["metrics"]["success"] for r in hidden]),
+    }
+
+
+def _track(recs: list[dict]) -> dict:
+    """Means over the tracking episodes: time in band %, band error m, times lost and re-found,
+    and stop held % (of the episodes whose task asks for a stop; None when none does)."""
+    ts = [r["track"] for r in recs if r.get("track")]
+    stops = [t["stop_ok"] for t in ts if t.get("stop_ok") is not None]
+    in_band = _mean([t["in_band_frac"] for t in ts])
+    return {
+        "episodes": len(ts),
+        "in_band_pct": None if in_band is None else 100.0 * in_band,
+        "band_error_m": _mean([t["band_error_m"] for t in ts]),
+        "lost": _mean([t["times_lost"] for t in ts]),
+        "refound": _mean([t["times_refound"] for t in ts]),
+        "stop_held_pct": _pct(stops),
+    }
+
+
+def _row(table: dict, part_index: int, method: str, recs: list[dict]) -> dict:
+    """One row: a method on one set of a table (SR / OSR / CR in %, FT s, NE m, SPL in [0, 1])."""
+    part = table["parts"][part_index]
+    label = table["labels"].get(method, method)
+    ms = [r["metrics"] for r in recs]
+    row: dict[str, Any] = {
+        "set": part["label"],
+        "part": part_index,
+        "method": method,
+        "label": label,
+        "error_model": part["error_model"],
+        "realism": part["realism"],
+        "episodes": len(recs),
+        "planned": part["tasks"] * part["runs"],
+        "SR": _pct([m["success"] for m in ms]),
+        "OSR": _pct([m["oracle_success"] for m in ms]),
+        "CR": _pct([m["collided"] for m in ms]),
+        "FT": _mean([m["flight_time_s"] for m in ms]),
+        "NE": _mean([m["navigation_error_m"] for m in ms]),
+        "SPL": _mean([m["spl"] for m in ms]),
+        "end_reasons": _end_reasons(recs),
+    }
+    if table["paper"]:
+        nums = table["paper_numbers"].get(part.get("paper_row") or label)
+        row["paper"] = None if nums is None else dict(zip(("SR", "OSR", "CR", "FT"), nums))
+    if table["split_view"]:
+        row["view"] = _view(recs)
+    if table["track"]:
+        row["track"] = _track(recs)
+    return row
+
+
+def _table(table: dict, records: list[dict]) -> dict:
+    """A table of the header with its rows over the records that belong to it."""
+    name = table["name"]
+    groups: dict[tuple[int, str], list[dict]] = {}
+    mine = []
+    for r in records:
+        parts = (r.get("tables") or {}).get(name)
+        if parts is None:
+            continue
+        mine.append(r)
+        for p in parts:
+            groups.setdefault((p, r["method"]), []).append(r)
+    rows = [_row(table, i, m, groups.get((i, m), [])) for i, part in enumerate(table["parts"]) for m in part["methods"]]
+    cpu = sum(r.get("cpu_s") or 0.0 for r in mine)
+    return {
+        "name": name,
+        "title": table["title"],
+        "note": table.get("note", ""),
+        "error_models": list(dict.fromkeys(p["error_model"] for p in table["parts"])),
+        "realisms": list(dict.fromkeys(p["realism"] for p in table["parts"])),
+        "code": table["code"],
+        "wall_s": table["wall_s"],
+        "episode_cpu_s": cpu,
+        "episodes": sum(row["episodes"] for row in rows),
+        "planned": sum(row["planned"] for row in rows),
+        "parts": table["parts"],
+        "columns": {"paper": table["paper"], "split_view": table["split_view"], "track": table["track"]},
+        "rows": rows,
+    }
+
+
+def build_tables(header: dict, records: list[dict]) -> dict:
+    """Every table of the header, as JSON-able dicts (rows in set order, then method order)."""
+    return {
+        "format": header["format"],
+        "name": header["name"],
+        "manifest": header["manifest"],
+        "code": header["code"],
+        "mixed": header["mixed"],
+        "subset": header["subset"],
+        "command": header["command"],
+        "episodes": len(records),
+        "tables": [_table(t, records) for t in header["tables"]],
+    }
+
+
+# -- markdown --------------------------------------------------------------------------------------
+
+
+def _f(x: float | None, fmt: str = "{:.1f}") -> str:
+    return "n/a" if x is None else fmt.format(x)
+
+
+def _duration(s: float) -> str:
+    if s < 120:
+        return f"{s:.0f} s"
+    if s < 7200:
+        return f"{s / 60:.1f} min"
+    return f"{s / 3600:.2f} h"
+
+
+def _code_text(code: list[dict], ran: bool) -> str:
+    if not code:
+        return "unknown (no code version recorded in the folder)"
+    text = "; ".join(f"commit `{c['commit']}`, code digest `{c['digest']}`" for c in code)
+    if len({c["digest"] for c in code}) > 1:
+        text += " (**mixed code versions**)"
+    return text if ran else text + " (the folder's; the table itself has not been run, its episodes come from tables that share them)"
+
+
+def _wall_text(t: dict) -> str:
+    cpu = f"episodes' CPU time {_duration(t['episode_cpu_s'])}"
+    if t["wall_s"] is None:
+        return f"not run by this command; {cpu}"
+    return f"{_duration(t['wall_s'])} running this table (an episode it shares with a table run before it counts there); {cpu}"
+
+
+def _set_text(p: dict) -> str:
+    runs = "run" if p["runs"] == 1 else "runs"
+    where = f"{p['label']}: " if p["label"] else ""
+    return f"{where}`{p['config']}`, {p['tasks']} tasks x {p['runs']} {runs}"
+
+
+def _header_lines(t: dict) -> list[str]:
+    ems = ", ".join(f"`{e}`" for e in t["error_models"])
+    rls = ", ".join(f"`{r}`" for r in t["realisms"])
+    per = " (per set)" if len(t["parts"]) > 1 else ""
+    return [
+        f"- simulated-VLM error model: {ems}{per}; realism profile: {rls}{per}",
+        f"- code: {_code_text(t['code'], t['wall_s'] is not None)}",
+        f"- wall time: {_wall_text(t)}",
+        f"- episodes: {t['episodes']} of {t['planned']}; sets: " + "; ".join(_set_text(p) for p in t["parts"]),
+    ]
+
+
+def _cells(t: dict, r: dict) -> list[str]:
+    cols = t["columns"]
+    cells = [r["set"]] if len(t["parts"]) > 1 else []
+    n = str(r["episodes"]) if r["episodes"] == r["planned"] else f"{r['episodes']} of {r['planned']}"
+    cells += [r["label"], n, _f(r["SR"]), _f(r["OSR"]), _f(r["CR"]), _f(r["FT"]), _f(r["NE"], "{:.2f}"), _f(r["SPL"], "{:.2f}")]
+    if cols["paper"]:
+        p = r["paper"] or {}
+        cells += [_f(p.get(k)) for k in ("SR", "OSR", "CR", "FT")]
+    if cols["split_view"]:
+        v = r["view"]
+        cells += [f"{_f(v['SR_in_view'])} ({v['in_view_episodes']})", f"{_f(v['SR_out_of_view'])} ({v['out_of_view_episodes']})"]
+    if cols["track"]:
+        k = r["track"]
+        cells += [_f(k["in_band_pct"]), _f(k["band_error_m"], "{:.2f}"), _f(k["lost"], "{:.2f}"), _f(k["refound"], "{:.2f}"),
+                  _f(k["stop_held_pct"])]  # fmt: skip
+    cells.append(", ".join(f"{k} {v}" for k, v in r["end_reasons"].items()) or "-")
+    return cells
+
+
+def _columns(t: dict) -> tuple[list[str], list[str]]:
+    cols = t["columns"]
+    names = ["set"] if len(t["parts"]) > 1 else []
+    align = ["---"] if names else []
+    names += ["method", "episodes", "SR %", "OSR %", "CR %", "FT s", "NE m", "SPL"]
+    align += ["---"] + ["---:"] * 7
+    extra: list[str] = []
+    if cols["paper"]:
+        extra += ["paper SR %", "paper OSR %", "paper CR %", "paper FT s"]
+    if cols["split_view"]:
+        extra += ["SR % goal in view (n)", "SR % out of view (n)"]
+    if cols["track"]:
+        extra += ["time in band %", "band error m", "lost", "re-found", "stop held %"]
+    return names + extra + ["end reasons"], align + ["---:"] * len(extra) + ["---"]
+
+
+def format_table(t: dict) -> str:
+    """One table's markdown section (a heading, its header lines, the table), ending in a newline."""
+    names, align = _columns(t)
+    lines = [f"## {t['title']} (`{t['name']}`)", ""]
+    if t["note"]:
+        lines += [t["note"], ""]
+    lines += _header_lines(t) + ["", "| " + " | ".join(names) + " |", "| " + " | ".join(align) + " |"]
+    lines += ["| " + " | ".join(_cells(t, r)) + " |" for r in t["rows"]]
+    return "\n".join(lines) + "\n"
+
+
+def format_document(tables: dict) -> str:
+    """All tables as markdown: what the command writes to ``tables.md``."""
+    lines = [f"# Tables of record: {tables['name']}", ""]
+    lines.append(
+        f"Manifest `{tables['manifest']}`; {tables['episodes']} episodes; code digest `{tables['code']['digest']}` "
+        f"(commit `{tables['code']['commit']}`)."
+    )
+    lines += ["", f"Command: `{tables['command']}`"]
+    lines += ["", "Print a table again from the records alone: `python experiments/print_tables.py DIR/records.jsonl.gz --table NAME`."]
+    if tables["subset"]:
+        desc = ", ".join(f"{k} {v}" for k, v in tables["subset"].items())
+        lines += ["", f"**Subset check ({desc}): not a table of record.**"]
+    if tables["mixed"]:
+        lines += ["", "**Mixed code versions (`--allow-mixed`): each table names the versions its episodes come from.**"]
+    lines.append("")
+    return "\n".join(lines) + "\n" + "\n".join(format_table(t) for t in tables["tables"])
+
+
+def tables_json(tables: dict) -> str:
+    """The tables as the JSON text the command writes (``tables.json``, ``--json``)."""
+    return json.dumps(tables, indent=1) + "\n"
+
+
+# -- command line ----------------------------------------------------------------------------------
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("records", help="DIR/records.jsonl.gz written by experiments/tables_of_record.py")
+    ap.add_argument("--table", default=None, metavar="NAME", help="print only this table (default: every table)")
+    ap.add_argument("--format", default="md", choices=("md", "json"), help="markdown (as tables.md) or JSON (as tables.json)")
+    args = ap.parse_args(argv)
+    try:
+        header, records = read_records_file(args.records)
+    except RecordsFileError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    tables = build_tables(header, records)
+    if args.table is None:
+        sys.stdout.write(format_document(tables) if args.format == "md" else tables_json(tables))
+        return 0
+    by_name = {t["name"]: t for t in tables["tables"]}
+    if args.table not in by_name:
+        print(f"error: --table: no table {args.table!r} in {args.records}; its tables: {', '.join(by_name)}", file=sys.stderr)
+        return 2
+    t = by_name[args.table]
+    sys.stdout.write(format_table(t) if args.format == "md" else json.dumps(t, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
