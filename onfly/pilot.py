@@ -74,7 +74,7 @@ from planning.straight_line import straight_line_plan
 from planning.trajectory import Trajectory, VehicleState
 from planning.verifier import Verifier, VerifierConfig
 from planning.volume import FlightVolume
-from vlm.decompose import DecompositionError, decompose_detailed, split_instruction
+from vlm.decompose import DecompositionError, count_steps, decompose_detailed
 from vlm.following import follow_intent
 from vlm.feature_cache import FeatureCache
 from vlm.parsing import CoordFormat
@@ -392,7 +392,7 @@ class OnFlyPilot:
         """
         self.instruction = instruction
         try:
-            self._one_step = len(split_instruction(instruction)) == 1
+            self._one_step = count_steps(instruction) == 1
         except DecompositionError:
             self._one_step = False  # the decomposition call reports it
 
@@ -486,6 +486,14 @@ class OnFlyPilot:
             snap = self.monitor.snapshot()  # taken here, on the control thread
             self.runtime.submit(MONITORING, lambda: self.monitor.assess(subtask, snap))
 
+    def _about_asked(self, subtask: str) -> bool:
+        """Whether an answer about ``subtask`` answers what the agents are asked now: the
+        same text (:func:`same_subtask`), or the whole instruction when it decomposed into one
+        subtask (a call submitted before the decomposition landed, which may reword it)."""
+        if same_subtask(subtask, self._asked_subtask()):
+            return True
+        return self._one_step and self.tasks is not None and self.tasks.index == 0 and same_subtask(subtask, self.instruction)
+
     def _start_early_decision(self, obs: Observation) -> None:
         """Before the subtask queue exists: decide on the whole instruction (``early_start``),
         on the decision stream (the single stream in the single-stream ablation)."""
@@ -501,8 +509,11 @@ class OnFlyPilot:
         if isinstance(out, _Decomposed):
             dec = out.decomposition
             self.tasks = TaskManager(list(dec.subtasks), self.config.stop_confirmations, self.config.intermediate_stop_confirmations)
-            self._last_seen = None  # sightings on the whole instruction belong to no subtask
-            self._look = None
+            # one subtask is the whole instruction reworded: answers about either are about it
+            self._one_step = len(dec.subtasks) == 1
+            if not self._one_step:
+                self._last_seen = None  # sightings on the whole instruction belong to no subtask
+                self._look = None
             self._no_goal_streak = self._not_visible_streak = self._rejected_streak = 0
             self._event(
                 landed.landed_s,
@@ -546,7 +557,7 @@ class OnFlyPilot:
         speculative = same_subtask(out.subtask, self.instruction) and (self.tasks is None or self._speculative)
         if self.tasks is None and not speculative:
             return
-        if not speculative and not same_subtask(out.subtask, self._asked_subtask()):
+        if not speculative and not self._about_asked(out.subtask):
             return  # answered about a subtask that has since advanced
         out = self.follow.on_decision(t_s, out)  # following: the goal is the person, predicted to now
         if out.goal_world is None and out.blocked_target_world is not None and self.config.route_blocked:

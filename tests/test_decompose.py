@@ -12,7 +12,9 @@ from vlm.decompose import (
     MOVEMENT_VERBS,
     attach_back_references,
     attach_context,
+    attach_clauses,
     DecompositionError,
+    count_steps,
     decompose,
     decompose_detailed,
     split_instruction,
@@ -273,3 +275,19 @@ def test_a_subtask_that_names_nothing_to_reach_is_the_first_leg_of_the_next():
         "Leave the study, go past the ironing board in the laundry room",
         "follow the hallway west and stop next to the plant in the big bedroom",
     )
+
+
+@pytest.mark.parametrize(
+    "instruction, steps",
+    [
+        ("Find the red crate.", 1),
+        ("Find the green forklift and stop next to it.", 1),  # the closing clause points back
+        ("There's a traffic cone in one of the aisles. Go to it.", 1),  # context, then a back-reference
+        ("Leave the study, then go to the ironing board.", 1),  # a way with nothing to reach joins the next
+        ("Fly to the blue barrel, then find the red crate.", 2),
+        ("Turn left at the yellow forklift and stop in front of the fuel pump.", 2),
+    ],
+)
+def test_count_steps_is_the_deterministic_reading_after_attaching_clauses(instruction, steps):
+    assert count_steps(instruction) == steps
+    assert count_steps(instruction) == len(attach_clauses(split_instruction(instruction)))

@@ -38,7 +38,7 @@ from planning.frames import wrap_angle
 from planning.planner import Planner
 from planning.trajectory import VehicleState
 from planning.volume import FlightVolume
-from vlm.prompts import DecisionPrompt, parse_prompt
+from vlm.prompts import DecisionPrompt, DecomposePrompt, parse_prompt
 from vlm_fakes import ScriptedVlm, text
 
 CAM = PinholeCamera.from_fov(160, 107, 90.0, 60.0)
@@ -879,11 +879,12 @@ def test_a_look_point_starts_the_search_on_a_leg_that_way_without_a_scan(planner
         observer=lambda st: track.append((st.t_s, st.state.p.copy(), st.state.yaw)),
     )
     ev = m.pilot.events
-    # the first answer on a subtask (the one on the whole instruction, before the decomposition,
-    # is about the last target and starts nothing)
-    instruction = "Find the red crate and stop next to it."
-    first_decision = next(e.t_s for e in ev if e.kind == "decision" and e.data["subtask"] != instruction)
-    assert any(e.kind == "decision" and e.data["subtask"] == instruction and e.t_s < first_decision for e in ev)
+    # the instruction has one step (its closing clause points back): the first answer, on the
+    # whole instruction before the decomposition lands, starts the search
+    first = next(e for e in ev if e.kind == "decision")
+    assert first.data["subtask"] == "Find the red crate and stop next to it."
+    assert first.t_s < next(e.t_s for e in ev if e.kind == "decomposition")
+    first_decision = first.t_s
     start_ev = next(e for e in ev if e.kind == "search_start")
     assert start_ev.t_s == pytest.approx(first_decision) and start_ev.data["trigger"] == "not_visible"
     after = [e for e in ev if e.t_s >= start_ev.t_s and e.kind.startswith("search_")]
@@ -906,25 +907,58 @@ def test_a_look_point_starts_the_search_on_a_leg_that_way_without_a_scan(planner
 
 
 def test_a_one_step_instruction_starts_its_scan_on_the_first_answer_before_the_decomposition(planner):
-    """An instruction of one step ("Find the red crate.") names the first subtask's target, so
-    the first "not visible" answer about it starts the scan at once; it is not dropped as stale
-    when the decomposition returns the step without its full stop. An instruction of two steps
-    waits for an answer about its first subtask (the whole instruction's target is the last)."""
+    """An instruction of one step names the first subtask's target, so the first "not visible"
+    answer about it starts the scan at once; it is not dropped as stale when the decomposition
+    returns the step reworded. One step is what the deterministic reading leaves
+    (:func:`vlm.decompose.count_steps`): a closing clause that only points back ("and stop next
+    to it", "Go to it.") adds none. An instruction of two steps waits for an answer about its
+    first subtask (the whole instruction's target is the last)."""
     scene = pocket_scene()
     start = VehicleState(0.0, np.array([3.0, 0.0, 1.5]), np.zeros(3), math.pi)
     region = GoalRegion([-2.0, 5.0, 0.6], [0.6, 0.6, 0.6])
+    one_step = ("Find the red crate.", "Find the red crate and stop next to it.", "Somewhere outside there is a red crate. Go to it.")
+    two_steps = "Fly to the blue barrel, then find the red crate."
     firsts = {}
-    for instruction in ("Find the red crate.", "Find the red crate and stop next to it."):
+    for instruction in (*one_step, two_steps):
         m = PilotMethod(LookingVlm(3), planner=planner)
         fly(World(scene, camera=CAM, initial_state=start), m, instruction, region, limit_s=8.0)
         ev = m.pilot.events
         t_dec = next(e.t_s for e in ev if e.kind == "decomposition")
         first_answer = next(e.t_s for e in ev if e.kind == "decision")
         firsts[instruction] = (next(e.t_s for e in ev if e.kind == "search_start"), t_dec, first_answer)
-    t_search, t_dec, first_answer = firsts["Find the red crate."]
-    assert t_search == pytest.approx(first_answer) and t_search < 1.5 < t_dec
-    t_search, t_dec, _ = firsts["Find the red crate and stop next to it."]
+    for instruction in one_step:
+        t_search, t_dec, first_answer = firsts[instruction]
+        assert t_search == pytest.approx(first_answer) and t_search < 1.5 < t_dec, instruction
+    t_search, t_dec, _ = firsts[two_steps]
     assert t_search > t_dec
+
+
+class MergingVlm(LookingVlm):
+    """As :class:`LookingVlm`, but the decomposition merges every instruction into one reworded
+    subtask (a model may: the error model's merge rate)."""
+
+    def complete(self, messages, images=(), **kw):
+        if isinstance(parse_prompt(messages), DecomposePrompt):
+            self.counts["decompose"] += 1
+            return text(json.dumps(["find the red crate past the blue barrel"]), 3.0)
+        return super().complete(messages, images, **kw)
+
+
+def test_an_answer_about_the_instruction_counts_when_it_decomposed_into_one_subtask(planner):
+    """A decision call submitted on the whole instruction before the decomposition landed, and
+    landing after it, answers the one subtask the decomposition returned: its "not visible"
+    starts the search then, not one decision later."""
+    scene = pocket_scene()
+    start = VehicleState(0.0, np.array([3.0, 0.0, 1.5]), np.zeros(3), math.pi)
+    instruction = "Fly to the blue barrel, then find the red crate."
+    m = PilotMethod(MergingVlm(3), planner=planner)
+    fly(World(scene, camera=CAM, initial_state=start), m, instruction, GoalRegion([-2.0, 5.0, 0.6], [0.6, 0.6, 0.6]), limit_s=8.0)
+    ev = m.pilot.events
+    dec = next(e for e in ev if e.kind == "decomposition")
+    assert dec.data["subtasks"] == ["find the red crate past the blue barrel"]
+    late = next(e for e in ev if e.kind == "decision" and e.t_s > dec.t_s)
+    assert late.data["subtask"] == instruction and late.data["not_visible"]
+    assert next(e for e in ev if e.kind == "search_start").t_s == pytest.approx(late.t_s)
 
 
 def test_scan_first_search_turns_all_round_then_takes_the_best_look_of_the_scan(planner):

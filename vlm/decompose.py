@@ -324,7 +324,22 @@ def decompose_detailed(
     ``structured`` passes :func:`vlm.prompts.subtasks_schema` as ``json_schema``.
     """
     dec = _decompose_raw(_check_instruction(instruction), backend, deadline_s, max_new_tokens, structured)
-    return replace(dec, subtasks=attach_transit(attach_back_references(attach_context(dec.subtasks))))
+    return replace(dec, subtasks=attach_clauses(dec.subtasks))
+
+
+def attach_clauses(subtasks: list[str] | tuple[str, ...]) -> tuple[str, ...]:
+    """The subtasks as the pilot runs them: scene-setting statements, back-references and
+    subtasks that name nothing to reach attached where they belong (:func:`attach_context`,
+    :func:`attach_back_references`, :func:`attach_transit`, in that order)."""
+    return attach_transit(attach_back_references(attach_context(subtasks)))
+
+
+def count_steps(instruction: str) -> int:
+    """How many subtasks the deterministic reading of ``instruction`` has
+    (:func:`split_instruction`, then :func:`attach_clauses`): ``"Find the green forklift and
+    stop next to it."`` has one, its closing clause only points back. Raises
+    :class:`DecompositionError` for an instruction without words."""
+    return len(attach_clauses(split_instruction(instruction)))
 
 
 def _decompose_raw(
