@@ -62,13 +62,14 @@ from onfly.bench.runner import (
     EpisodeJob,
     check_bench,
     error_model_name,
+    init_ray,
     plan_jobs,
     read_records,
     run_bench,
+    world_camera,
 )
 from onfly.bench.tasks import Task
 from onfly.world.realism import PROFILES
-from planning.camera import PinholeCamera
 
 try:  # imported as experiments.tables_of_record (tests, python -m) or run as a script from experiments/
     from experiments.print_tables import FORMAT, build_tables, format_document, read_records_file, tables_json
@@ -683,11 +684,6 @@ def compact_record(rec: dict, tables: dict[str, list[int]], realism: str, start_
     return out
 
 
-def _camera(bench: BenchConfig) -> PinholeCamera:
-    w = bench.world_settings()
-    return PinholeCamera.from_fov(int(w["width_px"]), int(w["height_px"]), float(w["hfov_deg"]), float(w["vfov_deg"]))
-
-
 def _view_flags(manifest: Manifest, planned: Sequence[PlannedPart]) -> dict[tuple[str, int], dict[str, bool]]:
     """Start-in-view flags (task id -> bool) of every set of a table that splits by them, from
     the first frame at the set's camera (``experiments/task_visibility.py``)."""
@@ -697,8 +693,8 @@ def _view_flags(manifest: Manifest, planned: Sequence[PlannedPart]) -> dict[tupl
     for p in planned:
         if p.table not in split:
             continue
-        cam = _camera(p.bench)
         w = p.bench.world_settings()
+        cam = world_camera(w)
         flags = cache.setdefault((cam.width, cam.height, float(w["hfov_deg"]), float(w["vfov_deg"])), {})
         missing = [t for t in p.tasks if t.task_id not in flags]
         if missing:
@@ -816,11 +812,7 @@ def _start_ray(address: str, workers: int) -> Callable[[], None]:
     returns the shutdown."""
     import ray  # optional: only --ray needs it
 
-    if address == "local":
-        ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
-    else:
-        ray.init(address=address, log_to_driver=False)
-    return ray.shutdown
+    return ray.shutdown if init_ray(address, workers) else (lambda: None)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

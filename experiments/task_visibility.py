@@ -32,7 +32,7 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from onfly.bench.checker import goal_target
-from onfly.bench.runner import EPISODES_FILE, BenchConfig, read_records
+from onfly.bench.runner import EPISODES_FILE, BenchConfig, read_records, world_camera
 from onfly.bench.tasks import Task, load_tasks, select_tasks
 from onfly.world.world import World
 from planning.camera import PinholeCamera
@@ -140,8 +140,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (OSError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    w = bench.world_settings()
-    camera = PinholeCamera.from_fov(int(w["width_px"]), int(w["height_px"]), float(w["hfov_deg"]), float(w["vfov_deg"]))
+    camera = world_camera(bench.world_settings())
     flags = starts_in_view(config_tasks(bench), camera)
     n_in = sum(flags.values())
     print(f"{n_in} of {len(flags)} tasks start with their goal in view ({camera.width} x {camera.height} px)")

@@ -492,7 +492,7 @@ class OnFlyPilot:
         subtask (a call submitted before the decomposition landed, which may reword it)."""
         if same_subtask(subtask, self._asked_subtask()):
             return True
-        return self._one_step and self.tasks is not None and self.tasks.index == 0 and same_subtask(subtask, self.instruction)
+        return self._one_step and self.tasks is not None and same_subtask(subtask, self.instruction)
 
     def _start_early_decision(self, obs: Observation) -> None:
         """Before the subtask queue exists: decide on the whole instruction (``early_start``),

@@ -347,6 +347,14 @@ def _failure(end_reason: str, m: EpisodeMetrics) -> str:
     return end_reason
 
 
+def world_camera(world: dict | None = None) -> PinholeCamera:
+    """The benchmark's camera for ``world`` settings (``width_px``, ``height_px``, ``hfov_deg``,
+    ``vfov_deg``; missing ones from :data:`onfly.defaults.WORLD`)."""
+    w = dict(defaults.WORLD)
+    w.update(world or {})
+    return PinholeCamera.from_fov(int(w["width_px"]), int(w["height_px"]), float(w["hfov_deg"]), float(w["vfov_deg"]))
+
+
 def fly_task(
     task: Task,
     method: str,
@@ -388,7 +396,7 @@ def fly_task(
     ep = EpisodeConfig(**(episode or {}))
     if task.track is not None:  # a tracking episode lasts the task's duration
         ep = replace(ep, time_limit_s=float(task.track.duration_s))
-    camera = PinholeCamera.from_fov(int(w["width_px"]), int(w["height_px"]), float(w["hfov_deg"]), float(w["vfov_deg"]))
+    camera = world_camera(w)
     start = VehicleState(0.0, task.start.position_m.copy(), np.zeros(3), float(task.start.yaw_rad))
     realism = realism_profile(w.get("realism", "ideal"))
     the_world = World(_task_scene(task), camera=camera, render_config=RenderConfig(threads=int(w["render_threads"])), initial_state=start,
@@ -755,16 +763,25 @@ def _run_local(jobs: list[EpisodeJob], workers: int, on_record: Callable[[dict],
     pool.shutdown(wait=True)
 
 
+def init_ray(address: str, workers: int) -> bool:
+    """Start Ray (``address == "local"``: on this machine with ``workers`` CPUs) or join the
+    cluster at ``address``, unless Ray is already initialized; True when this call started it
+    (the caller then shuts it down)."""
+    import ray  # optional at import time: only --ray needs it
+
+    if ray.is_initialized():
+        return False
+    if address == "local":
+        ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
+    else:
+        ray.init(address=address, log_to_driver=False)
+    return True
+
+
 def _run_ray(jobs: list[EpisodeJob], address: str, workers: int, on_record: Callable[[dict], None]) -> None:
     import ray  # optional at import time: only --ray needs it
 
-    started = False
-    if not ray.is_initialized():
-        if address == "local":
-            ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
-        else:
-            ray.init(address=address, log_to_driver=False)
-        started = True
+    started = init_ray(address, workers)
     try:
         remote = ray.remote(num_cpus=1, max_retries=0)(run_job)
         pending = [remote.remote(j) for j in jobs]
