@@ -21,7 +21,8 @@ local processes or Ray, then writes into ``--out DIR``:
   ideal OnFly episodes are Table II's run-0 episodes). Keys that differ never share;
 - ``run_state.json``: the code digest (SHA-256 over the tracked files under
   :data:`CODE_PATHS`, as on disk) and commit of the folder, and per table the wall time spent
-  running it and the code versions that ran it.
+  running it (written every :data:`CHECKPOINT_S` while the table runs, and when a TERM or
+  Ctrl-C stops the command) and the code versions that ran it.
 
 Resuming onto a folder made by another code digest stops with an error naming both (one code
 version per table set) unless ``--allow-mixed``; the code is checked again before every table,
@@ -46,6 +47,7 @@ import hashlib
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
 import time
@@ -565,28 +567,59 @@ def check_code(out: Path, code: CodeVersion, *, allow_mixed: bool = False) -> di
 # -- running ---------------------------------------------------------------------------------------
 
 
-def _eta(done: int, total: int, elapsed_s: float) -> str:
-    if done == 0:
-        return "?"
-    left = elapsed_s / done * (total - done)
-    return f"{left:.0f} s" if left < 120 else f"{left / 60:.0f} min" if left < 7200 else f"{left / 3600:.1f} h"
+#: how often a running table's wall time is written to ``run_state.json``, seconds (a run killed
+#: between checkpoints loses at most this much of its account)
+CHECKPOINT_S = 60.0
+
+
+def _duration(seconds: float) -> str:
+    return f"{seconds:.0f} s" if seconds < 120 else f"{seconds / 60:.0f} min" if seconds < 7200 else f"{seconds / 3600:.1f} h"
+
+
+def estimate_left_s(pending: dict[str, int], mean_wall_s: dict[str, float], workers: int) -> float | None:
+    """Wall time left for the ``pending`` episodes (method -> count), seconds: each method's mean
+    episode wall time so far, divided among ``workers``; a method with no finished episode yet
+    counts at the slowest mean seen (methods differ several-fold: a baseline that collides in
+    5 s against a searching OnFly at 70 s). None before any episode has finished."""
+    if not mean_wall_s:
+        return None
+    slowest = max(mean_wall_s.values())
+    return sum(n * mean_wall_s.get(m, slowest) for m, n in pending.items()) / max(1, workers)
 
 
 def _part_name(p: PlannedPart) -> str:
     return f'{p.table} set "{p.spec.label}"' if p.spec.label else p.table
 
 
-def _episode_reporter(table: str, have: set, report: Callable[[str], None] | None) -> Callable[[dict, int, int], None]:
-    """The runner's progress callback: adds each finished key to ``have`` and reports a line
-    per episode (``report`` None: no line)."""
-    started = time.perf_counter()
+def _episode_reporter(
+    table: str,
+    have: set,
+    report: Callable[[str], None] | None,
+    pending: dict[str, int],
+    workers: int,
+    checkpoint: Callable[[], None] = lambda: None,
+) -> Callable[[dict, int, int], None]:
+    """The runner's progress callback: adds each finished key to ``have``, counts it off
+    ``pending`` (method -> episodes still to fly), calls ``checkpoint`` at most every
+    :data:`CHECKPOINT_S` and reports a line per episode with the time left
+    (:func:`estimate_left_s`; ``report`` None: no line)."""
+    walls: dict[str, list[float]] = {}
+    last = [time.perf_counter()]
 
     def on_episode(rec: dict, done: int, total: int) -> None:
         have.add(rec["key"])
+        m = rec["method"]
+        pending[m] = max(0, pending.get(m, 0) - 1)
+        if rec.get("wall_s") is not None:
+            walls.setdefault(m, []).append(float(rec["wall_s"]))
+        if time.perf_counter() - last[0] >= CHECKPOINT_S:
+            last[0] = time.perf_counter()
+            checkpoint()
         if report is not None:
             ok = "success" if rec["metrics"]["success"] else rec["failure"] or rec["end_reason"]
-            eta = _eta(done, total, time.perf_counter() - started)
-            report(f"[{table}] {done}/{total} {rec['method']} {rec['task']} run {rec['run']}: {rec['end_reason']}, {ok} (eta {eta})")
+            left = estimate_left_s(pending, {k: sum(v) / len(v) for k, v in walls.items()}, workers)
+            eta = "?" if left is None else _duration(left)
+            report(f"[{table}] {done}/{total} {m} {rec['task']} run {rec['run']}: {rec['end_reason']}, {ok} (left {eta})")
 
     return on_episode
 
@@ -627,21 +660,29 @@ def run_tables(
         for versions in (entry["code"], state["code_versions"]):
             if now.as_dict() not in versions:
                 versions.append(now.as_dict())
-        t0 = time.perf_counter()
+        t0, base_s = time.perf_counter(), float(entry["wall_s"])
+
+        def checkpoint() -> None:
+            entry["wall_s"] = base_s + time.perf_counter() - t0
+            _write_state(out, state)
+
         try:
             for p in parts:
                 have = _pool_keys(out, p.pool, keys_cache)
-                todo = sum(k not in have for k in p.keys)
+                pending: dict[str, int] = {}
+                for j in p.jobs:
+                    if j.key not in have:
+                        pending[j.method] = pending.get(j.method, 0) + 1
+                todo = sum(pending.values())
                 report(f"[{n}/{len(names)} {_part_name(p)}] {len(p.jobs)} episodes planned, {len(p.jobs) - todo} recorded, {todo} to fly "
                        f"({_display(p.spec.config)}, {p.bench.vlm}, {p.bench.world_settings()['realism']}, pool {p.pool})")  # fmt: skip
-                progress = _episode_reporter(name, have, report if episode_lines else None)
+                progress = _episode_reporter(name, have, report if episode_lines else None, pending, workers, checkpoint)
                 res = run_bench(p.bench, out / POOLS_DIR / p.pool, workers=workers, ray_address=ray_address, progress=progress,
                                 checked_tasks=p.tasks)  # fmt: skip
                 for e in res.errored:
                     report(f"[{name}] method error: {e}")
         finally:
-            entry["wall_s"] += time.perf_counter() - t0
-            _write_state(out, state)
+            checkpoint()
         report(f"[{n}/{len(names)} {name}] done in {time.perf_counter() - t0:.0f} s")
     return state
 
@@ -815,6 +856,10 @@ def _start_ray(address: str, workers: int) -> Callable[[], None]:
     return ray.shutdown if init_ray(address, workers) else (lambda: None)
 
 
+def _exit_on_sigterm(signum: int, frame: Any) -> None:
+    raise SystemExit(128 + signum)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--manifest", required=True, help="tables-of-record manifest (experiments/configs/tables_of_record.toml)")
@@ -853,11 +898,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             state = read_state(out)
         else:
             workers = args.workers or manifest.workers
+            # a TERM (a session's end, a scheduler's stop) unwinds like Ctrl-C: the running
+            # table's wall time is written and the finished episodes are already on disk
+            previous = signal.signal(signal.SIGTERM, _exit_on_sigterm)
             stop_ray = _start_ray(args.ray, workers) if args.ray else None
             try:
                 state = run_tables(planned, out, names, code=code_version(), check=lambda: code_version(), allow_mixed=args.allow_mixed,
                                    workers=workers, ray_address=args.ray, report=report, episode_lines=not args.no_progress)  # fmt: skip
             finally:
+                signal.signal(signal.SIGTERM, previous)
                 if stop_ray is not None:
                     stop_ray()
     except CodeVersionError as exc:

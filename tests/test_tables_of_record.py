@@ -411,3 +411,73 @@ def test_the_manifest_of_record_plans_every_table_and_shares_only_equal_keys():
     assert weak.bench.vlm == "sim:weak" and not set(weak.keys) & set(by[("table2", "")].keys)
     assert all(p.bench.runs == 3 for p in planned if p.table.startswith(("table", "planner", "search")))
     assert by[("tracking", "")].tasks[0].kind == "track" and len(by[("search_ablation", "hard 69")].tasks) == 3
+
+
+def test_time_left_counts_each_method_at_its_own_mean_and_unseen_ones_at_the_slowest():
+    assert tor.estimate_left_s({"spf": 3}, {}, 2) is None  # nothing finished yet: no estimate
+    # 4 SPF at 5 s, 2 OnFly at 60 s, 1 w/o search not yet seen (counted at the slowest, 60 s), 2 workers
+    left = tor.estimate_left_s({"spf": 4, "onfly": 2, "onfly_no_search": 1}, {"spf": 5.0, "onfly": 60.0}, 2)
+    assert left == pytest.approx((4 * 5.0 + 2 * 60.0 + 60.0) / 2)
+    assert tor.estimate_left_s({"spf": 0}, {"spf": 5.0}, 1) == 0.0
+
+
+def test_the_running_tables_wall_time_is_written_while_it_runs(tmp_path):
+    """A run killed without unwinding (a machine's reset) keeps the wall time it had written at its
+    last checkpoint: with the period at 0 every finished episode writes run_state.json."""
+    manifest = write_manifest(tmp_path / "m")
+    out = tmp_path / "out"
+    seen: list[float] = []
+    write = tor._write_state
+
+    def spy(folder, state):
+        entry = state["tables"].get("again")
+        if entry is not None:
+            seen.append(entry["wall_s"])
+        write(folder, state)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(tor, "CHECKPOINT_S", 0.0)
+        mp.setattr(tor, "_write_state", spy)
+        rc, _, err = run_main(["--manifest", str(manifest), "--out", str(out), "--tables", "again"])
+    assert rc == 0, err
+    # one write per finished episode (2) and the table's last one; the account only grows
+    assert len(seen) == 3 and seen[0] > 0 and seen == sorted(seen)
+    assert json.loads((out / tor.STATE_FILE).read_text())["tables"]["again"]["wall_s"] == pytest.approx(seen[-1])
+    assert "(left " in err
+
+
+def test_a_terminated_run_keeps_its_episodes_and_wall_time_and_resumes(tmp_path):
+    import signal
+    import sys
+    import time
+
+    manifest = write_manifest(tmp_path / "m")
+    out = tmp_path / "out"
+    script = REPO / "experiments" / "tables_of_record.py"
+    cmd = [sys.executable, str(script), "--manifest", str(manifest), "--out", str(out), "--tables", "main"]
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120.0
+        first = None
+        while time.monotonic() < deadline and proc.poll() is None:
+            pools = list((out / "pools").glob(f"*/{EPISODES_FILE}")) if (out / "pools").is_dir() else []
+            if pools and pools[0].read_text().count("\n") >= 1:
+                first = pools[0]
+                break
+            time.sleep(0.05)
+        assert first is not None and proc.poll() is None, "no episode finished before the run ended"
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    done = len(read_records(first))
+    assert 1 <= done < 8  # the main table plans 8 episodes
+    state = json.loads((out / tor.STATE_FILE).read_text())
+    assert state["tables"]["main"]["wall_s"] > 0
+    same_code = tor.CodeVersion(state["code_digest"], state["commit"])
+    rc, _, err = run_main(["--manifest", str(manifest), "--out", str(out), "--tables", "main"], same_code)
+    assert rc == 0, err
+    assert f"{done} recorded, {8 - done} to fly" in err
+    assert len(read_records(first)) == 8
