@@ -8,6 +8,12 @@ the tables (:func:`build_tables`) and the tables into markdown (:func:`format_do
 :func:`format_table`); the command writes ``DIR/tables.md`` and ``DIR/tables.json`` with these
 same functions from the file it has just written, so what this prints is what it wrote.
 
+A table whose two sets differ only in their realism profile (the robustness table: every
+method in the ideal world and in the realistic one) also gets a side-by-side view: per method,
+SR and CR in each world over the same (task, run) pairs, and how many episodes were lost
+(succeeded in the first world, failed in the second, counted by the second's end reason) and
+gained.
+
 Run::
 
     .venv/bin/python experiments/print_tables.py runs/record/records.jsonl.gz [--table NAME] [--format md|json]
@@ -164,6 +170,48 @@ def _row(table: dict, part_index: int, method: str, recs: list[dict]) -> dict:
     return row
 
 
+def _paired_parts(table: dict) -> tuple[int, int] | None:
+    """The two sets of a table that differ only in their realism profile (same methods, error
+    model and task count), ideal first: the table compares one world against the other."""
+    parts = table["parts"]
+    if len(parts) != 2:
+        return None
+    a, b = parts
+    same = a["methods"] == b["methods"] and a["error_model"] == b["error_model"] and a["tasks"] == b["tasks"] and a["runs"] == b["runs"]
+    if not same or a["realism"] == b["realism"]:
+        return None
+    return (1, 0) if b["realism"] == "ideal" else (0, 1)
+
+
+def _paired(table: dict, groups: dict[tuple[int, str], list[dict]]) -> list[dict] | None:
+    """Per method, the same task and run in both worlds (:func:`_paired_parts`): episodes that
+    succeed in the first and fail in the second (``lost``, counted by the second's end reason)
+    and the reverse (``gained``); ``pairs`` is how many (task, run) both sets hold."""
+    which = _paired_parts(table)
+    if which is None:
+        return None
+    i, j = which
+    out = []
+    for m in table["parts"][i]["methods"]:
+        first = {(r["task"], r["run"]): r for r in groups.get((i, m), [])}
+        second = {(r["task"], r["run"]): r for r in groups.get((j, m), [])}
+        both = sorted(first.keys() & second.keys())
+        lost = [second[k] for k in both if first[k]["metrics"]["success"] and not second[k]["metrics"]["success"]]
+        gained = [k for k in both if second[k]["metrics"]["success"] and not first[k]["metrics"]["success"]]
+        out.append({
+            "method": m,
+            "label": table["labels"].get(m, m),
+            "sets": [table["parts"][i]["label"], table["parts"][j]["label"]],
+            "pairs": len(both),
+            "SR": [_pct([first[k]["metrics"]["success"] for k in both]), _pct([second[k]["metrics"]["success"] for k in both])],
+            "CR": [_pct([first[k]["metrics"]["collided"] for k in both]), _pct([second[k]["metrics"]["collided"] for k in both])],
+            "lost": len(lost),
+            "lost_end_reasons": _end_reasons(lost),
+            "gained": len(gained),
+        })
+    return out
+
+
 def _table(table: dict, records: list[dict]) -> dict:
     """A table of the header with its rows over the records that belong to it."""
     name = table["name"]
@@ -192,6 +240,7 @@ def _table(table: dict, records: list[dict]) -> dict:
         "parts": table["parts"],
         "columns": {"paper": table["paper"], "split_view": table["split_view"], "track": table["track"]},
         "rows": rows,
+        "paired": _paired(table, groups),
     }
 
 
@@ -302,7 +351,22 @@ def format_table(t: dict) -> str:
         lines += [t["note"], ""]
     lines += _header_lines(t) + ["", "| " + " | ".join(names) + " |", "| " + " | ".join(align) + " |"]
     lines += ["| " + " | ".join(_cells(t, r)) + " |" for r in t["rows"]]
+    if t.get("paired"):
+        lines += _paired_lines(t["paired"])
     return "\n".join(lines) + "\n"
+
+
+def _paired_lines(rows: list[dict]) -> list[str]:
+    a, b = rows[0]["sets"]
+    lines = ["", f"The same tasks and runs in both worlds: *lost* succeeded in `{a}` and failed in `{b}` (by their end reason there), "
+                 f"*gained* the reverse.", ""]  # fmt: skip
+    lines.append(f"| method | pairs | SR % {a} | SR % {b} | CR % {a} | CR % {b} | lost | lost by end reason | gained |")
+    lines.append("| --- | ---: | ---: | ---: | ---: | ---: | ---: | --- | ---: |")
+    for r in rows:
+        why = ", ".join(f"{k} {v}" for k, v in r["lost_end_reasons"].items()) or "-"
+        lines.append(f"| {r['label']} | {r['pairs']} | {_f(r['SR'][0])} | {_f(r['SR'][1])} | {_f(r['CR'][0])} | {_f(r['CR'][1])} | "
+                     f"{r['lost']} | {why} | {r['gained']} |")  # fmt: skip
+    return lines
 
 
 def format_document(tables: dict) -> str:

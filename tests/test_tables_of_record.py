@@ -352,7 +352,7 @@ def test_printer_refuses_what_is_not_a_records_file(tmp_path, capsys):
 
 
 def _rec(task, method, success, end, *, part=0, view=None, track=None, collided=False):
-    r = {"key": f"h/{method}/{task}", "tables": {"t": [part]}, "method": method, "task": task, "end_reason": end,
+    r = {"key": f"h/{method}/{task}", "tables": {"t": [part]}, "method": method, "task": task, "run": 0, "end_reason": end,
          "failure": "" if success else end, "cpu_s": 1.0,
          "metrics": {"success": success, "oracle_success": success or end == "time_limit", "collided": collided,
                      "flight_time_s": 10.0 if success else 30.0, "navigation_error_m": 1.0, "path_length_m": 5.0,
@@ -478,3 +478,26 @@ def test_a_terminated_run_keeps_its_episodes_and_its_wall_time(tmp_path):
     # every line on disk is a whole record (test_a_second_run_flies_nothing: a resume skips them)
     lines = first.read_text().splitlines()
     assert len(lines) == done and all(json.loads(line)["key"] for line in lines)
+
+
+def test_two_worlds_side_by_side_count_what_each_task_lost_and_gained():
+    recs = [
+        _rec("x", "m", True, "stopped"), _rec("x", "m", False, "collision", part=1, collided=True),  # lost to a collision
+        _rec("y", "m", True, "stopped"), _rec("y", "m", False, "time_limit", part=1),  # lost to the time limit
+        _rec("z", "m", False, "time_limit"), _rec("z", "m", True, "stopped", part=1),  # gained
+        _rec("w", "m", True, "stopped"),  # only in the first world: not a pair
+    ]
+    header = _header()
+    header["tables"][0]["parts"][1]["realism"] = "realistic"
+    table = pt.build_tables(header, recs)["tables"][0]
+    (row,) = table["paired"]
+    assert row["pairs"] == 3 and row["sets"] == ["a", "b"]
+    assert row["SR"] == [pytest.approx(200 / 3), pytest.approx(100 / 3)] and row["CR"] == [0.0, pytest.approx(100 / 3)]
+    assert (row["lost"], row["lost_end_reasons"], row["gained"]) == (2, {"collision": 1, "time_limit": 1}, 1)
+    md = pt.format_table(table)
+    assert "| Em | 3 | 66.7 | 33.3 | 0.0 | 33.3 | 2 | collision 1, time_limit 1 | 1 |" in md
+    # sets in one world (the _header default) or of other methods are not paired
+    assert pt.build_tables(_header(), recs)["tables"][0]["paired"] is None
+    other = _header()
+    other["tables"][0]["parts"][1].update(realism="realistic", methods=["m", "n"])
+    assert pt.build_tables(other, recs)["tables"][0]["paired"] is None
