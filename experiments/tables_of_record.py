@@ -598,11 +598,13 @@ def _episode_reporter(
     pending: dict[str, int],
     workers: int,
     checkpoint: Callable[[], None] = lambda: None,
+    prior_means: dict[str, float] | None = None,
 ) -> Callable[[dict, int, int], None]:
     """The runner's progress callback: adds each finished key to ``have``, counts it off
     ``pending`` (method -> episodes still to fly), calls ``checkpoint`` at most every
     :data:`CHECKPOINT_S` and reports a line per episode with the time left
-    (:func:`estimate_left_s`; ``report`` None: no line)."""
+    (:func:`estimate_left_s` over this set's means so far, ``prior_means`` for a method it has
+    not flown yet; ``report`` None: no line)."""
     walls: dict[str, list[float]] = {}
     last = [time.perf_counter()]
 
@@ -617,11 +619,24 @@ def _episode_reporter(
             checkpoint()
         if report is not None:
             ok = "success" if rec["metrics"]["success"] else rec["failure"] or rec["end_reason"]
-            left = estimate_left_s(pending, {k: sum(v) / len(v) for k, v in walls.items()}, workers)
+            means = {**(prior_means or {}), **{k: sum(v) / len(v) for k, v in walls.items()}}
+            left = estimate_left_s(pending, means, workers) if walls else None
             eta = "?" if left is None else _duration(left)
             report(f"[{table}] {done}/{total} {m} {rec['task']} run {rec['run']}: {rec['end_reason']}, {ok} (left {eta})")
 
     return on_episode
+
+
+def recorded_means(out: Path) -> dict[str, float]:
+    """method -> mean episode wall time, seconds, over every record in the folder's pools: the
+    time-left estimate's prior for a method this set has not flown yet (the same method in
+    another set of the run is a better guess than the slowest method seen so far)."""
+    walls: dict[str, list[float]] = {}
+    for f in sorted((out / POOLS_DIR).glob(f"*/{EPISODES_FILE}")):
+        for r in read_records(f):
+            if r.get("wall_s") is not None and "method" in r:
+                walls.setdefault(r["method"], []).append(float(r["wall_s"]))
+    return {m: sum(v) / len(v) for m, v in walls.items()}
 
 
 def _pool_keys(out: Path, pool: str, cache: dict[str, set]) -> set:
@@ -676,7 +691,8 @@ def run_tables(
                 todo = sum(pending.values())
                 report(f"[{n}/{len(names)} {_part_name(p)}] {len(p.jobs)} episodes planned, {len(p.jobs) - todo} recorded, {todo} to fly "
                        f"({_display(p.spec.config)}, {p.bench.vlm}, {p.bench.world_settings()['realism']}, pool {p.pool})")  # fmt: skip
-                progress = _episode_reporter(name, have, report if episode_lines else None, pending, workers, checkpoint)
+                prior = recorded_means(out) if episode_lines else {}
+                progress = _episode_reporter(name, have, report if episode_lines else None, pending, workers, checkpoint, prior)
                 res = run_bench(p.bench, out / POOLS_DIR / p.pool, workers=workers, ray_address=ray_address, progress=progress,
                                 checked_tasks=p.tasks)  # fmt: skip
                 for e in res.errored:

@@ -501,3 +501,17 @@ def test_two_worlds_side_by_side_count_what_each_task_lost_and_gained():
     other = _header()
     other["tables"][0]["parts"][1].update(realism="realistic", methods=["m", "n"])
     assert pt.build_tables(other, recs)["tables"][0]["paired"] is None
+
+
+def test_a_method_not_yet_flown_in_a_set_is_estimated_from_its_episodes_in_the_others(tmp_path):
+    for pool, recs in (("p1", [("a", 2.0), ("b", 8.0)]), ("p2", [("b", 12.0), ("c", None)])):
+        (tmp_path / tor.POOLS_DIR / pool).mkdir(parents=True)
+        lines = [json.dumps({"key": f"{pool}/{m}/{i}", "method": m, "wall_s": w}) for i, (m, w) in enumerate(recs)]
+        (tmp_path / tor.POOLS_DIR / pool / EPISODES_FILE).write_text("\n".join(lines) + "\n")
+    assert tor.recorded_means(tmp_path) == {"a": 2.0, "b": 10.0}  # a record without a wall time counts for nothing
+    lines: list[str] = []
+    on_episode = tor._episode_reporter("t", set(), lines.append, {"a": 2, "b": 3}, 1, prior_means={"b": 10.0})
+    rec = {"key": "k", "method": "a", "task": "x", "run": 0, "end_reason": "stopped", "failure": "", "wall_s": 4.0,
+           "metrics": {"success": True}}  # fmt: skip
+    on_episode(rec, 1, 5)
+    assert lines == ["[t] 1/5 a x run 0: stopped, success (left 34 s)"]  # 1 x 4 s (this set's a) + 3 x 10 s (b's prior)
