@@ -130,3 +130,37 @@ def test_factory_options_and_registry():
         make_pivot("sim:nominal", 0, n_candidates=2, n_pick=3)
     with pytest.raises(ValueError, match="unknown pivot option"):
         make_pivot("sim:nominal", 0, arrows=8)
+
+
+def _plan_at(goal, t_s, p=None, v=(0.0, 0.0, 0.0)):
+    """A straight-line plan made at ``t_s`` from a vehicle at ``p`` (default: the goal)."""
+    from planning.straight_line import straight_line_plan
+    from planning.trajectory import VehicleState
+
+    state = VehicleState(t_s=t_s, p=np.asarray(goal if p is None else p, float), v=np.asarray(v, float), yaw=0.0)
+    return straight_line_plan(state, np.asarray(goal, float), v_max_mps=0.6, a_max_mps2=0.6, yaw_rate_max_rps=0.4)
+
+
+def test_a_move_ends_when_its_setpoint_has_held_the_goal_with_the_vehicle_nearby_not_only_when_still():
+    from onfly.baselines.common import ARRIVE_SETTLE_RADIUS_M, ARRIVE_SETTLE_S, Arrival
+    from planning.trajectory import VehicleState
+
+    goal = np.array([2.0, 1.0, 1.5])
+    arrival = Arrival()
+    # at the goal and still: over at once (the only rule the ideal world ever needs)
+    assert arrival(0.0, VehicleState(t_s=0.0, p=goal, v=np.zeros(3), yaw=0.0), goal, None)
+    # a gust holds the vehicle 0.3 m off at 0.3 m/s while the setpoint stands at the goal
+    off = VehicleState(t_s=0.0, p=goal + [0.3, 0.0, 0.0], v=np.array([0.3, 0.0, 0.0]), yaw=0.0)
+    arrival = Arrival()
+    ts = np.arange(0.0, ARRIVE_SETTLE_S + 0.25, 0.1)
+    over = [arrival(t, off, goal, _plan_at(goal, t - 0.1)) for t in ts]
+    first = ts[over.index(True)]
+    assert first == pytest.approx(ARRIVE_SETTLE_S, abs=0.11) and not any(over[: over.index(True)])
+    # farther than the settle radius: never over, however long the setpoint has stood there
+    far = VehicleState(t_s=0.0, p=goal + [ARRIVE_SETTLE_RADIUS_M + 0.1, 0.0, 0.0], v=np.zeros(3), yaw=0.0)
+    arrival = Arrival()
+    assert not any(arrival(t, far, goal, _plan_at(goal, t - 0.1)) for t in np.arange(0.0, 5.0, 0.1))
+    # the setpoint still on its way (a plan from 2 m back): no settling starts; a stale plan neither
+    arrival = Arrival()
+    assert not any(arrival(t, off, goal, _plan_at(goal, t - 0.1, p=goal - [2.0, 0.0, 0.0])) for t in np.arange(0.0, 3.0, 0.1))
+    assert not any(arrival(t, off, goal, _plan_at(goal, 0.0)) for t in np.arange(1.0, 4.0, 0.1))

@@ -39,7 +39,7 @@ from onfly.baselines.common import (
     CallOutcome,
     FlightLimits,
     PlanMemory,
-    arrived,
+    Arrival,
     split_options,
     straight_plan,
     vlm_image,
@@ -235,6 +235,7 @@ class PivotMethod:
 
     def reset(self, spec: EpisodeSpec) -> None:
         self.plans = PlanMemory()  # straight-line plans start from the last one's reference
+        self.arrival = Arrival()
         self.spec = spec
         self.backend = self._backend if self._backend is not None else make_backend(self.vlm_spec, seed=spec.seed)
         self.runtime = spec.runtime
@@ -263,7 +264,7 @@ class PivotMethod:
             if self._on_answer(landed.outcome, state):
                 return MethodStep(None, True, {"stop": True})
         if self.goal is not None:
-            if arrived(state, self.goal) or t_s - self.goal_t_s > self.config.step_timeout_s:
+            if self.arrival(t_s, state, self.goal, self.plans.last) or t_s - self.goal_t_s > self.config.step_timeout_s:
                 self.stats["steps"] += 1
                 self.hold_p = state.p.copy()
                 self.hold_yaw = float(state.yaw)
@@ -336,6 +337,7 @@ class PivotMethod:
         d_world = obs.T_world_cam[:3, :3] @ directions_cam(self.mean[None])[0]
         self.goal = state.p + c.step_m * d_world
         self.goal_t_s = state.t_s
+        self.arrival.reset()
         return False
 
     def summary(self) -> dict[str, Any]:

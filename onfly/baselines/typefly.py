@@ -27,7 +27,7 @@ import logging
 import math
 import re
 from collections import Counter
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -37,7 +37,7 @@ from onfly.baselines.common import (
     CallOutcome,
     FlightLimits,
     PlanMemory,
-    arrived,
+    Arrival,
     ray_world,
     split_options,
     straight_plan,
@@ -312,7 +312,7 @@ class TypeflyMethod:
                 return self._finish(f"turn {a.skill.arg:g}: done", state)
             return straight_plan(state, a.p, self.limits, yaw_ref=a.yaw, memory=self.plans)
         if a.skill.name in ("move_forward", "approach"):
-            if arrived(state, a.p) or timed_out:
+            if a.arrival(t_s, state, a.p, self.plans.last) or timed_out:
                 return self._finish(f"{a.skill.text()}: done", state)
             return straight_plan(state, a.p, self.limits, yaw_first=True, memory=self.plans)
         # find: after each settled turn, look at a frame taken after it settled
@@ -361,6 +361,7 @@ class _Active:
     yaw: float = 0.0
     turns: int = 0
     check_after_s: float | None = None
+    arrival: Arrival = field(default_factory=Arrival)
 
 
 def make_typefly(vlm_spec: str, seed: int, **options) -> TypeflyMethod:
