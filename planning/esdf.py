@@ -40,7 +40,8 @@ not seen free. A pixel without a reading (sky, glass, dark surfaces, beyond rang
 ray only up to ``min(no_reading_clear_m, nearest reading on its row and column) -
 clear_margin_m`` and never clears an observed obstacle, so a hole in a wall does not become a
 passage while open sky still clears the space the vehicle flies through. The unknown voxels
-within ``body_clear_radius_m`` of the vehicle are marked free at every frame (it is there).
+within ``body_clear_radius_m`` of the vehicle that the frame's camera cannot see are marked free
+at every frame (it is there; what the camera looks at is left to the camera).
 
 Knownness queries (for guide searches, frontier exploration and the verifier), world metres:
 
@@ -243,7 +244,8 @@ class EsdfMap:
             a non-orthonormal or reflecting rotation block, or a bad last row).
         center_world : (3,) metres, centre of the rolling window; default the camera position.
         body_world : (3,) metres, the vehicle's position: the unknown voxels within
-            ``body_clear_radius_m`` of it become free after the frame. Default ``center_world``
+            ``body_clear_radius_m`` of it that this frame's camera cannot see (see
+            ``EsdfConfig.body_clear_in_view``) become free after the frame. Default ``center_world``
             when given (the pilot centres the window on the vehicle), else the camera position.
 
         Returns

@@ -111,6 +111,15 @@ class EsdfConfig:
         clearance along a straight start stays above ~0.6 m, more than the planner's
         ``d_safe_m`` (0.45 m), while at the 1.5 m flight height the sphere stays clear of the
         ground. 0 turns it off.
+    body_clear_in_view : False (default): the sphere leaves alone the voxels the frame's camera
+        looks at (their centre projects into the image), so it only fills in what the camera
+        cannot see from where it is: below, behind and beside its view. A voxel in view that
+        the frame left unknown lies behind a surface or on a pixel without a reading, and the
+        vehicle being near it is no evidence that it is free: with the sphere clearing in view,
+        a vehicle approaching a dark machine or a glass pane that gives no depth erased the
+        object from its map 1.2 m ahead of itself and flew into it (three realistic-world
+        episodes of the robustness run, ``docs/esdf_unknown_space.md``). True is the old
+        sphere, kept for comparisons.
 
     Speed
     -----
@@ -141,6 +150,7 @@ class EsdfConfig:
     unknown_policy: Literal["free", "occupied"] = "occupied"
     no_reading_clear_m: float = 4.5
     body_clear_radius_m: float = 1.2
+    body_clear_in_view: bool = False
     reach_cull: bool = True
 
     def __post_init__(self) -> None:
@@ -179,6 +189,8 @@ class EsdfConfig:
             raise EsdfConfigError(
                 f"hit_logodds ({self.hit_logodds}) must exceed occupied_logodds ({self.occupied_logodds})"
             )
+        if not isinstance(self.body_clear_in_view, bool):
+            raise EsdfConfigError(f"body_clear_in_view must be true or false, got {self.body_clear_in_view!r}")
         if not isinstance(self.reach_cull, bool):
             raise EsdfConfigError(f"reach_cull must be true or false, got {self.reach_cull!r}")
         if self.unknown_policy not in UNKNOWN_POLICIES:

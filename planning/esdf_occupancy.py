@@ -23,8 +23,9 @@ One frame does, in order (the docstring of :meth:`RollingOccupancy.integrate` ha
    wins.
 3. **Log-odds update** on the touched voxels only, and the list of voxels whose obstacle state
    (the mask the distance transform sees) flipped.
-4. **Body sphere** -- the unknown voxels within ``body_clear_radius_m`` of the vehicle are
-   marked free (:meth:`RollingOccupancy.mark_free_sphere`; voxblox's clear sphere).
+4. **Body sphere** -- the unknown voxels within ``body_clear_radius_m`` of the vehicle that
+   the frame's camera cannot see (below, behind or beside its view) are marked free
+   (:meth:`RollingOccupancy.mark_free_sphere`; voxblox's clear sphere, minus the view).
 """
 
 from __future__ import annotations
@@ -308,7 +309,8 @@ class RollingOccupancy:
         solid[flipped] = ~solid[flipped]
         if cfg.body_clear_radius_m > 0:
             body = T_world_cam[:3, 3] if body_world is None else np.asarray(body_world, dtype=float)
-            cleared = self.mark_free_sphere(body, cfg.body_clear_radius_m)
+            view = None if cfg.body_clear_in_view else (camera, T_world_cam)
+            cleared = self.mark_free_sphere(body, cfg.body_clear_radius_m, view=view)
             if cleared.size:
                 flipped = np.union1d(flipped, cleared)
         t2 = time.perf_counter()
@@ -321,9 +323,17 @@ class RollingOccupancy:
             update_ms=(t2 - t1) * 1e3,
         )
 
-    def mark_free_sphere(self, center_world: np.ndarray, radius_m: float) -> np.ndarray:
+    def mark_free_sphere(
+        self, center_world: np.ndarray, radius_m: float, view: tuple[PinholeCamera, np.ndarray] | None = None
+    ) -> np.ndarray:
         """Mark the *unknown* voxels whose centre lies within ``radius_m`` of ``center_world``
         (3,) metres observed and free (one miss). Observed voxels are left alone.
+
+        view : ``(camera, T_world_cam)`` of the frame just fused, or None. When given, voxels
+            whose centre projects into that image (z-depth above ``min_range_m``) are left
+            alone too: the camera has looked there, and a voxel it left unknown lies behind a
+            surface or on a pixel without a reading (a dark or glass surface), which the
+            vehicle's presence says nothing about.
 
         Returns the flat local indices whose obstacle state flipped (unknown -> free under
         ``unknown_policy="occupied"``; none under ``"free"``).
@@ -341,6 +351,8 @@ class RollingOccupancy:
         )
         box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
         new = (d2 <= r * r) & ~self.observed[box]
+        if view is not None and new.any():
+            new[self._projects_into(view, lo, new)] = False
         if not new.any():
             return np.zeros(0, dtype=np.int64)
         self._pristine = False
@@ -353,6 +365,22 @@ class RollingOccupancy:
             return np.zeros(0, dtype=np.int64)
         idx = np.stack(np.unravel_index(sub, new.shape), axis=-1) + lo
         return (idx[:, 0] * self.shape[1] + idx[:, 1]) * self.shape[2] + idx[:, 2]
+
+    def _projects_into(self, view: tuple[PinholeCamera, np.ndarray], lo: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Indices into ``mask`` (a box of the grid starting at local voxel ``lo``) of its True
+        voxels whose centre projects into the image of ``view = (camera, T_world_cam)`` with a
+        z-depth above ``min_range_m`` (the pixel rule of the clearing step)."""
+        camera, T_world_cam = view
+        sub = np.nonzero(mask)
+        centres = (np.stack(sub, axis=-1) + lo + self.origin_index + 0.5) * self.voxel_m
+        p_cam = (centres - T_world_cam[:3, 3]) @ T_world_cam[:3, :3]
+        z = p_cam[:, 2]
+        seen = z > self.config.min_range_m
+        zs = np.where(seen, z, 1.0)
+        u = np.floor(camera.fx * p_cam[:, 0] / zs + camera.cx + 0.5)
+        v = np.floor(camera.fy * p_cam[:, 1] / zs + camera.cy + 0.5)
+        seen &= (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+        return tuple(a[seen] for a in sub)
 
     def _backproject(self, depth_m: np.ndarray, camera: PinholeCamera, T_world_cam: np.ndarray) -> np.ndarray:
         """World points (n, 3) float32 of the strided readings in [min_range_m, max_range_m).

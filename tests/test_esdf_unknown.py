@@ -160,6 +160,58 @@ def test_body_sphere_is_free_and_never_overrides_an_observation():
         near.integrate(wall_depth(p, 2.0), CAMERA, pose(p), body_world=[0.0, 0.0])
 
 
+def _approach_dark_patch(cfg: EsdfConfig, stops_m) -> tuple[EsdfMap, np.ndarray]:
+    """A level camera flown at a wall x = 3 m whose middle square metre gives no reading (a
+    dark machine's face, a glass pane), stopping at the given distances from it. Returns the
+    map and points (k, 3) on the wall's plane inside the patch."""
+    esdf = EsdfMap(cfg)
+    for d in stops_m:
+        p = np.array([3.0 - d, 0.0, HEIGHT_M])
+        esdf.integrate(wall_depth(p, 3.0, hole_half_m=0.5), CAMERA, pose(p), center_world=p)
+    ys, zs = np.meshgrid(np.linspace(-0.3, 0.3, 7), np.linspace(HEIGHT_M - 0.3, HEIGHT_M + 0.3, 7))
+    patch = np.stack([np.full(ys.size, 3.05), ys.ravel(), zs.ravel()], axis=1)
+    return esdf, patch
+
+
+def test_body_sphere_never_clears_what_the_camera_looks_at():
+    """Closing in on a surface without readings: the patch's row and column bound its clearing
+    to the wall's depth minus the margin, and the body sphere (1.2 m) must not erase it when the
+    vehicle comes within reach. The old sphere, which cleared in view, does: that is the hazard."""
+    stops = (3.0, 2.0, 1.4, 1.0, 0.8, 0.6)
+    esdf, patch = _approach_dark_patch(DEFAULT, stops)
+    assert not esdf.observed_free(patch).any()
+    assert np.all(esdf.query(patch)[0] <= 0.0)
+    # the vehicle, 0.6 m out, reads the wall as at most the patch's distance away, never more
+    p = np.array([[3.0 - stops[-1], 0.0, HEIGHT_M]])
+    assert esdf.query(p)[0][0] <= stops[-1] + 0.05
+    old, patch = _approach_dark_patch(dataclasses.replace(DEFAULT, body_clear_in_view=True), stops)
+    assert old.observed_free(patch).all()
+    # out of view the sphere still clears: below a level camera, 1 m down at 0.4 m ahead
+    below = np.array([[3.0 - stops[-1] + 0.4, 0.0, HEIGHT_M - 1.0]])
+    assert esdf.observed_free(below)[0]
+
+
+def test_planner_does_not_close_in_on_a_surface_without_readings():
+    """Closed loop on the modelled clock, level flight at a wall whose middle has no reading,
+    toward a goal 1 m behind it: the plans stop d_safe short of the wall's plane."""
+    cfg = PlannerConfig()
+    planner = Planner(cfg)
+    esdf = EsdfMap(DEFAULT)
+    goal = np.array([4.0, 0.0, HEIGHT_M])
+    state = VehicleState(0.0, np.array([0.0, 0.0, HEIGHT_M]), np.zeros(3), 0.0)
+    furthest = -np.inf
+    for _ in range(60):
+        p = state.p.copy()
+        p[1:] = [0.0, HEIGHT_M]
+        esdf.integrate(wall_depth(p, 3.0, hole_half_m=0.5), CAMERA, pose(p), center_world=state.p)
+        plan = planner.step(state, goal, esdf)
+        assert plan.trajectory.p[:, 0].max() < 3.0 - cfg.d_safe_m + 0.1
+        furthest = max(furthest, plan.trajectory.p[:, 0].max())
+        k = 1
+        state = VehicleState(state.t_s + plan.trajectory.dt_s, plan.trajectory.p[k], plan.trajectory.v[k], float(plan.trajectory.yaw[k]))
+    assert furthest > 1.5  # it flew toward the wall: the rule does not freeze the vehicle
+
+
 def test_no_reading_never_clears_an_observed_obstacle_and_a_blind_frame_clears_nothing():
     esdf = EsdfMap(DEFAULT)
     p = np.array([0.0, 0.0, HEIGHT_M])
@@ -245,7 +297,7 @@ def _reference_known(esdf: EsdfMap, depth: np.ndarray, p: np.ndarray, reach_of_p
     hit = np.zeros(esdf.shape, bool)
     keep = np.all((idx >= 0) & (idx < np.array(esdf.shape)), axis=1)
     hit[tuple(idx[keep].T)] = True
-    body = np.linalg.norm(C - p, axis=1) <= cfg.body_clear_radius_m
+    body = (np.linalg.norm(C - p, axis=1) <= cfg.body_clear_radius_m) & ~inside  # what the camera cannot see
     known = hit | (cleared | body).reshape(esdf.shape)
     return known, hit
 
