@@ -701,7 +701,9 @@ class OnboardFlight:
             return
         obs = self.to_world(obs)
         if esdf is not None:
-            esdf.integrate(obs.depth_m, obs.camera, obs.T_world_cam, center_world=obs.position)
+            planner = getattr(self.pilot, "planner", None)
+            margin = planner.tracking_margin_m if planner is not None else 0.0
+            esdf.integrate(obs.depth_m, obs.camera, obs.T_world_cam, center_world=obs.position, body_margin_m=margin)
         try:
             if self.writer is not None:
                 self.writer.write(obs)

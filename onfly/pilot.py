@@ -439,7 +439,9 @@ class OnFlyPilot:
                 self._movers_top_m = -np.inf  # a new crowd: its own heights
             self._movers_seen_s = obs.t_s
             self._movers_top_m = max(self._movers_top_m, max(t.z_range_m[1] for t in moving))
-        self.esdf.integrate(obs.depth_m, obs.camera, obs.T_world_cam, center_world=obs.position)
+        self.esdf.integrate(
+            obs.depth_m, obs.camera, obs.T_world_cam, center_world=obs.position, body_margin_m=self.planner.tracking_margin_m
+        )
         self.monitor.observe(obs)
         self.latest = obs
 

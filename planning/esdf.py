@@ -63,6 +63,7 @@ The map assumes nothing about which world axis is up.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass
 
@@ -230,7 +231,9 @@ class EsdfMap:
         return tuple(int(s) for s in shift), n_rewritten
 
     # -- integration ------------------------------------------------------------------------
-    def integrate(self, depth_m, camera: PinholeCamera, T_world_cam, center_world=None, body_world=None) -> EsdfUpdate:
+    def integrate(
+        self, depth_m, camera: PinholeCamera, T_world_cam, center_world=None, body_world=None, body_margin_m: float = 0.0
+    ) -> EsdfUpdate:
         """Fuse one depth frame and update the field where it changed.
 
         Parameters
@@ -247,6 +250,12 @@ class EsdfMap:
             ``body_clear_radius_m`` of it that this frame's camera cannot see (see
             ``EsdfConfig.body_clear_in_view``) become free after the frame. Default ``center_world``
             when given (the pilot centres the window on the vehicle), else the camera position.
+        body_margin_m : metres >= 0 added to ``body_clear_radius_m`` for this frame: the
+            planner's tracking margin (``Planner.tracking_margin_m``), by which it grows the
+            clearance it keeps. The sphere exists so that the planner can move where the camera
+            cannot see (below and beside a level camera); with the clearance grown by the
+            margin and the sphere not, the vehicle could not leave it (gusts outdoors). 0 under
+            perfect tracking, so an ideal world's map is unchanged.
 
         Returns
         -------
@@ -269,11 +278,13 @@ class EsdfMap:
             body_world = np.asarray(body_world, dtype=float)
             if body_world.shape != (3,) or not np.all(np.isfinite(body_world)):
                 raise EsdfError(f"body_world must be a finite array of shape (3,), got {body_world!r}")
+        if not (isinstance(body_margin_m, (int, float)) and math.isfinite(body_margin_m) and body_margin_m >= 0):
+            raise EsdfError(f"body_margin_m must be a finite number >= 0, got {body_margin_m!r}")
         t_shift = time.perf_counter()
         shift, n_esdf = self._recenter(center)  # validates center_world
         body = np.asarray(center, dtype=float) if body_world is None else body_world
         t_occ = time.perf_counter()
-        delta = self._occ.integrate(depth, camera, T, body_world=body)
+        delta = self._occ.integrate(depth, camera, T, body_world=body, body_margin_m=float(body_margin_m))
         t_esdf = time.perf_counter()
         if delta.n_points == 0:
             log.debug("depth frame had no reading in [%.2f, %.2f) m", self.config.min_range_m, self.config.max_range_m)

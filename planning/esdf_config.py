@@ -110,7 +110,9 @@ class EsdfConfig:
         has unknown space (an obstacle) within ``r * sin(30 deg)`` below it; with 1.2 m the
         clearance along a straight start stays above ~0.6 m, more than the planner's
         ``d_safe_m`` (0.45 m), while at the 1.5 m flight height the sphere stays clear of the
-        ground. 0 turns it off.
+        ground. 0 turns it off. A caller that flies a planner with a tracking margin grows the
+        radius by that margin each frame (``EsdfMap.integrate(body_margin_m=...)``), so the
+        sphere keeps exceeding the clearance the planner asks for.
     body_clear_in_view : False (default): the sphere leaves alone the voxels the frame's camera
         looks at (their centre projects into the image), so it only fills in what the camera
         cannot see from where it is: below, behind and beside its view. A voxel in view that

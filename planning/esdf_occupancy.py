@@ -271,7 +271,12 @@ class RollingOccupancy:
 
     # -- one depth frame --------------------------------------------------------------------
     def integrate(
-        self, depth_m: np.ndarray, camera: PinholeCamera, T_world_cam: np.ndarray, body_world: np.ndarray | None = None
+        self,
+        depth_m: np.ndarray,
+        camera: PinholeCamera,
+        T_world_cam: np.ndarray,
+        body_world: np.ndarray | None = None,
+        body_margin_m: float = 0.0,
     ) -> OccupancyDelta:
         """Fuse one depth frame. Inputs are assumed validated (see ``EsdfMap.integrate``).
 
@@ -282,7 +287,10 @@ class RollingOccupancy:
         camera : intrinsics of ``depth_m``
         T_world_cam : (4, 4) rigid transform, camera optical frame -> world
         body_world : (3,) metres, the vehicle's position; after the frame, the unknown voxels
-            within ``body_clear_radius_m`` of it are marked free. Default the camera position.
+            within ``body_clear_radius_m + body_margin_m`` of it are marked free. Default the
+            camera position.
+        body_margin_m : metres >= 0 added to the sphere's radius for this frame (the planner's
+            tracking margin; see ``EsdfMap.integrate``).
         """
         cfg = self.config
         t0 = time.perf_counter()
@@ -310,7 +318,7 @@ class RollingOccupancy:
         if cfg.body_clear_radius_m > 0:
             body = T_world_cam[:3, 3] if body_world is None else np.asarray(body_world, dtype=float)
             view = None if cfg.body_clear_in_view else (camera, T_world_cam)
-            cleared = self.mark_free_sphere(body, cfg.body_clear_radius_m, view=view)
+            cleared = self.mark_free_sphere(body, cfg.body_clear_radius_m + body_margin_m, view=view)
             if cleared.size:
                 flipped = np.union1d(flipped, cleared)
         t2 = time.perf_counter()

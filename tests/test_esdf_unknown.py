@@ -191,6 +191,29 @@ def test_body_sphere_never_clears_what_the_camera_looks_at():
     assert esdf.observed_free(below)[0]
 
 
+def test_body_sphere_grows_by_the_planners_tracking_margin():
+    """Out of view (below a level camera) the sphere reaches body_clear_radius_m plus the margin
+    the caller passes, and no further; a bad margin is named."""
+    p = np.array([0.0, 0.0, HEIGHT_M])
+    r = DEFAULT.body_clear_radius_m
+    below = np.array([[0.0, 0.0, HEIGHT_M - (r + 0.3)]])
+    plain, grown = EsdfMap(DEFAULT), EsdfMap(DEFAULT)
+    plain.integrate(wall_depth(p, 4.0), CAMERA, pose(p))
+    grown.integrate(wall_depth(p, 4.0), CAMERA, pose(p), body_margin_m=0.4)
+    assert not plain.known(below)[0] and grown.observed_free(below)[0]
+    beyond = np.array([[0.0, 0.0, HEIGHT_M - (r + 0.5)]])
+    assert not grown.known(beyond)[0]
+    # what the camera looks at is left to it whatever the margin: the wall's unknown shell
+    shell = np.array([[3.95, 0.0, HEIGHT_M]])
+    near = EsdfMap(DEFAULT)
+    q = np.array([3.0, 0.0, HEIGHT_M])
+    near.integrate(wall_depth(q, 4.0), CAMERA, pose(q), body_margin_m=1.0)
+    assert not near.observed_free(shell)[0]
+    for bad in (-0.1, float("nan"), float("inf")):
+        with pytest.raises(EsdfError, match="body_margin_m"):
+            grown.integrate(wall_depth(p, 4.0), CAMERA, pose(p), body_margin_m=bad)
+
+
 def test_planner_does_not_close_in_on_a_surface_without_readings():
     """Closed loop on the modelled clock, level flight at a wall whose middle has no reading,
     toward a goal 1 m behind it: the plans stop d_safe short of the wall's plane."""

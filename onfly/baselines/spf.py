@@ -154,7 +154,8 @@ class SpfMethod:
             self.latest = obs
             if self.esdf is not None:
                 self.movers.observe(obs.t_s, obs.depth_m, obs.camera, obs.T_world_cam, self.esdf)
-                self.esdf.integrate(obs.depth_m, obs.camera, obs.T_world_cam, center_world=obs.position)
+                margin = self.planner.tracking_margin_m if self.planner is not None else 0.0
+                self.esdf.integrate(obs.depth_m, obs.camera, obs.T_world_cam, center_world=obs.position, body_margin_m=margin)
         for landed in self.runtime.poll():
             if self._on_answer(landed.outcome):
                 return MethodStep(None, True, {"stop": True})

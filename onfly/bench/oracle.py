@@ -179,7 +179,9 @@ class OraclePilot:
     def step(self, t_s: float, state: VehicleState, obs: Observation | None) -> MethodStep:
         if obs is not None:
             self.movers.observe(t_s, obs.depth_m, obs.camera, obs.T_world_cam, self.esdf)
-            upd = self.esdf.integrate(obs.depth_m, obs.camera, obs.T_world_cam, center_world=state.p)
+            upd = self.esdf.integrate(
+                obs.depth_m, obs.camera, obs.T_world_cam, center_world=state.p, body_margin_m=self.planner.tracking_margin_m
+            )
             self._frames += 1
             self._esdf_ms.append(float(upd.total_ms))
         self._steps += 1
