@@ -69,7 +69,7 @@ from planning.esdf_config import EsdfConfig
 from planning.frames import wrap_angle
 from planning.movers import MoverConfig, MoverTracker
 from planning.planner import Planner, PlanResult
-from planning.planner_config import PlannerConfig
+from planning.planner_config import PlannerConfig, PlannerConfigError, check_field_reach
 from planning.straight_line import straight_line_plan
 from planning.trajectory import Trajectory, VehicleState
 from planning.verifier import Verifier, VerifierConfig
@@ -241,6 +241,10 @@ class PilotConfig:
             raise PilotConfigError(
                 f"PilotConfig.intermediate_stop_confirmations must be >= 1 or None, got {self.intermediate_stop_confirmations}"
             )
+        try:
+            check_field_reach(self.planner, self.esdf.max_distance_m)
+        except PlannerConfigError as e:
+            raise PilotConfigError(f"PilotConfig: {e}") from None
         try:
             CoordFormat(self.coord_format)
         except ValueError:

@@ -74,7 +74,13 @@ class EsdfConfig:
     max_distance_m : clamp of the Euclidean distance transform. Distances beyond it are
         reported as exactly ``max_distance_m`` (gradient 0 there), and the incremental update
         only recomputes the changed box grown by this distance (Fast-Planner's idea), so it is
-        the main cost knob. Within the clamp the field is the exact voxel-centre EDT.
+        the main cost knob. Within the clamp the field is the exact voxel-centre EDT. It must
+        exceed the largest clearance the planner asks of the field: ``d_safe_m`` plus its
+        tracking margin (up to ``tracking_margin_max_m``) plus the goal's margin,
+        0.45 + 1.0 + 0.05 m with the defaults (``PlannerConfig.field_reach_m``). Default 1.6 m;
+        it was 1.0 m, and under gusts (a margin above 0.5 m) no point of the map could show the
+        clearance the planner asked for: every plan fell back and the vehicle drifted (the
+        realistic world, ``docs/robustness.md``).
     max_inside_distance_m : clamp of the depth inside obstacles (negative side). A body centre
         half a metre inside an obstacle has already crashed, so a short clamp is enough to give
         a gradient out of thin obstacles and costs less.
@@ -147,7 +153,7 @@ class EsdfConfig:
     min_logodds: float = -2.0
     max_logodds: float = 2.0
     occupied_logodds: float = 0.0
-    max_distance_m: float = 1.0
+    max_distance_m: float = 1.6
     max_inside_distance_m: float = 0.5
     unknown_policy: Literal["free", "occupied"] = "occupied"
     no_reading_clear_m: float = 4.5

@@ -99,6 +99,9 @@ SOLVERS = ("qp", "nlp")
 #: step after step (tests/test_pilot.py's two-subtask flight stalled to the time limit).
 _TRACKING_NOISE_FLOOR_M = 0.05
 
+#: Step, metres, of the raised segments :func:`adjust_goal` searches last.
+_GOAL_LIFT_STEP_M = 0.25
+
 
 class PlannerInputError(ValueError):
     """A state, goal or field answer the planner cannot use (wrong shape, NaN, wrong type)."""
@@ -255,6 +258,7 @@ def adjust_goal(
     search_max_m: float,
     iterations: int = 30,
     goal_query: tuple[float, np.ndarray] | None = None,
+    lift_max_m: float = 0.0,
 ) -> tuple[np.ndarray, bool]:
     """Move ``goal`` to the nearest point with clearance at least ``clearance_m``.
 
@@ -262,7 +266,11 @@ def adjust_goal(
     while the total displacement stays within ``search_max_m``; if that does not reach the
     clearance (a medial ridge, a thick obstacle), the segment from the goal back toward the
     vehicle is searched in 2.5 cm steps for the first point with the clearance. If no point on
-    it has the clearance, the point of largest clearance on the segment is returned.
+    it has the clearance, the same segment raised in 0.25 m steps up to ``lift_max_m`` is
+    searched, and the point with the clearance nearest the goal is returned (a target on a
+    floor or a ledge lower than the clearance allows: the whole line toward it is too close to
+    the floor, a point above it is not). If none has it either, the point of largest clearance
+    on the segment is returned.
 
     Parameters
     ----------
@@ -271,6 +279,7 @@ def adjust_goal(
     clearance_m : required clearance, metres
     search_max_m : largest displacement of the gradient ascent, metres
     goal_query : optional ``(d, grad (3,))`` already known at ``goal`` (saves a query)
+    lift_max_m : highest raise of the segment searched last, metres (0: none)
 
     Returns
     -------
@@ -303,7 +312,17 @@ def adjust_goal(
     ok = np.flatnonzero(dd >= clearance_m)
     if ok.size:
         return pts[ok[0]].copy(), True
+    n_lifts = int(np.floor(lift_max_m / _GOAL_LIFT_STEP_M + 1e-9))
+    if n_lifts > 0:
+        lifts = _GOAL_LIFT_STEP_M * np.arange(1, n_lifts + 1)
+        raised = (pts[None, :, :] + lifts[:, None, None] * np.array([0.0, 0.0, 1.0])).reshape(-1, 3)
+        dr, _ = _query(field, raised)
+        ok = np.flatnonzero(dr >= clearance_m)
+        if ok.size:
+            best = ok[int(np.argmin(np.linalg.norm(raised[ok] - goal, axis=1)))]
+            return raised[best].copy(), True
     return pts[int(np.argmax(dd))].copy(), True
+
 
 
 def _row_norms(M: np.ndarray) -> np.ndarray:
@@ -580,7 +599,8 @@ class Planner:
         # goal check, attractor, yaw reference
         goal_clear = c.d_safe_m + c.goal_clearance_margin_m
         goal_used, adjusted = adjust_goal(
-            goal, origin, field, goal_clear, c.goal_search_max_m, goal_query=(float(d_all[0]), g_all[0])
+            goal, origin, field, goal_clear, c.goal_search_max_m, goal_query=(float(d_all[0]), g_all[0]),
+            lift_max_m=c.goal_lift_max_m,
         )
         if box is not None and adjusted:
             goal_used = box.clamp(goal_used)

@@ -45,7 +45,7 @@ import tomllib
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
-__all__ = ["PlannerConfig", "PlannerConfigError", "ACCEL_LIMIT_MODES"]
+__all__ = ["PlannerConfig", "PlannerConfigError", "ACCEL_LIMIT_MODES", "check_field_reach"]
 
 #: Values of :attr:`PlannerConfig.accel_limit_mode`.
 ACCEL_LIMIT_MODES = ("norm", "per_axis")
@@ -89,6 +89,12 @@ class PlannerConfig:
     goal_clearance_margin_m : a goal is moved until its clearance is ``d_safe_m`` plus this
     goal_search_max_m : how far the goal may be moved by gradient ascent before the line
         search back toward the vehicle takes over, metres
+    goal_lift_max_m : when no point of that line has the goal clearance, the line raised by up to
+        this much (0.25 m steps) is searched for the point nearest the goal that has it, metres
+        (ours; 0 = off). A target on a floor or a ledge whose height is within the clearance
+        of the floor has no such point at the vehicle's height: the goal then stayed where the
+        vehicle was, short of the target (under gusts the clearance grows by the tracking
+        margin: `terrace-o05`, held 3 m from a sundial on a terrace)
     yaw_hold_radius_m : within this horizontal distance of the goal the bearing is undefined
         and the yaw reference is the current yaw (hold heading)
     safety_tolerance_m : a plan (or the shifted previous plan) is accepted if its predicted
@@ -177,6 +183,7 @@ class PlannerConfig:
     w_prox_accel: float = 1.0
     goal_clearance_margin_m: float = 0.05
     goal_search_max_m: float = 3.0
+    goal_lift_max_m: float = 1.0
     yaw_hold_radius_m: float = 0.3
     safety_tolerance_m: float = 0.05
     speed_tolerance_rel: float = 0.01
@@ -243,7 +250,7 @@ class PlannerConfig:
                 raise PlannerConfigError(f"{name} must be > 0, got {getattr(self, name)}")
         non_negative = (
             "w_terminal_pos", "w_terminal_vel", "w_vel", "w_accel", "w_jerk", "w_yaw",
-            "w_yaw_rate", "w_prox_accel", "goal_clearance_margin_m", "goal_search_max_m", "yaw_hold_radius_m",
+            "w_yaw_rate", "w_prox_accel", "goal_clearance_margin_m", "goal_search_max_m", "goal_lift_max_m", "yaw_hold_radius_m",
             "safety_tolerance_m", "max_speed_refinements", "qp_adaptive_rho_interval", "qp_eps_rel",
             "guide_clearance_margin_m", "guide_preferred_clearance_m", "guide_replan_period_s",
             "body_radius_m", "guide_time_budget_ms", "step_time_budget_ms", "tracking_margin_max_m",
@@ -289,6 +296,14 @@ class PlannerConfig:
         """Intervals needed to stop from ``v_max_mps`` at ``a_max_mps2`` (at most N)."""
         return min(self.horizon_steps, int(math.ceil(self.v_max_mps / self.a_max_mps2 / self.dt_s)) + 1)
 
+    @property
+    def field_reach_m(self) -> float:
+        """The largest distance the planner reads from its field, metres: ``d_safe_m`` plus the
+        largest tracking margin plus the larger of the goal's and the guide search's margins. A
+        distance field clamped below it (``EsdfConfig.max_distance_m``) can never show the
+        clearance the planner asks for once the margin is large: :func:`check_field_reach`."""
+        return self.d_safe_m + self.tracking_margin_max_m + max(self.goal_clearance_margin_m, self.guide_clearance_margin_m)
+
     def to_dict(self) -> dict:
         """Plain dict of every field (TOML/JSON-serializable), for writing next to results."""
         return asdict(self)
@@ -330,3 +345,16 @@ class PlannerConfig:
             return cls.from_dict(data)
         except PlannerConfigError as exc:
             raise PlannerConfigError(f"{path}: {exc}") from exc
+
+
+def check_field_reach(config: PlannerConfig, field_max_distance_m: float) -> None:
+    """Raise :class:`PlannerConfigError` when a distance field clamped at
+    ``field_max_distance_m`` (metres) cannot show the clearance ``config`` asks for
+    (:attr:`PlannerConfig.field_reach_m`): every plan would fall back once the tracking margin
+    grows. Call it wherever a planner is paired with its map."""
+    if field_max_distance_m < config.field_reach_m:
+        raise PlannerConfigError(
+            f"the distance field is clamped at {field_max_distance_m} m (EsdfConfig.max_distance_m), below the "
+            f"{config.field_reach_m:.2f} m the planner reads (d_safe_m {config.d_safe_m} + tracking_margin_max_m "
+            f"{config.tracking_margin_max_m} + goal/guide margin); raise max_distance_m or lower the margins"
+        )

@@ -113,6 +113,32 @@ def test_goal_inside_an_obstacle_moves_to_the_nearest_point_with_clearance(plann
     np.testing.assert_allclose(res.goal_used, [4.0 + target, 0.0, 1.0], atol=2e-3)
 
 
+def test_a_goal_on_a_ledge_is_found_above_the_line_toward_it():
+    """A target on a ledge 1.6 m up, the vehicle 1.0 m above the ledge and 3 m away, the clearance
+    1.1 m: no point of the line between them has it (the ledge is under all of it); the line
+    raised finds the point nearest the target that has it, above the vehicle's height. The
+    gradient ascent is held to 0.3 m so that the line search decides (under a sundial's plate
+    the ascent is trapped, as in the realistic world's terrace-o05)."""
+    ledge = HalfSpace(point=np.array([0.0, 0.0, 1.6]), normal=np.array([0.0, 0.0, 1.0]))
+    post = Box(np.array([-0.25, -0.25, 1.6]), np.array([0.25, 0.25, 2.6]))
+    field = AnalyticField(boxes=(post,), half_spaces=(ledge,))
+    goal, vehicle = np.array([-0.3, 0.0, 2.1]), np.array([-3.0, 0.0, 2.6])
+    clearance = 1.1
+    line = goal + np.linspace(0.0, 1.0, 200)[:, None] * (vehicle - goal)
+    assert field.distance(line).max() < clearance
+    flat, moved = adjust_goal(goal, vehicle, field, clearance, 0.3)
+    assert moved and np.allclose(flat, vehicle, atol=0.05)  # without the lift: where the vehicle is
+    lifted, moved = adjust_goal(goal, vehicle, field, clearance, 0.3, lift_max_m=1.0)
+    assert moved and field.distance(lifted[None])[0] >= clearance
+    assert np.linalg.norm(lifted - goal) < np.linalg.norm(vehicle - goal) - 1.0  # over a metre closer
+    assert lifted[2] <= vehicle[2] + 1.0 + 1e-9
+    # nothing above the line either (a ceiling 0.5 m over the vehicle): the old answer stands
+    ceiling = HalfSpace(point=np.array([0.0, 0.0, 3.1]), normal=np.array([0.0, 0.0, -1.0]))
+    low = AnalyticField(boxes=(post,), half_spaces=(ledge, ceiling))
+    kept, moved = adjust_goal(goal, vehicle, low, clearance, 0.3, lift_max_m=1.0)
+    assert moved and np.allclose(kept, adjust_goal(goal, vehicle, low, clearance, 0.3)[0])
+
+
 def test_deeply_buried_goal_falls_back_to_the_line_toward_the_vehicle():
     big = AnalyticField(boxes=(Box(np.array([0.0, 0.0, 1.0]), np.array([4.0, 4.0, 4.0])),))
     goal, moved = adjust_goal(np.array([0.0, 0.0, 1.0]), np.array([10.0, 0.0, 1.0]), big, 0.5, 3.0)

@@ -88,3 +88,25 @@ def test_from_toml_top_level_and_errors_name_the_file(tmp_path):
     broken.write_text("[planner\n")
     with pytest.raises(PlannerConfigError, match="cannot read planner config"):
         PlannerConfig.from_toml(broken)
+
+
+def test_the_default_map_shows_every_clearance_the_default_planner_asks_for():
+    """EsdfConfig's clamp must exceed d_safe + the largest tracking margin + the goal/guide
+    margin: with the old 1.0 m clamp a 0.6 m margin left no point of any map clear enough."""
+    from planning.esdf_config import EsdfConfig
+    from planning.planner_config import check_field_reach
+
+    cfg = PlannerConfig()
+    assert cfg.field_reach_m == pytest.approx(0.45 + 1.0 + 0.1)
+    check_field_reach(cfg, EsdfConfig().max_distance_m)  # no error
+    with pytest.raises(PlannerConfigError, match="max_distance_m"):
+        check_field_reach(cfg, 1.0)
+    check_field_reach(dataclasses.replace(cfg, tracking_margin_max_m=0.4), 1.0)
+
+
+def test_a_pilot_whose_map_is_clamped_below_the_planners_reach_is_refused():
+    from onfly.pilot import PilotConfig, PilotConfigError
+    from planning.esdf_config import EsdfConfig
+
+    with pytest.raises(PilotConfigError, match="max_distance_m"):
+        PilotConfig(esdf=EsdfConfig(max_distance_m=1.0))

@@ -45,6 +45,7 @@ from planning.esdf_config import EsdfConfig
 from planning.movers import MoverConfig, MoverTracker
 from planning.frames import transform_points
 from planning.planner import Planner
+from planning.planner_config import check_field_reach
 from planning.trajectory import VehicleState
 from vlm.factory import make_backend
 from vlm.parsing import parse_point_depth
@@ -129,6 +130,8 @@ class SpfMethod:
         self.limits = limits
         self.planner = planner
         self.esdf_config = esdf_config if esdf_config is not None else EsdfConfig()
+        if planner is not None:
+            check_field_reach(planner.config, self.esdf_config.max_distance_m)
         self.mover_config = mover_config if mover_config is not None else MoverConfig()
         self.name = "spf_planner" if planner is not None else "spf"
         self.esdf: EsdfMap | None = None

@@ -41,7 +41,7 @@ from planning.esdf import EsdfMap
 from planning.movers import MoverConfig, MoverTracker
 from planning.esdf_config import EsdfConfig
 from planning.planner import Fallback, Planner
-from planning.planner_config import PlannerConfig
+from planning.planner_config import PlannerConfig, check_field_reach
 from planning.trajectory import VehicleState
 
 __all__ = ["OracleConfig", "OraclePilot", "OracleError", "make_oracle"]
@@ -124,6 +124,7 @@ class OraclePilot:
         self.config = config if config is not None else OracleConfig()
         self.planner_config = planner_config if planner_config is not None else PlannerConfig()
         self.esdf_config = esdf_config if esdf_config is not None else EsdfConfig()
+        check_field_reach(planner.config if planner is not None else self.planner_config, self.esdf_config.max_distance_m)
         self.mover_config = mover_config if mover_config is not None else MoverConfig()
         self._planner = planner
         self._reset_counters()
