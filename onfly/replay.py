@@ -13,10 +13,10 @@ Per processed frame (``ReplayConfig.every_n``):
    never inside an obstacle of the map built from the log's own depth, i.e. depth, poses and
    intrinsics agree with each other (a wrong depth scale, a pose in the wrong frame or a
    camera/body mix-up typically puts the path inside the walls). Values are clamped at
-   ``EsdfConfig.max_distance_m`` (1 m by default). Under the default
+   ``EsdfConfig.max_distance_m`` (1.6 m by default). Under the default
    ``unknown_policy="occupied"`` space no frame saw counts as an obstacle too (the vehicle's
-   body sphere, ``EsdfConfig.body_clear_radius_m``, is always known free), so a clearance near
-   that radius says "nothing seen nearer"; ``unknown_policy="free"`` counts only observed
+   body sphere, ``EsdfConfig.body_clear_radius_m``, is known free where the camera cannot
+   see), so a clearance near that radius says "nothing seen nearer"; ``unknown_policy="free"`` counts only observed
    obstacles.
 2. **Agents** (only with ``ReplayConfig.instruction``). The instruction is decomposed once
    (one VLM call, deterministic fallback splitter on failure); the monitoring memory observes
