@@ -130,7 +130,7 @@ def test_field_matches_exact_mesh_distance(name):
     # beyond the clamp the field reads exactly the clamp
     far = sd > clamp + 2 * v  # voxel centres may sit up to half a diagonal closer
     if far.any():
-        assert np.median(dist[far]) == clamp and dist[far].min() > clamp - 0.01
+        assert np.median(dist[far]) == np.float32(clamp) and dist[far].min() > clamp - 0.01
 
     # gradient points away from the nearest obstacle (unit length there)
     sel = (sd > 2 * v) & (sd < clamp - 2 * v)
@@ -478,12 +478,12 @@ def test_is_free_occupied_points_slice_and_reset():
     assert s.distance_m.shape == (40, 40) and s.x_m.shape == (40,) and s.y_m.shape == (40,)
     i, j = np.argmin(np.abs(s.x_m - 0.25)), np.argmin(np.abs(s.y_m - 0.05))  # face x = 0.2
     assert s.distance_m[i, j] < 0 or s.distance_m[i, j] == pytest.approx(0.0)
-    assert s.distance_m.max() == pytest.approx(1.0)
+    assert s.distance_m.max() == pytest.approx(esdf.config.max_distance_m)
     lo, hi = esdf.bounds_world
     np.testing.assert_allclose(hi - lo, [4.0, 4.0, 3.0])
     esdf.reset()
     assert esdf.occupied_points().shape == (0, 3)
-    np.testing.assert_allclose(esdf.distance_grid, 1.0)
+    np.testing.assert_allclose(esdf.distance_grid, esdf.config.max_distance_m)
     np.testing.assert_allclose(esdf.bounds_world[0], lo)
     with pytest.raises(EsdfError, match="finite"):
         esdf.distance_slice(np.nan)

@@ -18,7 +18,9 @@ def test_defaults_follow_the_issue_and_the_paper():
     # safe for a real depth camera: unknown is an obstacle, holes clear a bounded stretch
     assert cfg.unknown_policy == "occupied"
     assert cfg.no_reading_clear_m == 4.5 and cfg.body_clear_radius_m == 1.2
-    assert cfg.max_distance_voxels == 10
+    # the clamp reaches every clearance the default planner reads (d_safe + margin + goal margin)
+    assert cfg.max_distance_voxels == 16
+    assert not cfg.body_clear_in_view
     # inside depth is (d_in - 1) voxels, so the transform needs one voxel more than 0.5 m
     assert cfg.max_inside_voxels == 6
 

@@ -406,7 +406,9 @@ def test_glass_door_rendered_from_a_scene_is_not_a_passage():
     plan = planner.step(start, goal, new)
     assert plan.trajectory.p[:, 0].min() > door_x + d_safe - 0.1 and plan.goal_used[0] > door_x
     # the old optimistic map: the door is open space and the plan heads through it
-    old = EsdfMap(EsdfConfig(unknown_policy="free", no_reading_clear_m=0.0, body_clear_radius_m=0.0, size_m=(10.0, 10.0, 4.0)))
+    old = EsdfMap(EsdfConfig(  # the map before the unknown-space policy, with its 1 m clamp
+        unknown_policy="free", no_reading_clear_m=0.0, body_clear_radius_m=0.0, size_m=(10.0, 10.0, 4.0), max_distance_m=1.0
+    ))
     old.integrate(obs.depth_m, obs.camera, obs.T_world_cam, center_world=obs.position)
     assert np.all(old.query(behind)[0] == old.config.max_distance_m)
     assert Planner(PlannerConfig()).step(start, goal, old).goal_used[0] < door_x
