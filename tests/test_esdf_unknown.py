@@ -92,27 +92,33 @@ def test_hole_in_a_wall_is_not_open_space():
     assert old.query(np.array([[7.0, 0.0, HEIGHT_M]]))[0][0] == pytest.approx(old.config.max_distance_m)
 
 
-def test_planner_does_not_plan_through_the_hole():
-    """Closed loop on the modelled clock: the vehicle re-senses the wall (its hole world-fixed)
-    at every step and flies the first knot of each plan toward a goal 2 m behind the wall."""
-    cfg = PlannerConfig()
-    planner = Planner(cfg)
-    esdf = EsdfMap(DEFAULT)
-    goal = np.array([7.0, 0.0, HEIGHT_M])
+def fly_level_at_wall(wall_x_m, hole_half_m, goal_x_m, steps, cfg=DEFAULT):
+    """Closed loop on the modelled clock: level flight along the hole's axis (the worst case)
+    toward a goal at ``goal_x_m``; the vehicle re-senses the wall (its hole world-fixed) at
+    every step and flies the first knot of each plan. Returns the plans and the final state."""
+    planner = Planner(PlannerConfig())
+    esdf = EsdfMap(cfg)
+    goal = np.array([goal_x_m, 0.0, HEIGHT_M])
     state = VehicleState(0.0, np.array([0.0, 0.0, HEIGHT_M]), np.zeros(3), 0.0)
-    furthest = -np.inf
-    for _ in range(40):
+    plans = []
+    for _ in range(steps):
         p = state.p.copy()
-        p[1:] = [0.0, HEIGHT_M]  # level flight along the hole's axis (the worst case)
-        esdf.integrate(wall_depth(p, 5.0, hole_half_m=HOLE_5M), CAMERA, pose(p), center_world=state.p)
+        p[1:] = [0.0, HEIGHT_M]
+        esdf.integrate(wall_depth(p, wall_x_m, hole_half_m=hole_half_m), CAMERA, pose(p), center_world=state.p)
         plan = planner.step(state, goal, esdf)
-        assert plan.trajectory.p[:, 0].max() < 5.0 - cfg.d_safe_m + 0.1
-        assert plan.goal_used[0] < 5.0
-        furthest = max(furthest, plan.trajectory.p[:, 0].max())
-        k = 1
-        state = VehicleState(state.t_s + plan.trajectory.dt_s, plan.trajectory.p[k], plan.trajectory.v[k], float(plan.trajectory.yaw[k]))
-    assert state.p[0] < 5.0 - cfg.d_safe_m + 0.1
-    assert furthest > 2.0  # it did fly toward the wall: the policy does not freeze the vehicle
+        plans.append(plan)
+        tr = plan.trajectory
+        state = VehicleState(state.t_s + tr.dt_s, tr.p[1], tr.v[1], float(tr.yaw[1]))
+    return plans, state
+
+
+def test_planner_does_not_plan_through_the_hole():
+    """Toward a goal 2 m behind the wall, through the issue's 40 x 40 px hole."""
+    d_safe = PlannerConfig().d_safe_m
+    plans, state = fly_level_at_wall(5.0, HOLE_5M, 7.0, 40)
+    assert all(pl.trajectory.p[:, 0].max() < 5.0 - d_safe + 0.1 and pl.goal_used[0] < 5.0 for pl in plans)
+    assert state.p[0] < 5.0 - d_safe + 0.1
+    assert max(pl.trajectory.p[:, 0].max() for pl in plans) > 2.0  # it flew toward the wall: no freeze
 
 
 # -- unknown space and the body sphere -----------------------------------------------------------
@@ -215,24 +221,14 @@ def test_body_sphere_grows_by_the_planners_tracking_margin():
 
 
 def test_planner_does_not_close_in_on_a_surface_without_readings():
-    """Closed loop on the modelled clock, level flight at a wall whose middle has no reading,
-    toward a goal 1 m behind it: the plans stop d_safe short of the wall's plane."""
-    cfg = PlannerConfig()
-    planner = Planner(cfg)
-    esdf = EsdfMap(DEFAULT)
-    goal = np.array([4.0, 0.0, HEIGHT_M])
-    state = VehicleState(0.0, np.array([0.0, 0.0, HEIGHT_M]), np.zeros(3), 0.0)
-    furthest = -np.inf
-    for _ in range(60):
-        p = state.p.copy()
-        p[1:] = [0.0, HEIGHT_M]
-        esdf.integrate(wall_depth(p, 3.0, hole_half_m=0.5), CAMERA, pose(p), center_world=state.p)
-        plan = planner.step(state, goal, esdf)
-        assert plan.trajectory.p[:, 0].max() < 3.0 - cfg.d_safe_m + 0.1
-        furthest = max(furthest, plan.trajectory.p[:, 0].max())
-        k = 1
-        state = VehicleState(state.t_s + plan.trajectory.dt_s, plan.trajectory.p[k], plan.trajectory.v[k], float(plan.trajectory.yaw[k]))
-    assert furthest > 1.5  # it flew toward the wall: the rule does not freeze the vehicle
+    """Toward a goal 1 m behind a wall whose middle square metre has no reading: the plans stop
+    d_safe short of the wall's plane (the old sphere, clearing in view, let them through)."""
+    d_safe = PlannerConfig().d_safe_m
+    plans, _ = fly_level_at_wall(3.0, 0.5, 4.0, 60)
+    assert all(pl.trajectory.p[:, 0].max() < 3.0 - d_safe + 0.1 for pl in plans)
+    assert max(pl.trajectory.p[:, 0].max() for pl in plans) > 1.5  # it flew toward the wall: no freeze
+    old, _ = fly_level_at_wall(3.0, 0.5, 4.0, 60, cfg=dataclasses.replace(DEFAULT, body_clear_in_view=True))
+    assert max(pl.trajectory.p[:, 0].max() for pl in old) > 3.0 - d_safe + 0.1
 
 
 def test_no_reading_never_clears_an_observed_obstacle_and_a_blind_frame_clears_nothing():
