@@ -324,7 +324,6 @@ def adjust_goal(
     return pts[int(np.argmax(dd))].copy(), True
 
 
-
 def _row_norms(M: np.ndarray) -> np.ndarray:
     """Euclidean norm of each row of ``M`` (n, 3) (cheaper than ``np.linalg.norm`` on small arrays)."""
     return np.sqrt(np.einsum("ij,ij->i", M, M))
