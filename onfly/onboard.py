@@ -84,7 +84,7 @@ from onfly.pilot import OnFlyPilot, PilotMode
 from onfly.readers.realtime import MonotonicClock, PlaybackClock
 from onfly.sources.camera import CameraFeed
 from planning.frames import make_transform, wrap_angle
-from planning.planner import Fallback
+from planning.planner import Fallback, map_frame
 from planning.straight_line import straight_line_plan
 from planning.trajectory import Trajectory, VehicleState
 
@@ -701,9 +701,7 @@ class OnboardFlight:
             return
         obs = self.to_world(obs)
         if esdf is not None:
-            planner = getattr(self.pilot, "planner", None)
-            margin = planner.tracking_margin_m if planner is not None else 0.0
-            esdf.integrate(obs.depth_m, obs.camera, obs.T_world_cam, center_world=obs.position, body_margin_m=margin)
+            map_frame(esdf, getattr(self.pilot, "planner", None), obs.depth_m, obs.camera, obs.T_world_cam, obs.position)
         try:
             if self.writer is not None:
                 self.writer.write(obs)

@@ -68,7 +68,7 @@ from planning.esdf import EsdfMap
 from planning.esdf_config import EsdfConfig
 from planning.frames import wrap_angle
 from planning.movers import MoverConfig, MoverTracker
-from planning.planner import Planner, PlanResult
+from planning.planner import Planner, PlanResult, map_frame
 from planning.planner_config import PlannerConfig, PlannerConfigError, check_field_reach
 from planning.straight_line import straight_line_plan
 from planning.trajectory import Trajectory, VehicleState
@@ -443,9 +443,7 @@ class OnFlyPilot:
                 self._movers_top_m = -np.inf  # a new crowd: its own heights
             self._movers_seen_s = obs.t_s
             self._movers_top_m = max(self._movers_top_m, max(t.z_range_m[1] for t in moving))
-        self.esdf.integrate(
-            obs.depth_m, obs.camera, obs.T_world_cam, center_world=obs.position, body_margin_m=self.planner.tracking_margin_m
-        )
+        map_frame(self.esdf, self.planner, obs.depth_m, obs.camera, obs.T_world_cam, obs.position)
         self.monitor.observe(obs)
         self.latest = obs
 

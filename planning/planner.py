@@ -1115,6 +1115,27 @@ class ClosedLoopLog:
         return np.concatenate([seg.reshape(-1, 3), self.p[-1:]], axis=0)
 
 
+def map_frame(esdf, planner: Planner | None, depth_m, camera, T_world_cam, center_world=None):
+    """Integrate one depth frame into the map a planner flies on: the one place where a map and
+    its planner meet per frame.
+
+    The body sphere (the voxels marked free around the vehicle, ``EsdfConfig.body_clear_radius_m``)
+    grows by the planner's current tracking margin, because the planner keeps that margin from
+    unknown space too; with no planner (a method that flies without one) it does not grow.
+
+    Parameters
+    ----------
+    esdf : :class:`planning.esdf.EsdfMap`.
+    planner : the :class:`Planner` that reads ``esdf``, or None.
+    depth_m, camera, T_world_cam, center_world : as :meth:`planning.esdf.EsdfMap.integrate`
+        (metres, (H, W); the camera-to-world transform (4, 4); the window centre, world, metres).
+
+    Returns the map's update record (:meth:`planning.esdf.EsdfMap.integrate`).
+    """
+    margin = planner.tracking_margin_m if planner is not None else 0.0
+    return esdf.integrate(depth_m, camera, T_world_cam, center_world=center_world, body_margin_m=margin)
+
+
 def run_closed_loop(
     planner: Planner,
     start: VehicleState,

@@ -6,6 +6,7 @@ the pinhole model, and the planner (``Planner.step`` with the map) in front of a
 """
 
 import dataclasses
+import types
 
 import numpy as np
 import pytest
@@ -14,7 +15,7 @@ from planning.camera import PinholeCamera
 from planning.esdf import EsdfError, EsdfMap
 from planning.esdf_config import EsdfConfig
 from planning.esdf_occupancy import free_reach
-from planning.planner import Planner
+from planning.planner import Planner, map_frame
 from planning.planner_config import PlannerConfig
 from planning.trajectory import VehicleState
 
@@ -218,6 +219,19 @@ def test_body_sphere_grows_by_the_planners_tracking_margin():
     for bad in (-0.1, float("nan"), float("inf")):
         with pytest.raises(EsdfError, match="body_margin_m"):
             grown.integrate(wall_depth(p, 4.0), CAMERA, pose(p), body_margin_m=bad)
+
+
+def test_map_frame_grows_the_sphere_by_the_planners_margin_and_not_without_a_planner():
+    """planning.planner.map_frame is the one pairing of a map and its planner per frame: the
+    planner's tracking margin reaches the sphere; a method without a planner gets the bare one."""
+    p = np.array([0.0, 0.0, HEIGHT_M])
+    below = np.array([[0.0, 0.0, HEIGHT_M - (DEFAULT.body_clear_radius_m + 0.3)]])
+    shaken = types.SimpleNamespace(tracking_margin_m=0.4)  # what a planner reports after gusts
+    with_planner, without = EsdfMap(DEFAULT), EsdfMap(DEFAULT)
+    map_frame(with_planner, shaken, wall_depth(p, 4.0), CAMERA, pose(p), p)
+    map_frame(without, None, wall_depth(p, 4.0), CAMERA, pose(p), p)
+    assert with_planner.observed_free(below)[0]
+    assert not without.known(below)[0]
 
 
 def test_planner_does_not_close_in_on_a_surface_without_readings():

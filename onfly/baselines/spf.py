@@ -44,7 +44,7 @@ from planning.esdf import EsdfMap
 from planning.esdf_config import EsdfConfig
 from planning.movers import MoverConfig, MoverTracker
 from planning.frames import transform_points
-from planning.planner import Planner
+from planning.planner import Planner, map_frame
 from planning.planner_config import check_field_reach
 from planning.trajectory import VehicleState
 from vlm.factory import make_backend
@@ -157,8 +157,7 @@ class SpfMethod:
             self.latest = obs
             if self.esdf is not None:
                 self.movers.observe(obs.t_s, obs.depth_m, obs.camera, obs.T_world_cam, self.esdf)
-                margin = self.planner.tracking_margin_m if self.planner is not None else 0.0
-                self.esdf.integrate(obs.depth_m, obs.camera, obs.T_world_cam, center_world=obs.position, body_margin_m=margin)
+                map_frame(self.esdf, self.planner, obs.depth_m, obs.camera, obs.T_world_cam, obs.position)
         for landed in self.runtime.poll():
             if self._on_answer(landed.outcome):
                 return MethodStep(None, True, {"stop": True})

@@ -40,7 +40,7 @@ from onfly.observation import Observation
 from planning.esdf import EsdfMap
 from planning.movers import MoverConfig, MoverTracker
 from planning.esdf_config import EsdfConfig
-from planning.planner import Fallback, Planner
+from planning.planner import Fallback, Planner, map_frame
 from planning.planner_config import PlannerConfig, check_field_reach
 from planning.trajectory import VehicleState
 
@@ -180,9 +180,7 @@ class OraclePilot:
     def step(self, t_s: float, state: VehicleState, obs: Observation | None) -> MethodStep:
         if obs is not None:
             self.movers.observe(t_s, obs.depth_m, obs.camera, obs.T_world_cam, self.esdf)
-            upd = self.esdf.integrate(
-                obs.depth_m, obs.camera, obs.T_world_cam, center_world=state.p, body_margin_m=self.planner.tracking_margin_m
-            )
+            upd = map_frame(self.esdf, self.planner, obs.depth_m, obs.camera, obs.T_world_cam, state.p)
             self._frames += 1
             self._esdf_ms.append(float(upd.total_ms))
         self._steps += 1
