@@ -187,6 +187,20 @@ class PilotConfig:
         purpose (a glance), nor for a goal within 1 m. Search legs are not turned to: they run
         through the map's free space, and turning before each cost the hard set 6 tasks of 69 in
         time (142 turns). False = fly at once
+    keep_in_view_margin_rad : a decision's goal is kept where its target stays inside the
+        camera's vertical field of view, this far (radians) inside the image's lower edge
+        (``goal_in_view`` events; ours). The planner keeps ``d_safe_m`` plus its tracking margin
+        from the floor, 1.2 m or more in gusts, so a goal on a low object (a coffee table, a
+        kerb) puts the vehicle above it, where a level camera no longer sees it: the monitor
+        cannot say STOP on what it does not see, and the task ends at the time limit on top of
+        its target (``duplex-p05``, realistic world: a STOP heard 0.8 m from the table, then the
+        confirming approach flew over it and the monitor answered CONTINUE, then LOST). The goal
+        is moved back toward the vehicle, level, to the horizontal distance at which the target
+        is seen at that depression from the vehicle's altitude. Only targets below the vehicle:
+        one above is flown up to (the goal keeps its height). Not while following (the follow
+        mode keeps its own standoff). None = off
+    keep_in_view_max_m : the farthest (horizontal metres from the target) a goal is moved back:
+        a target far below (the ground) is not watched from far away; the goal then stops here
     """
 
     control_period_s: float = 0.1
@@ -217,6 +231,8 @@ class PilotConfig:
     above_movers_margin_m: float = 0.3
     above_movers_release_m: float = 4.0
     turn_first: bool = True
+    keep_in_view_margin_rad: float | None = 0.05
+    keep_in_view_max_m: float = 2.5
 
     def __post_init__(self) -> None:
         for name in ("control_period_s", "monitor_period_s", "goal_timeout_s", "recovery_timeout_s"):
@@ -231,6 +247,14 @@ class PilotConfig:
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise PilotConfigError(f"PilotConfig.{name} must be >= 0, got {v}")
+        if self.keep_in_view_margin_rad is not None and not (
+            np.isfinite(self.keep_in_view_margin_rad) and 0.0 <= self.keep_in_view_margin_rad < np.pi / 4
+        ):
+            raise PilotConfigError(
+                f"PilotConfig.keep_in_view_margin_rad must be in [0, pi/4) or None, got {self.keep_in_view_margin_rad}"
+            )
+        if not (np.isfinite(self.keep_in_view_max_m) and self.keep_in_view_max_m >= 0):
+            raise PilotConfigError(f"PilotConfig.keep_in_view_max_m must be >= 0, got {self.keep_in_view_max_m}")
         if self.goal_min_z_m is not None and not np.isfinite(self.goal_min_z_m):
             raise PilotConfigError(f"PilotConfig.goal_min_z_m must be finite or None, got {self.goal_min_z_m}")
         if self.stop_confirmations < 1:
@@ -380,6 +404,8 @@ class OnFlyPilot:
         self._rejected_streak = 0  # of the decisions without a goal, those the verifier rejected
         self._answered_s = -np.inf  # when the decision agent last gave a parseable answer
         self._last_seen: np.ndarray | None = None  # where the current subtask's target was last pointed at
+        self._goal_target: np.ndarray | None = None  # the object the current goal was set for
+        self._in_view_logged_t: float | None = None  # goal_t_s of the goal last moved back (one event each)
         self._start_z: float | None = None  # altitude at the first tick (the search's cruise default)
         self._pending_decomposition = None  # the decomposition call, until it is submitted
         self._one_step = False  # the instruction has one step: an answer about it is about the first subtask
@@ -566,6 +592,7 @@ class OnFlyPilot:
         out = self.follow.on_decision(t_s, out)  # following: the goal is the person, predicted to now
         if out.goal_world is None and out.blocked_target_world is not None and self.config.route_blocked:
             out = self._route_blocked(t_s, out, state)
+        target = next((p for p in (out.target_world, out.blocked_target_world, out.goal_world) if p is not None), None)
         if out.goal_world is not None and self.config.goal_min_z_m is not None and out.goal_world[2] < self.config.goal_min_z_m:
             raised = np.array(out.goal_world, float)
             raised[2] = self.config.goal_min_z_m
@@ -577,6 +604,7 @@ class OnFlyPilot:
         if self.mode is PilotMode.CONFIRMING:
             if out.goal_world is not None:  # kept for when the STOP is withdrawn
                 self.goal_world = np.asarray(out.goal_world, float)
+                self._goal_target = np.asarray(target, float)
                 self.goal_t_s = t_s
             return
         if out.goal_world is None:
@@ -589,6 +617,7 @@ class OnFlyPilot:
         self._face_yaw = None
         self._speculative = speculative
         self.goal_world = np.asarray(out.goal_world, float)
+        self._goal_target = np.asarray(target, float)
         self.goal_t_s = t_s
         self.mode = PilotMode.NAVIGATING
 
@@ -715,6 +744,7 @@ class OnFlyPilot:
             self.goal_world = None
             self.mode = PilotMode.HOLDING
             self._event(t_s, "goal_timeout", {"age_s": t_s - self.goal_t_s})
+        to_goal = False  # flying to the decision's goal (not a search leg, a hold or a follow)
         if self.mode is PilotMode.SEARCHING and search_goal is not None:
             goal = search_goal
             self._hold_p = None
@@ -728,13 +758,16 @@ class OnFlyPilot:
             follow = self.follow.control(t_s, state.p, cfg.goal_min_z_m or 0.0)
             if follow is not None:  # following: the standoff point, facing the person
                 goal, yaw_ref = follow
+            else:
+                to_goal = True
         else:
             if self._hold_p is None:
                 self._hold_p = state.p.copy()
             goal = self._hold_p
             if yaw_ref is None and self.mode is not PilotMode.FINISHED:
                 yaw_ref = self._face_yaw
-        if follow is None and goal is self.goal_world:
+        if to_goal:
+            goal = self._keep_in_view(t_s, state, goal)
             goal, yaw_ref = self._turn_first(t_s, state, goal, yaw_ref)
         else:
             self._turn_p = None
@@ -804,6 +837,38 @@ class OnFlyPilot:
         if self._turn_p is None:
             return goal, yaw_ref
         return self._turn_p, bearing
+
+    def _keep_in_view(self, t_s: float, state: VehicleState, goal: np.ndarray) -> np.ndarray:
+        """The goal moved back toward the vehicle, level, so that its target below the vehicle
+        stays ``keep_in_view_margin_rad`` inside the latest camera's lower image edge when seen
+        from the vehicle's altitude (see :class:`PilotConfig`); otherwise ``goal`` unchanged."""
+        cfg = self.config
+        target = self._goal_target
+        if cfg.keep_in_view_margin_rad is None or target is None or self.latest is None:
+            return goal
+        drop = float(state.p[2] - target[2])  # metres the target lies below the vehicle
+        if drop <= 0.0:
+            return goal
+        cam, R = self.latest.camera, np.asarray(self.latest.T_world_cam, float)[:3, :3]
+        axis_elevation = float(np.arcsin(np.clip(R[2, 2], -1.0, 1.0)))  # the optical axis (camera +z) in the world
+        lowest = axis_elevation - float(np.arctan((cam.height - cam.cy) / cam.fy)) + cfg.keep_in_view_margin_rad
+        if lowest >= 0.0:  # a camera pitched this far up never sees below the horizon: nothing to keep
+            return goal
+        need = min(cfg.keep_in_view_max_m, drop / float(np.tan(-lowest)))
+        off = goal[:2] - target[:2]
+        if float(np.hypot(*off)) >= need:
+            return goal
+        back = state.p[:2] - target[:2]
+        n = float(np.hypot(*back))
+        if n < 1e-6:  # right above the target: back off the way the goal lies, if any
+            back, n = off, float(np.hypot(*off))
+            if n < 1e-6:
+                return goal
+        moved = np.array([target[0] + need * back[0] / n, target[1] + need * back[1] / n, goal[2]])
+        if self._in_view_logged_t != self.goal_t_s:
+            self._in_view_logged_t = self.goal_t_s
+            self._event(t_s, "goal_in_view", {"target": target, "from": goal, "to": moved, "drop_m": drop})
+        return moved
 
     @property
     def _half_hfov(self) -> float:

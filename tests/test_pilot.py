@@ -407,3 +407,44 @@ def test_a_goal_outside_the_view_is_turned_to_before_the_vehicle_flies():
     assert pilot._turn_first(7.0, at(0.0), behind, 1.5)[1] == 1.5
     off = OnFlyPilot(PilotConfig(turn_first=False), ScriptedVlm("perfect"), ClockRuntime())
     assert off._turn_first(3.0, at(0.0), behind, None)[0] is behind
+
+
+def test_a_goal_on_a_low_target_is_kept_where_the_camera_still_sees_the_target():
+    """A goal at a coffee table below the vehicle is moved back toward it, level, until the table
+    lies keep_in_view_margin_rad inside the level camera's lower image edge (exact geometry);
+    targets above, goals already far enough, and the switch off leave the goal alone."""
+    import types
+
+    from planning.frames import body_transform, cam_transform_from_body
+    from planning.trajectory import VehicleState
+
+    cfg = PilotConfig()
+    pilot = OnFlyPilot(cfg, ScriptedVlm("perfect"), ClockRuntime())
+    here = np.array([0.0, 0.0, 1.6])
+    pilot.latest = types.SimpleNamespace(camera=CAM, T_world_cam=cam_transform_from_body(body_transform(here, 0.0)))
+    state = VehicleState(5.0, here, np.zeros(3), 0.0)
+    table = np.array([1.0, 0.0, 0.45])
+    pilot._goal_target, pilot.goal_t_s = table, 4.0
+    moved = pilot._keep_in_view(5.0, state, np.array([1.0, 0.0, 0.7]))
+    lower_edge = np.arctan((CAM.height - CAM.cy) / CAM.fy)  # 30 deg below the axis
+    h = np.hypot(*(moved[:2] - table[:2]))
+    assert np.arctan2(here[2] - table[2], h) == pytest.approx(lower_edge - cfg.keep_in_view_margin_rad, abs=1e-9)
+    assert moved[1] == pytest.approx(0.0) and moved[0] < 0.0 and moved[2] == 0.7  # back the way it came, level
+    assert [e.kind for e in pilot.events] == ["goal_in_view"]
+    pilot._keep_in_view(5.1, state, np.array([1.0, 0.0, 0.7]))
+    assert len(pilot.events) == 1  # one event per goal
+    far = np.array([4.0, 0.0, 0.7])
+    assert pilot._keep_in_view(5.0, state, far) is far
+    pilot._goal_target = np.array([1.0, 0.0, 3.0])  # above: flown up to
+    assert pilot._keep_in_view(5.0, state, np.array([1.0, 0.0, 3.0]))[0] == 1.0
+    pilot._goal_target = np.array([1.0, 0.0, -5.0])  # far below: at most keep_in_view_max_m away
+    assert np.hypot(*pilot._keep_in_view(5.0, state, np.array([1.0, 0.0, 0.7]))[:2] - np.array([1.0, 0.0])) == pytest.approx(
+        cfg.keep_in_view_max_m
+    )
+    off = OnFlyPilot(PilotConfig(keep_in_view_margin_rad=None), ScriptedVlm("perfect"), ClockRuntime())
+    off.latest, off._goal_target = pilot.latest, table
+    g = np.array([1.0, 0.0, 0.7])
+    assert off._keep_in_view(5.0, state, g) is g
+    for bad in (dict(keep_in_view_margin_rad=-0.1), dict(keep_in_view_margin_rad=1.0), dict(keep_in_view_max_m=float("nan"))):
+        with pytest.raises(PilotConfigError, match="keep_in_view"):
+            PilotConfig(**bad)
