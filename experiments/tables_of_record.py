@@ -27,8 +27,9 @@ local processes or Ray, then writes into ``--out DIR``:
 Resuming onto a folder made by another code digest stops with an error naming both (one code
 version per table set) unless ``--allow-mixed``; the code is checked again before every table,
 so an edit during a run stops it too. ``--from-runs`` runs nothing and rewrites the artifacts
-from the pools. ``--tables a,b`` runs only those tables; the artifacts always cover the
-manifest's every table (rows without episodes say how many are missing). ``--count N`` /
+from the pools. ``--tables a,b`` runs only those tables, and ``--methods a,b`` only those rows'
+episodes (a chunk that brings some rows first; a later run without it flies the rest); the
+artifacts always cover the manifest's every table (rows without episodes say how many are missing). ``--count N`` /
 ``--runs N`` make a subset check (an evenly spread N tasks per set, at most N runs), named as
 such in every artifact; the full command later on the same folder completes it.
 
@@ -657,9 +658,10 @@ def run_tables(
     ray_address: str | None = None,
     report: Callable[[str], None] = lambda line: None,
     episode_lines: bool = True,
+    methods: Sequence[str] | None = None,
 ) -> dict:
-    """Fly (or resume) every episode of the tables ``names``, table by table; returns the
-    folder's state. ``check`` gives the code version before each table: a digest other than
+    """Fly (or resume) every episode of the tables ``names``, table by table (only the rows of
+    ``methods`` when given); returns the folder's state. ``check`` gives the code version before each table: a digest other than
     ``code.digest`` stops the run (CodeVersionError) unless ``allow_mixed``. ``report`` gets
     one progress line per table and set (and per episode with ``episode_lines``)."""
     out = Path(out)
@@ -670,7 +672,8 @@ def run_tables(
         if now.digest != code.digest and not allow_mixed:
             raise CodeVersionError(f"the code changed during the run: digest {code.digest} at the start, {now.digest} now "
                                    f"(before table {name!r}); the tables run so far hold episodes of {code.digest}")  # fmt: skip
-        parts = [p for p in planned if p.table == name]
+        parts = [p if methods is None else _only_methods(p, methods) for p in planned if p.table == name]
+        parts = [p for p in parts if p.jobs]
         entry = state["tables"].setdefault(name, {"wall_s": 0.0, "code": []})
         for versions in (entry["code"], state["code_versions"]):
             if now.as_dict() not in versions:
@@ -701,6 +704,20 @@ def run_tables(
             checkpoint()
         report(f"[{n}/{len(names)} {name}] done in {time.perf_counter() - t0:.0f} s")
     return state
+
+
+def _only_methods(part: PlannedPart, methods: Sequence[str]) -> PlannedPart:
+    """``part`` with only the rows (methods) in ``methods``: the same episode keys, fewer of them."""
+    keep = tuple(m for m in part.bench.methods if m in methods)
+    return replace(part, bench=replace(part.bench, methods=keep), jobs=tuple(j for j in part.jobs if j.method in keep))
+
+
+def check_methods(planned: Sequence[PlannedPart], names: Sequence[str], methods: Sequence[str]) -> None:
+    """Raises ManifestError when a method of ``methods`` is a row of none of the tables ``names``."""
+    rows = dict.fromkeys(m for p in planned if p.table in names for m in p.bench.methods)
+    unknown = [m for m in methods if m not in rows]
+    if unknown:
+        raise ManifestError(f"--methods: {unknown} not a row of the tables run ({', '.join(names)}); their rows: {', '.join(rows)}")
 
 
 # -- the records artifact --------------------------------------------------------------------------
@@ -888,6 +905,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--allow-mixed", action="store_true", help="add episodes to a DIR made by another code digest")
     ap.add_argument("--count", type=int, default=None, metavar="N", help="subset check: N evenly spread tasks per set")
     ap.add_argument("--runs", type=int, default=None, metavar="N", help="subset check: at most N runs per task")
+    ap.add_argument("--methods", default=None, metavar="A,B",
+                    help="fly only these rows' episodes now (a chunk; a later run without it flies the rest)")
     ap.add_argument("--no-progress", action="store_true", help="no line per episode (tables and sets still report)")
     args = ap.parse_args(argv)
     if args.workers is not None and args.workers < 1:
@@ -905,6 +924,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ManifestError(f"--from-runs: no output folder {out}")
         report(f"checking {len(manifest.tables)} tables of {args.manifest}")
         planned = plan_tables(manifest, subset)
+        only = _csv(args.methods)
+        if only is not None:
+            check_methods(planned, names, only)
     except (OSError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -920,7 +942,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             stop_ray = _start_ray(args.ray, workers) if args.ray else None
             try:
                 state = run_tables(planned, out, names, code=code_version(), check=lambda: code_version(), allow_mixed=args.allow_mixed,
-                                   workers=workers, ray_address=args.ray, report=report, episode_lines=not args.no_progress)  # fmt: skip
+                                   workers=workers, ray_address=args.ray, report=report, episode_lines=not args.no_progress,
+                                   methods=only)  # fmt: skip
             finally:
                 signal.signal(signal.SIGTERM, previous)
                 if stop_ray is not None:

@@ -287,6 +287,24 @@ def test_tables_option_runs_only_those_and_the_artifacts_cover_all(tmp_path):
     assert "[again] 1/2" not in err and "[1/1 again] done" in err  # --no-progress: no line per episode
 
 
+def test_methods_option_flies_only_those_rows_and_a_later_run_the_rest(tmp_path):
+    manifest = write_manifest(tmp_path / "m")
+    out = tmp_path / "out"
+    rc, _, err = run_main(["--manifest", str(manifest), "--out", str(out), "--tables", "main", "--methods", "spf", "--no-progress"])
+    assert rc == 0, err
+    _, recs = pt.read_records_file(out / tor.RECORDS_FILE)
+    assert sorted((r["method"], r["run"]) for r in recs) == [("spf", 0), ("spf", 0), ("spf", 1), ("spf", 1)]
+    assert "incomplete: main has 4 of 8 episodes" in err
+    rc, _, err = run_main(["--manifest", str(manifest), "--out", str(out), "--tables", "main", "--no-progress"])
+    assert rc == 0, err
+    _, recs = pt.read_records_file(out / tor.RECORDS_FILE)
+    keys = [r["key"] for r in recs if "main" in r["tables"]]
+    assert len(keys) == len(set(keys)) == 8  # the spf episodes were not flown again
+    assert {r["key"] for r in recs} <= set(expected_keys(tmp_path / "m"))
+    rc, _, err = run_main(["--manifest", str(manifest), "--out", str(tmp_path / "o2"), "--tables", "again", "--methods", "oracle"])
+    assert rc == 2 and "--methods: ['oracle'] not a row of the tables run (again); their rows: spf" in err
+
+
 def test_code_digest_follows_tracked_code_only(tmp_path):
     git = ["git", "-c", "user.email=t@t", "-c", "user.name=t"]
     for rel in ("onfly/a.py", "experiments/configs/c.toml", "docs/d.md"):
