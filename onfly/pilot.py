@@ -767,7 +767,9 @@ class OnFlyPilot:
             if yaw_ref is None and self.mode is not PilotMode.FINISHED:
                 yaw_ref = self._face_yaw
         if to_goal:
-            goal = self._keep_in_view(t_s, state, goal)
+            goal, face = self._keep_in_view(t_s, state, goal)
+            if yaw_ref is None:
+                yaw_ref = face
             goal, yaw_ref = self._turn_first(t_s, state, goal, yaw_ref)
         else:
             self._turn_p = None
@@ -838,37 +840,41 @@ class OnFlyPilot:
             return goal, yaw_ref
         return self._turn_p, bearing
 
-    def _keep_in_view(self, t_s: float, state: VehicleState, goal: np.ndarray) -> np.ndarray:
-        """The goal moved back toward the vehicle, level, so that its target below the vehicle
-        stays ``keep_in_view_margin_rad`` inside the latest camera's lower image edge when seen
-        from the vehicle's altitude (see :class:`PilotConfig`); otherwise ``goal`` unchanged."""
+    def _keep_in_view(self, t_s: float, state: VehicleState, goal: np.ndarray) -> tuple[np.ndarray, float | None]:
+        """(goal, yaw_ref): the goal moved back toward the vehicle, level, so that its target
+        below the vehicle stays ``keep_in_view_margin_rad`` inside the latest camera's lower
+        image edge when seen from the vehicle's altitude (see :class:`PilotConfig`), and, when
+        that backs the vehicle off (it is already nearer the target than the moved goal), the
+        heading toward the target (radians, world): backing off it keeps facing what it watches
+        instead of turning to the goal behind it. Otherwise ``(goal, None)`` unchanged."""
         cfg = self.config
         target = self._goal_target
         if cfg.keep_in_view_margin_rad is None or target is None or self.latest is None:
-            return goal
+            return goal, None
         drop = float(state.p[2] - target[2])  # metres the target lies below the vehicle
         if drop <= 0.0:
-            return goal
+            return goal, None
         cam, R = self.latest.camera, np.asarray(self.latest.T_world_cam, float)[:3, :3]
         axis_elevation = float(np.arcsin(np.clip(R[2, 2], -1.0, 1.0)))  # the optical axis (camera +z) in the world
         lowest = axis_elevation - float(np.arctan((cam.height - cam.cy) / cam.fy)) + cfg.keep_in_view_margin_rad
         if lowest >= 0.0:  # a camera pitched this far up never sees below the horizon: nothing to keep
-            return goal
+            return goal, None
         need = min(cfg.keep_in_view_max_m, drop / float(np.tan(-lowest)))
         off = goal[:2] - target[:2]
         if float(np.hypot(*off)) >= need:
-            return goal
+            return goal, None
         back = state.p[:2] - target[:2]
         n = float(np.hypot(*back))
         if n < 1e-6:  # right above the target: back off the way the goal lies, if any
             back, n = off, float(np.hypot(*off))
             if n < 1e-6:
-                return goal
+                return goal, None
         moved = np.array([target[0] + need * back[0] / n, target[1] + need * back[1] / n, goal[2]])
         if self._in_view_logged_t != self.goal_t_s:
             self._in_view_logged_t = self.goal_t_s
             self._event(t_s, "goal_in_view", {"target": target, "from": goal, "to": moved, "drop_m": drop})
-        return moved
+        face = float(np.arctan2(-back[1], -back[0])) if n < need else None
+        return moved, face
 
     @property
     def _half_hfov(self) -> float:

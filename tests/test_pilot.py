@@ -425,26 +425,36 @@ def test_a_goal_on_a_low_target_is_kept_where_the_camera_still_sees_the_target()
     state = VehicleState(5.0, here, np.zeros(3), 0.0)
     table = np.array([1.0, 0.0, 0.45])
     pilot._goal_target, pilot.goal_t_s = table, 4.0
-    moved = pilot._keep_in_view(5.0, state, np.array([1.0, 0.0, 0.7]))
+    moved, face = pilot._keep_in_view(5.0, state, np.array([1.0, 0.0, 0.7]))
     lower_edge = np.arctan((CAM.height - CAM.cy) / CAM.fy)  # 30 deg below the axis
     h = np.hypot(*(moved[:2] - table[:2]))
     assert np.arctan2(here[2] - table[2], h) == pytest.approx(lower_edge - cfg.keep_in_view_margin_rad, abs=1e-9)
     assert moved[1] == pytest.approx(0.0) and moved[0] < 0.0 and moved[2] == 0.7  # back the way it came, level
     assert [e.kind for e in pilot.events] == ["goal_in_view"]
+    # the vehicle (1 m from the table) backs off to the moved goal behind it facing the table,
+    # and the turn-first rule does not turn it round toward that goal
+    assert face == pytest.approx(0.0)
+    turned_goal, turned_yaw = pilot._turn_first(5.0, state, moved, face)
+    assert turned_goal is moved and turned_yaw == face
     pilot._keep_in_view(5.1, state, np.array([1.0, 0.0, 0.7]))
     assert len(pilot.events) == 1  # one event per goal
     far = np.array([4.0, 0.0, 0.7])
-    assert pilot._keep_in_view(5.0, state, far) is far
+    g, face = pilot._keep_in_view(5.0, state, far)
+    assert g is far and face is None
+    # still approaching from 5 m: the goal moves back, the heading is the planner's own
+    approaching = VehicleState(5.0, np.array([-4.0, 0.0, 1.6]), np.zeros(3), 0.0)
+    goal, face = pilot._keep_in_view(5.0, approaching, np.array([1.0, 0.0, 0.7]))
+    assert goal[0] == pytest.approx(moved[0]) and face is None
     pilot._goal_target = np.array([1.0, 0.0, 3.0])  # above: flown up to
-    assert pilot._keep_in_view(5.0, state, np.array([1.0, 0.0, 3.0]))[0] == 1.0
+    assert pilot._keep_in_view(5.0, state, np.array([1.0, 0.0, 3.0]))[0][0] == 1.0
     pilot._goal_target = np.array([1.0, 0.0, -5.0])  # far below: at most keep_in_view_max_m away
-    assert np.hypot(*pilot._keep_in_view(5.0, state, np.array([1.0, 0.0, 0.7]))[:2] - np.array([1.0, 0.0])) == pytest.approx(
-        cfg.keep_in_view_max_m
-    )
+    g, _ = pilot._keep_in_view(5.0, state, np.array([1.0, 0.0, 0.7]))
+    assert np.hypot(*(g[:2] - np.array([1.0, 0.0]))) == pytest.approx(cfg.keep_in_view_max_m)
     off = OnFlyPilot(PilotConfig(keep_in_view_margin_rad=None), ScriptedVlm("perfect"), ClockRuntime())
     off.latest, off._goal_target = pilot.latest, table
     g = np.array([1.0, 0.0, 0.7])
-    assert off._keep_in_view(5.0, state, g) is g
+    kept, face = off._keep_in_view(5.0, state, g)
+    assert kept is g and face is None
     for bad in (dict(keep_in_view_margin_rad=-0.1), dict(keep_in_view_margin_rad=1.0), dict(keep_in_view_max_m=float("nan"))):
         with pytest.raises(PilotConfigError, match="keep_in_view"):
             PilotConfig(**bad)
