@@ -198,7 +198,10 @@ class PilotConfig:
         is moved back toward the vehicle, level, to the horizontal distance at which the target
         is seen at that depression from the vehicle's altitude. Only targets below the vehicle:
         one above is flown up to (the goal keeps its height). Not while following (the follow
-        mode keeps its own standoff). None = off
+        mode keeps its own standoff). The pointed pixel is one point of an object that extends
+        below it: 0.1 rad (6 deg) is about half the height a chair-sized object (0.5 m) spans
+        from 2.5 m, kept inside the image with the point (at 0.05 rad a sofa 2 m away fell out
+        of view in gusts and the monitor answered LOST, ``duplex-o05``). None = off
     keep_in_view_max_m : the farthest (horizontal metres from the target) a goal is moved back:
         a target far below (the ground) is not watched from far away; the goal then stops here
     """
@@ -231,7 +234,7 @@ class PilotConfig:
     above_movers_margin_m: float = 0.3
     above_movers_release_m: float = 4.0
     turn_first: bool = True
-    keep_in_view_margin_rad: float | None = 0.05
+    keep_in_view_margin_rad: float | None = 0.1
     keep_in_view_max_m: float = 2.5
 
     def __post_init__(self) -> None:

@@ -423,7 +423,7 @@ def test_a_goal_on_a_low_target_is_kept_where_the_camera_still_sees_the_target()
     here = np.array([0.0, 0.0, 1.6])
     pilot.latest = types.SimpleNamespace(camera=CAM, T_world_cam=cam_transform_from_body(body_transform(here, 0.0)))
     state = VehicleState(5.0, here, np.zeros(3), 0.0)
-    table = np.array([1.0, 0.0, 0.45])
+    table = np.array([1.0, 0.0, 0.6])
     pilot._goal_target, pilot.goal_t_s = table, 4.0
     moved, face = pilot._keep_in_view(5.0, state, np.array([1.0, 0.0, 0.7]))
     lower_edge = np.arctan((CAM.height - CAM.cy) / CAM.fy)  # 30 deg below the axis
