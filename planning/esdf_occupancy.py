@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -204,6 +205,8 @@ class RollingOccupancy:
         self.solid = np.full(self.shape, self._unknown_solid, dtype=bool)
         self._pristine = True  # no voxel observed since construction or reset
         self._scratch = np.zeros(int(np.prod(self.shape)), dtype=bool)
+        # (camera, T_world_cam) of the latest frames before this one (body_clear_recent_views)
+        self._recent_views: deque[tuple[PinholeCamera, np.ndarray]] = deque(maxlen=max(1, config.body_clear_recent_views))
 
     # -- geometry of the window -------------------------------------------------------------
     @property
@@ -226,6 +229,7 @@ class RollingOccupancy:
         self.observed.fill(False)
         self.solid.fill(self._unknown_solid)
         self._pristine = True
+        self._recent_views.clear()
 
     def shift_to(self, new_origin: np.ndarray) -> tuple[np.ndarray, list[IndexBox]]:
         """Move the window so local voxel 0 is global voxel ``new_origin`` (3,) int.
@@ -318,9 +322,12 @@ class RollingOccupancy:
         if cfg.body_clear_radius_m > 0:
             body = T_world_cam[:3, 3] if body_world is None else np.asarray(body_world, dtype=float)
             view = None if cfg.body_clear_in_view else (camera, T_world_cam)
-            cleared = self.mark_free_sphere(body, cfg.body_clear_radius_m + body_margin_m, view=view)
+            earlier = tuple(self._recent_views) if view is not None and cfg.body_clear_recent_views > 0 else ()
+            cleared = self.mark_free_sphere(body, cfg.body_clear_radius_m + body_margin_m, view=view, earlier_views=earlier)
             if cleared.size:
                 flipped = np.union1d(flipped, cleared)
+        if cfg.body_clear_recent_views > 0:
+            self._recent_views.append((camera, np.array(T_world_cam, dtype=float)))
         t2 = time.perf_counter()
         return OccupancyDelta(
             flipped=flipped,
@@ -332,7 +339,11 @@ class RollingOccupancy:
         )
 
     def mark_free_sphere(
-        self, center_world: np.ndarray, radius_m: float, view: tuple[PinholeCamera, np.ndarray] | None = None
+        self,
+        center_world: np.ndarray,
+        radius_m: float,
+        view: tuple[PinholeCamera, np.ndarray] | None = None,
+        earlier_views: tuple[tuple[PinholeCamera, np.ndarray], ...] = (),
     ) -> np.ndarray:
         """Mark the *unknown* voxels whose centre lies within ``radius_m`` of ``center_world``
         (3,) metres observed and free (one miss). Observed voxels are left alone.
@@ -342,6 +353,10 @@ class RollingOccupancy:
             alone too: the camera has looked there, and a voxel it left unknown lies behind a
             surface or on a pixel without a reading (a dark or glass surface), which the
             vehicle's presence says nothing about.
+        earlier_views : ``(camera, T_world_cam)`` of earlier frames: voxels whose centre
+            projected into one of their images with a z-depth in (``min_range_m``,
+            ``no_reading_clear_m``] are left alone as well (looked at from within the reach of
+            the no-reading rule, and still unknown).
 
         Returns the flat local indices whose obstacle state flipped (unknown -> free under
         ``unknown_policy="occupied"``; none under ``"free"``).
@@ -361,6 +376,10 @@ class RollingOccupancy:
         new = (d2 <= r * r) & ~self.observed[box]
         if view is not None and new.any():
             new[self._projects_into(view, lo, new)] = False
+        for past in earlier_views:
+            if not new.any():
+                break
+            new[self._projects_into(past, lo, new, max_z_m=cfg.no_reading_clear_m)] = False
         if not new.any():
             return np.zeros(0, dtype=np.int64)
         self._pristine = False
@@ -374,16 +393,19 @@ class RollingOccupancy:
         idx = np.stack(np.unravel_index(sub, new.shape), axis=-1) + lo
         return (idx[:, 0] * self.shape[1] + idx[:, 1]) * self.shape[2] + idx[:, 2]
 
-    def _projects_into(self, view: tuple[PinholeCamera, np.ndarray], lo: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, ...]:
+    def _projects_into(
+        self, view: tuple[PinholeCamera, np.ndarray], lo: np.ndarray, mask: np.ndarray, max_z_m: float = np.inf
+    ) -> tuple[np.ndarray, ...]:
         """Indices into ``mask`` (a box of the grid starting at local voxel ``lo``) of its True
         voxels whose centre projects into the image of ``view = (camera, T_world_cam)`` with a
-        z-depth above ``min_range_m`` (the pixel rule of the clearing step)."""
+        z-depth above ``min_range_m`` (the pixel rule of the clearing step) and at most
+        ``max_z_m``."""
         camera, T_world_cam = view
         sub = np.nonzero(mask)
         centres = (np.stack(sub, axis=-1) + lo + self.origin_index + 0.5) * self.voxel_m
         p_cam = (centres - T_world_cam[:3, 3]) @ T_world_cam[:3, :3]
         z = p_cam[:, 2]
-        seen = z > self.config.min_range_m
+        seen = (z > self.config.min_range_m) & (z <= max_z_m)
         zs = np.where(seen, z, 1.0)
         u = np.floor(camera.fx * p_cam[:, 0] / zs + camera.cx + 0.5)
         v = np.floor(camera.fy * p_cam[:, 1] / zs + camera.cy + 0.5)

@@ -13,7 +13,7 @@ import pytest
 
 from planning.camera import PinholeCamera
 from planning.esdf import EsdfError, EsdfMap
-from planning.esdf_config import EsdfConfig
+from planning.esdf_config import EsdfConfig, EsdfConfigError
 from planning.esdf_occupancy import free_reach
 from planning.planner import Planner, map_frame
 from planning.planner_config import PlannerConfig
@@ -196,6 +196,39 @@ def test_body_sphere_never_clears_what_the_camera_looks_at():
     # out of view the sphere still clears: below a level camera, 1 m down at 0.4 m ahead
     below = np.array([[3.0 - stops[-1] + 0.4, 0.0, HEIGHT_M - 1.0]])
     assert esdf.observed_free(below)[0]
+
+
+def test_body_sphere_remembers_what_earlier_frames_looked_at():
+    """The dark patch approached to 0.6 m, then the vehicle turns 90 deg left (a turn toward a
+    goal, a gust): the patch is beside the view and inside the 1.2 m sphere. The frames that
+    looked at it from within the no-reading reach keep it unknown; with no memory of them
+    (body_clear_recent_views=0) the sphere erases it, as it did to factory_hall-l02's belt."""
+    stops = (3.0, 2.0, 1.4, 1.0, 0.8, 0.6)
+    look_y = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # optical z = world +y
+    p = np.array([3.0 - stops[-1], 0.0, HEIGHT_M])
+    turned = np.eye(4)
+    turned[:3, :3], turned[:3, 3] = look_y, p
+    beyond = np.full(CAMERA.shape, 6.0, dtype=np.float32)  # a wall 6 m to the left
+
+    def approach_and_turn(cfg):
+        esdf, patch = _approach_dark_patch(cfg, stops)
+        esdf.integrate(beyond, CAMERA, turned, center_world=p)
+        return esdf, patch
+
+    esdf, patch = approach_and_turn(DEFAULT)
+    assert not esdf.observed_free(patch).any() and np.all(esdf.query(patch)[0] <= 0.0)
+    forgetful, patch = approach_and_turn(dataclasses.replace(DEFAULT, body_clear_recent_views=0))
+    assert forgetful.observed_free(patch).all()
+    # what no frame looked at is still filled in: at the start, below a level camera that has
+    # hovered for a few frames, 1 m down and 0.4 m ahead
+    start = np.array([0.0, 0.0, HEIGHT_M])
+    hover = EsdfMap(DEFAULT)
+    for _ in range(4):
+        hover.integrate(wall_depth(start, 4.0), CAMERA, pose(start), center_world=start)
+    assert hover.observed_free(np.array([[0.4, 0.0, HEIGHT_M - 1.0]]))[0]
+    for bad in (-1, 2.5, True):
+        with pytest.raises(EsdfConfigError, match="body_clear_recent_views"):
+            dataclasses.replace(DEFAULT, body_clear_recent_views=bad)
 
 
 def test_body_sphere_grows_by_the_planners_tracking_margin():
