@@ -198,7 +198,10 @@ class PilotConfig:
         is moved back toward the vehicle, level, to the horizontal distance at which the target
         is seen at that depression from the vehicle's altitude. Only targets below the vehicle:
         one above is flown up to (the goal keeps its height). Not while following (the follow
-        mode keeps its own standoff). The pointed pixel is one point of an object that extends
+        mode keeps its own standoff), nor while goals are raised over recently tracked movers
+        (``above_movers_s``: that rule owns the altitude near people and releases it by the
+        target; in the street test a goal held back under a crossing walker's path was walked
+        into). The pointed pixel is one point of an object that extends
         below it: 0.1 rad (6 deg) is about half the height a chair-sized object (0.5 m) spans
         from 2.5 m, kept inside the image with the point (at 0.05 rad a sofa 2 m away fell out
         of view in gusts and the monitor answered LOST, ``duplex-o05``). None = off
@@ -853,6 +856,10 @@ class OnFlyPilot:
         cfg = self.config
         target = self._goal_target
         if cfg.keep_in_view_margin_rad is None or target is None or self.latest is None:
+            return goal, None
+        if cfg.above_movers_s is not None and t_s - self._movers_seen_s <= cfg.above_movers_s:
+            # near people the altitude is the above-movers rule's, with its own release by the
+            # target; a goal held back under a crossing walker's path was walked into
             return goal, None
         drop = float(state.p[2] - target[2])  # metres the target lies below the vehicle
         if drop <= 0.0:

@@ -450,6 +450,10 @@ def test_a_goal_on_a_low_target_is_kept_where_the_camera_still_sees_the_target()
     pilot._goal_target = np.array([1.0, 0.0, -5.0])  # far below: at most keep_in_view_max_m away
     g, _ = pilot._keep_in_view(5.0, state, np.array([1.0, 0.0, 0.7]))
     assert np.hypot(*(g[:2] - np.array([1.0, 0.0]))) == pytest.approx(cfg.keep_in_view_max_m)
+    pilot._goal_target, pilot._movers_seen_s = table, 4.0  # a person tracked 1 s ago: not near people
+    g = np.array([1.0, 0.0, 0.7])
+    kept, face = pilot._keep_in_view(5.0, state, g)
+    assert kept is g and face is None
     off = OnFlyPilot(PilotConfig(keep_in_view_margin_rad=None), ScriptedVlm("perfect"), ClockRuntime())
     off.latest, off._goal_target = pilot.latest, table
     g = np.array([1.0, 0.0, 0.7])
