@@ -108,6 +108,14 @@ class EsdfConfig:
         wall's readings lie on the hole's row and column; the length bound lets open sky above
         the horizon clear the space the vehicle flies through. 0 turns it off (no-reading
         pixels clear nothing; outdoors the vehicle then sees almost nothing free at its height).
+    no_reading_needs_below : True (default): a pixel without a reading clears nothing unless
+        its column holds a reading below it. A hole that reaches the image's bottom edge runs
+        on out of view, where a level camera sees what is nearest; its readings above are the
+        surface *behind* it (the floor past a dark conveyor belt the vehicle flies beside, an
+        object nearer than ``min_range_m``), so they bound nothing: the no-reading rule marked
+        such an object's voxels free, and OnFly flew into the belt of ``factory_hall-l02``
+        under the realistic profile. Sky and far ground lie above readable ground and keep
+        clearing. False = the four scans alone
     body_clear_radius_m : every :meth:`planning.esdf.EsdfMap.integrate` marks the *unknown*
         voxels within this radius of the vehicle free (the vehicle is there; voxblox's
         ``clear_sphere_radius``, default 1.5 m, does the same for planning). Never overrides an
@@ -166,6 +174,7 @@ class EsdfConfig:
     max_inside_distance_m: float = 0.5
     unknown_policy: Literal["free", "occupied"] = "occupied"
     no_reading_clear_m: float = 4.5
+    no_reading_needs_below: bool = True
     body_clear_radius_m: float = 1.2
     body_clear_in_view: bool = False
     body_clear_recent_views: int = 20
@@ -212,6 +221,8 @@ class EsdfConfig:
         if not (isinstance(self.body_clear_recent_views, int) and not isinstance(self.body_clear_recent_views, bool)
                 and self.body_clear_recent_views >= 0):  # fmt: skip
             raise EsdfConfigError(f"body_clear_recent_views must be an integer >= 0, got {self.body_clear_recent_views!r}")
+        if not isinstance(self.no_reading_needs_below, bool):
+            raise EsdfConfigError(f"no_reading_needs_below must be true or false, got {self.no_reading_needs_below!r}")
         if not isinstance(self.reach_cull, bool):
             raise EsdfConfigError(f"reach_cull must be true or false, got {self.reach_cull!r}")
         if self.unknown_policy not in UNKNOWN_POLICIES:

@@ -110,7 +110,8 @@ def free_reach(depth_m: np.ndarray, config: EsdfConfig) -> tuple[np.ndarray, np.
         the first readings met scanning left, right, up and down from the pixel (each clipped to
         ``max_range_m``), so a hole never clears past the surface it is cut into. A pixel whose
         four scans meet no reading (and every pixel of a frame without any reading) clears
-        nothing: nothing bounds it (a pane of glass filling the view).
+        nothing: nothing bounds it (a pane of glass filling the view). With
+        ``no_reading_needs_below``, neither does one whose column holds no reading below it.
     valid : bool (h, w), True where the pixel holds a reading
     """
     cfg = config
@@ -127,7 +128,10 @@ def free_reach(depth_m: np.ndarray, config: EsdfConfig) -> tuple[np.ndarray, np.
     nb = _nearest_reading_along(clipped, valid, 1, False)
     np.minimum(nb, _nearest_reading_along(clipped, valid, 1, True), out=nb)
     np.minimum(nb, _nearest_reading_along(clipped, valid, 0, False), out=nb)
-    np.minimum(nb, _nearest_reading_along(clipped, valid, 0, True), out=nb)
+    below = _nearest_reading_along(clipped, valid, 0, True)  # down the image: higher rows
+    np.minimum(nb, below, out=nb)
+    if cfg.no_reading_needs_below:
+        nb[~np.isfinite(below)] = np.inf  # nothing read below: unbounded, clears nothing
     hole = ~valid
     # nb is inf where the scans met no reading: then nothing bounds the hole and it clears nothing
     reach[hole] = np.where(np.isfinite(nb[hole]), np.minimum(nb[hole], np.float32(cfg.no_reading_clear_m)) - margin, -np.inf)
@@ -164,23 +168,29 @@ def _hole_reach(clipped: np.ndarray, valid: np.ndarray, rows: np.ndarray, cols: 
     """
     h, w = valid.shape
     best = np.full(rows.shape, np.inf, dtype=np.float32)
-    for flat_valid, key, line_start, line_len, to_rc in (
-        (np.flatnonzero(valid), rows * w + cols, rows * w, w, lambda f: (f // w, f % w)),
-        (np.flatnonzero(valid.T), cols * h + rows, cols * h, h, lambda f: (f % h, f // h)),
+    none_below = np.zeros(rows.shape, dtype=bool)
+    for column, flat_valid, key, line_start, line_len, to_rc in (
+        (False, np.flatnonzero(valid), rows * w + cols, rows * w, w, lambda f: (f // w, f % w)),
+        (True, np.flatnonzero(valid.T), cols * h + rows, cols * h, h, lambda f: (f % h, f // h)),
     ):
         if flat_valid.size == 0:
+            none_below[:] = True
             continue
         i = np.searchsorted(flat_valid, key)
-        for j, ok in (
-            (i - 1, i - 1 >= 0),
-            (i, i < flat_valid.size),
+        for after, j, ok in (
+            (False, i - 1, i - 1 >= 0),
+            (True, i, i < flat_valid.size),
         ):
             jj = np.clip(j, 0, flat_valid.size - 1)
             f = flat_valid[jj]
             ok = ok & (f >= line_start) & (f < line_start + line_len)
+            if column and after:  # the column scan toward higher rows: down the image
+                none_below = ~ok
             rr, cc = to_rc(f[ok])
             sel = np.flatnonzero(ok)
             best[sel] = np.minimum(best[sel], clipped[rr, cc])
+    if config.no_reading_needs_below:
+        best[none_below] = np.inf
     margin = np.float32(config.clear_margin_m)
     return np.where(np.isfinite(best), np.minimum(best, np.float32(config.no_reading_clear_m)) - margin, np.float32(-np.inf)).astype(np.float32)
 

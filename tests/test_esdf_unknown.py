@@ -14,7 +14,7 @@ import pytest
 from planning.camera import PinholeCamera
 from planning.esdf import EsdfError, EsdfMap
 from planning.esdf_config import EsdfConfig, EsdfConfigError
-from planning.esdf_occupancy import free_reach
+from planning.esdf_occupancy import _hole_reach, free_reach
 from planning.planner import Planner, map_frame
 from planning.planner_config import PlannerConfig
 from planning.trajectory import VehicleState
@@ -337,6 +337,51 @@ def test_free_reach_bounds_holes_by_their_row_and_column():
     assert reach[1, 1] == pytest.approx(6.0 - m)
     off = free_reach(depth, dataclasses.replace(cfg, no_reading_clear_m=0.0))[0]
     assert np.all(off[~valid] == -np.inf) and np.array_equal(off[valid], reach[valid])
+
+
+def test_a_hole_that_reaches_the_bottom_edge_clears_nothing():
+    """A dark object the vehicle flies beside runs out of the image's bottom edge; the floor
+    *behind* it is read on its columns, above it in the image. Those readings bound nothing: its
+    pixels clear nothing (the pixel reach of free_reach and of the per-pixel search agree), while
+    a hole with a reading below it (a dark patch in a wall) keeps its row-and-column bound."""
+    depth = np.full((6, 8), 5.0, np.float32)  # the floor behind, 5 m
+    depth[3:, 2:5] = 0.0  # the dark object, from row 3 to the bottom edge
+    depth[1, 6] = 0.0  # a patch with readings all round
+    reach, valid = free_reach(depth, DEFAULT)
+    m = DEFAULT.clear_margin_m
+    assert np.all(reach[3:, 2:5] == -np.inf)
+    assert reach[1, 6] == pytest.approx(DEFAULT.no_reading_clear_m - m)
+    old = free_reach(depth, dataclasses.replace(DEFAULT, no_reading_needs_below=False))[0]
+    assert np.all(old[3:, 2:5] == pytest.approx(DEFAULT.no_reading_clear_m - m))  # the old rule cleared it
+    rows, cols = np.nonzero(~valid)
+    clipped = np.where(valid, np.minimum(depth, DEFAULT.max_range_m), np.inf).astype(np.float32)
+    for cfg in (DEFAULT, dataclasses.replace(DEFAULT, no_reading_needs_below=False)):
+        np.testing.assert_array_equal(_hole_reach(clipped, valid, rows, cols, cfg), free_reach(depth, cfg)[0][rows, cols])
+    with pytest.raises(EsdfConfigError, match="no_reading_needs_below"):
+        dataclasses.replace(DEFAULT, no_reading_needs_below=1)
+
+
+def test_flying_level_beside_a_dark_box_keeps_it_an_obstacle():
+    """A level camera 0.9 m up passes 1 m from a dark box 0.9 m tall (no readings; the floor
+    behind it is read): the box's voxels never become free (the old rule cleared them)."""
+    floor_far = np.float32(6.0)
+
+    def frame(p):
+        depth = np.full(CAMERA.shape, floor_far, np.float32)
+        rays = CAMERA.rays()  # optical frame, z = 1; the camera looks along world +x
+        # the box: x in [p0 + 1.0, p0 + 2.0], |y| < 0.5, z < 0.9; mark the pixels whose ray meets its face
+        t = 1.0  # z-depth of the face
+        y = p[1] - rays[..., 0] * t
+        z = p[2] - rays[..., 1] * t
+        depth[(np.abs(y) < 0.5) & (z < 0.9)] = 0.0
+        return depth
+
+    box = np.array([[1.3, 0.0, 0.5], [1.5, 0.2, 0.3], [1.2, -0.3, 0.7]])
+    for cfg, cleared in ((DEFAULT, False), (dataclasses.replace(DEFAULT, no_reading_needs_below=False), True)):
+        esdf = EsdfMap(cfg)
+        p = np.array([0.0, 0.0, 0.9])
+        esdf.integrate(frame(p), CAMERA, pose(p), center_world=p)
+        assert bool(esdf.observed_free(box).any()) is cleared
 
 
 def _reference_known(esdf: EsdfMap, depth: np.ndarray, p: np.ndarray, reach_of_pixel) -> tuple[np.ndarray, np.ndarray]:
