@@ -19,7 +19,10 @@ Run::
     .venv/bin/python experiments/print_tables.py runs/record/records.jsonl.gz [--table NAME] [--format md|json]
 
 Without ``--table`` it prints every table (``tables.md`` byte for byte); ``--table NAME``
-prints that table's section of it. Only the standard library is used: printing needs no
+prints that table's section of it. ``--failures`` prints instead, per row, the episodes that
+failed, grouped by how they failed (``failure``: ``collision``, ``time_limit``,
+``stopped_outside_radius`` ...), each as ``task/run``: the ids a reader looks up to explain a
+row, and ``--method NAME`` keeps one method's rows. Only the standard library is used: printing needs no
 simulator.
 """
 
@@ -43,6 +46,8 @@ __all__ = [
     "format_table",
     "format_document",
     "tables_json",
+    "failed_episodes",
+    "format_failures",
     "main",
 ]
 
@@ -392,6 +397,52 @@ def tables_json(tables: dict) -> str:
     return json.dumps(tables, indent=1) + "\n"
 
 
+# -- failed episodes -------------------------------------------------------------------------------
+
+
+def failed_episodes(header: dict, records: list[dict], table_name: str, method: str | None = None) -> list[dict]:
+    """Per row of a table (set order, then method order; ``method`` keeps one method's rows):
+    its set and label, and its failed episodes as ``{failure: ["task/run", ...]}``, failures in
+    :data:`END_REASONS` order then by name, ids sorted.
+
+    Raises KeyError naming the table when the header has no such table.
+    """
+    tables = {t["name"]: t for t in header["tables"]}
+    if table_name not in tables:
+        raise KeyError(f"no table {table_name!r}; its tables: {', '.join(tables)}")
+    table = tables[table_name]
+    groups: dict[tuple[int, str], list[dict]] = {}
+    for r in records:
+        for p in (r.get("tables") or {}).get(table_name) or ():
+            groups.setdefault((p, r["method"]), []).append(r)
+    order = {k: i for i, k in enumerate(END_REASONS)}
+    out = []
+    for i, part in enumerate(table["parts"]):
+        for m in part["methods"]:
+            if method is not None and m != method:
+                continue
+            by: dict[str, list[str]] = {}
+            recs = groups.get((i, m), [])
+            for r in recs:
+                if not r["metrics"]["success"]:
+                    by.setdefault(r.get("failure") or r["end_reason"], []).append(f"{r['task']}/{r['run']}")
+            kinds = sorted(by, key=lambda k: (order.get(k, len(order)), k))
+            out.append({"set": part["label"], "method": m, "label": table["labels"].get(m, m), "episodes": len(recs),
+                        "failed": {k: sorted(by[k]) for k in kinds}})  # fmt: skip
+    return out
+
+
+def format_failures(table_name: str, rows: list[dict]) -> str:
+    """Markdown list of :func:`failed_episodes`: a line per row, then a line per kind of failure."""
+    lines = [f"## Failed episodes of `{table_name}` (task/run)", ""]
+    for r in rows:
+        where = f"{r['set']}: " if r["set"] else ""
+        n = sum(len(v) for v in r["failed"].values())
+        lines.append(f"- {where}{r['label']}: {n} of {r['episodes']} failed")
+        lines += [f"  - {k} {len(v)}: " + ", ".join(v) for k, v in r["failed"].items()]
+    return "\n".join(lines) + "\n"
+
+
 # -- command line ----------------------------------------------------------------------------------
 
 
@@ -400,12 +451,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("records", help="DIR/records.jsonl.gz written by experiments/tables_of_record.py")
     ap.add_argument("--table", default=None, metavar="NAME", help="print only this table (default: every table)")
     ap.add_argument("--format", default="md", choices=("md", "json"), help="markdown (as tables.md) or JSON (as tables.json)")
+    ap.add_argument("--failures", action="store_true", help="list each row's failed episodes (task/run) by how they failed")
+    ap.add_argument("--method", default=None, metavar="NAME", help="with --failures: only this method's rows")
     args = ap.parse_args(argv)
+    if args.method is not None and not args.failures:
+        ap.error("--method needs --failures")
     try:
         header, records = read_records_file(args.records)
     except RecordsFileError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if args.failures:
+        return _print_failures(header, records, args)
     tables = build_tables(header, records)
     if args.table is None:
         sys.stdout.write(format_document(tables) if args.format == "md" else tables_json(tables))
@@ -416,6 +473,26 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     t = by_name[args.table]
     sys.stdout.write(format_table(t) if args.format == "md" else json.dumps(t, indent=1) + "\n")
+    return 0
+
+
+def _print_failures(header: dict, records: list[dict], args: argparse.Namespace) -> int:
+    names = [t["name"] for t in header["tables"]] if args.table is None else [args.table]
+    docs, data = [], {}
+    for name in names:
+        try:
+            rows = failed_episodes(header, records, name, args.method)
+        except KeyError as exc:
+            print(f"error: --table: {exc.args[0]} in {args.records}", file=sys.stderr)
+            return 2
+        if args.method is not None and not rows:
+            if args.table is not None:
+                print(f"error: --method: no row of {args.method!r} in table {name!r}", file=sys.stderr)
+                return 2
+            continue
+        docs.append(format_failures(name, rows))
+        data[name] = rows
+    sys.stdout.write("\n".join(docs) if args.format == "md" else json.dumps(data, indent=1) + "\n")
     return 0
 
 

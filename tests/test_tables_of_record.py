@@ -533,3 +533,33 @@ def test_a_method_not_yet_flown_in_a_set_is_estimated_from_its_episodes_in_the_o
            "metrics": {"success": True}}  # fmt: skip
     on_episode(rec, 1, 5)
     assert lines == ["[t] 1/5 a x run 0: stopped, success (left 34 s)"]  # 1 x 4 s (this set's a) + 3 x 10 s (b's prior)
+
+
+def test_failed_episodes_list_each_rows_failures_by_kind_with_task_and_run(tmp_path, capsys):
+    recs = [
+        _rec("x", "m", False, "collision", collided=True),
+        _rec("y", "m", True, "stopped"),
+        _rec("z", "m", False, "time_limit"),
+        _rec("w", "m", False, "time_limit", part=1),
+        {**_rec("v", "m", False, "stopped"), "failure": "stopped_outside_radius", "run": 2},
+    ]
+    header = _header()
+    rows = pt.failed_episodes(header, recs, "t")
+    assert [(r["set"], r["episodes"]) for r in rows] == [("a", 4), ("b", 1)]
+    # END_REASONS order first (collision before time_limit), other kinds after by name
+    assert rows[0]["failed"] == {"collision": ["x/0"], "time_limit": ["z/0"], "stopped_outside_radius": ["v/2"]}
+    assert rows[1]["failed"] == {"time_limit": ["w/0"]}
+    assert pt.failed_episodes(header, recs, "t", method="other") == []
+    with pytest.raises(KeyError, match="no table 'nope'"):
+        pt.failed_episodes(header, recs, "nope")
+    tor.write_artifacts(tmp_path, header, recs)
+    path = str(tmp_path / tor.RECORDS_FILE)
+    assert pt.main([path, "--failures", "--table", "t"]) == 0
+    md = capsys.readouterr().out
+    assert "- a: Em: 3 of 4 failed\n  - collision 1: x/0\n  - time_limit 1: z/0\n  - stopped_outside_radius 1: v/2\n" in md
+    assert "- b: Em: 1 of 1 failed\n  - time_limit 1: w/0\n" in md
+    assert pt.main([path, "--failures", "--table", "t", "--method", "other"]) == 2
+    assert "no row of 'other'" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        pt.main([path, "--method", "m"])  # --method without --failures is a usage error
+    assert "--method needs --failures" in capsys.readouterr().err
