@@ -17,18 +17,23 @@ gained.
 Run::
 
     .venv/bin/python experiments/print_tables.py runs/record/records.jsonl.gz [--table NAME] [--format md|json]
+    .venv/bin/python experiments/print_tables.py runs/record/records.jsonl.gz --embedded README.md [--write]
 
 Without ``--table`` it prints every table (``tables.md`` byte for byte); ``--table NAME``
 prints that table's section of it. ``--failures`` prints instead, per row, the episodes that
 failed, grouped by how they failed (``failure``: ``collision``, ``time_limit``,
 ``stopped_outside_radius`` ...), each as ``task/run``: the ids a reader looks up to explain a
-row, and ``--method NAME`` keeps one method's rows. Only the standard library is used: printing needs no
-simulator.
+row, and ``--method NAME`` keeps one method's rows. ``--embedded README.md`` checks the tables a
+markdown file embeds (each between a line ``<!-- table of record: NAME -->`` and a line ``<!-- end
+of table of record -->``, as :func:`format_table` prints it with a ``####`` heading) against the
+records: exit 0 when every one is equal, 1 with a diff when one is not; ``--write`` rewrites them.
+Only the standard library is used: printing needs no simulator.
 """
 
 from __future__ import annotations
 
 import argparse
+import difflib
 import gzip
 import json
 import sys
@@ -48,6 +53,11 @@ __all__ = [
     "tables_json",
     "failed_episodes",
     "format_failures",
+    "EMBED_BEGIN",
+    "EMBED_END",
+    "EmbedError",
+    "embedded_tables",
+    "fill_embedded",
     "main",
 ]
 
@@ -348,10 +358,11 @@ def _columns(t: dict) -> tuple[list[str], list[str]]:
     return names + extra + ["end reasons"], align + ["---:"] * len(extra) + ["---"]
 
 
-def format_table(t: dict) -> str:
-    """One table's markdown section (a heading, its header lines, the table), ending in a newline."""
+def format_table(t: dict, level: int = 2) -> str:
+    """One table's markdown section (a heading of ``level`` hashes, its header lines, the
+    table), ending in a newline."""
     names, align = _columns(t)
-    lines = [f"## {t['title']} (`{t['name']}`)", ""]
+    lines = [f"{'#' * level} {t['title']} (`{t['name']}`)", ""]
     if t["note"]:
         lines += [t["note"], ""]
     lines += _header_lines(t) + ["", "| " + " | ".join(names) + " |", "| " + " | ".join(align) + " |"]
@@ -395,6 +406,73 @@ def format_document(tables: dict) -> str:
 def tables_json(tables: dict) -> str:
     """The tables as the JSON text the command writes (``tables.json``, ``--json``)."""
     return json.dumps(tables, indent=1) + "\n"
+
+
+# -- tables embedded in a markdown file ------------------------------------------------------------
+
+#: The line that opens a table of record embedded in a markdown file (the README); the text up
+#: to :data:`EMBED_END` is the table's :func:`format_table` with its heading at
+#: :data:`EMBED_LEVEL`, so a reader's copy can be checked against the records.
+EMBED_BEGIN = "<!-- table of record: {name} -->"
+
+#: The line that closes an embedded table.
+EMBED_END = "<!-- end of table of record -->"
+
+#: Heading level of an embedded table (inside the README's "###" results sections).
+EMBED_LEVEL = 4
+
+_BEGIN_HEAD, _BEGIN_TAIL = EMBED_BEGIN.split("{name}")
+
+
+class EmbedError(ValueError):
+    """Markers of embedded tables that do not pair up (names the line)."""
+
+
+def embedded_tables(text: str) -> list[tuple[str, int, int]]:
+    """``(table name, first line, end line)`` of each table embedded in ``text``: the lines
+    strictly between its markers, 0-based, ``end`` exclusive, in file order.
+
+    Raises EmbedError on a marker without its pair or a begin marker without a name.
+    """
+    out: list[tuple[str, int, int]] = []
+    open_at: tuple[str, int] | None = None
+    for i, line in enumerate(text.splitlines()):
+        s = line.strip()
+        if s.startswith(_BEGIN_HEAD) and s.endswith(_BEGIN_TAIL):
+            name = s[len(_BEGIN_HEAD) : len(s) - len(_BEGIN_TAIL)].strip()
+            if open_at is not None:
+                raise EmbedError(f"line {i + 1}: table {name!r} begins inside table {open_at[0]!r} (line {open_at[1]})")
+            if not name:
+                raise EmbedError(f"line {i + 1}: a table of record marker without a table name")
+            open_at = (name, i + 1)
+        elif s == EMBED_END:
+            if open_at is None:
+                raise EmbedError(f"line {i + 1}: an end marker with no table open")
+            out.append((open_at[0], open_at[1], i))
+            open_at = None
+    if open_at is not None:
+        raise EmbedError(f"line {open_at[1]}: table {open_at[0]!r} is never closed ({EMBED_END!r})")
+    return out
+
+
+def fill_embedded(text: str, tables: dict) -> str:
+    """``text`` with every embedded table replaced by the table built from the records
+    (:func:`format_table` at :data:`EMBED_LEVEL`); the rest of the text is kept as it is.
+
+    Raises EmbedError on unpaired markers and KeyError naming a table the records do not hold.
+    """
+    by_name = {t["name"]: t for t in tables["tables"]}
+    lines = text.splitlines(keepends=True)
+    out: list[str] = []
+    pos = 0
+    for name, first, end in embedded_tables(text):
+        if name not in by_name:
+            raise KeyError(f"no table {name!r} in the records; their tables: {', '.join(by_name)}")
+        out += lines[pos:first]
+        out.append(format_table(by_name[name], EMBED_LEVEL))
+        pos = end
+    out += lines[pos:]
+    return "".join(out)
 
 
 # -- failed episodes -------------------------------------------------------------------------------
@@ -453,9 +531,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--format", default="md", choices=("md", "json"), help="markdown (as tables.md) or JSON (as tables.json)")
     ap.add_argument("--failures", action="store_true", help="list each row's failed episodes (task/run) by how they failed")
     ap.add_argument("--method", default=None, metavar="NAME", help="with --failures: only this method's rows")
+    ap.add_argument("--embedded", default=None, metavar="MD", help="check the tables embedded in this markdown file (the README) "
+                    "against the records: exit 1 and a diff when one differs")  # fmt: skip
+    ap.add_argument("--write", action="store_true", help="with --embedded: rewrite the embedded tables from the records")
     args = ap.parse_args(argv)
     if args.method is not None and not args.failures:
         ap.error("--method needs --failures")
+    if args.write and args.embedded is None:
+        ap.error("--write needs --embedded")
+    if args.embedded is not None and (args.failures or args.table is not None or args.format != "md"):
+        ap.error("--embedded takes no --failures, --table or --format")
     try:
         header, records = read_records_file(args.records)
     except RecordsFileError as exc:
@@ -464,6 +549,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.failures:
         return _print_failures(header, records, args)
     tables = build_tables(header, records)
+    if args.embedded is not None:
+        return _check_embedded(tables, Path(args.embedded), write=args.write)
     if args.table is None:
         sys.stdout.write(format_document(tables) if args.format == "md" else tables_json(tables))
         return 0
@@ -474,6 +561,34 @@ def main(argv: Sequence[str] | None = None) -> int:
     t = by_name[args.table]
     sys.stdout.write(format_table(t) if args.format == "md" else json.dumps(t, indent=1) + "\n")
     return 0
+
+
+def _check_embedded(tables: dict, path: Path, *, write: bool) -> int:
+    try:
+        text = path.read_text(encoding="utf-8")
+        found = embedded_tables(text)
+        filled = fill_embedded(text, tables)
+    except OSError as exc:
+        print(f"error: --embedded: cannot read {path}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
+    except (EmbedError, KeyError) as exc:
+        print(f"error: --embedded: {path}: {exc.args[0]}", file=sys.stderr)
+        return 2
+    if not found:
+        print(f"error: --embedded: {path} embeds no table of record (a line {EMBED_BEGIN!r} opens one)", file=sys.stderr)
+        return 2
+    names = ", ".join(n for n, _, _ in found)
+    if filled == text:
+        print(f"{path}: {len(found)} embedded tables equal the records ({names})")
+        return 0
+    if write:
+        path.write_text(filled, encoding="utf-8")
+        print(f"{path}: rewrote {len(found)} embedded tables from the records ({names})")
+        return 0
+    diff = difflib.unified_diff(text.splitlines(keepends=True), filled.splitlines(keepends=True), str(path), "from the records")
+    sys.stdout.writelines(diff)
+    print(f"{path}: embedded tables differ from the records (--write rewrites them)", file=sys.stderr)
+    return 1
 
 
 def _print_failures(header: dict, records: list[dict], args: argparse.Namespace) -> int:

@@ -563,3 +563,50 @@ def test_failed_episodes_list_each_rows_failures_by_kind_with_task_and_run(tmp_p
     with pytest.raises(SystemExit):
         pt.main([path, "--method", "m"])  # --method without --failures is a usage error
     assert "--method needs --failures" in capsys.readouterr().err
+
+
+def _embedded_doc(name: str, body: str) -> str:
+    return f"# Results\n\nBefore.\n\n{pt.EMBED_BEGIN.format(name=name)}\n{body}{pt.EMBED_END}\n\nAfter, kept.\n"
+
+
+def test_embedded_tables_are_filled_from_the_records_and_checked(tmp_path, capsys):
+    recs = [_rec("x", "m", True, "stopped"), _rec("y", "m", False, "time_limit", part=1)]
+    header = _header()
+    tor.write_artifacts(tmp_path, header, recs)
+    tables = pt.build_tables(header, recs)
+    readme = tmp_path / "README.md"
+    readme.write_text(_embedded_doc("t", "stale table\n"))
+    records = str(tmp_path / tor.RECORDS_FILE)
+    assert pt.main([records, "--embedded", str(readme)]) == 1  # differs: a diff on stdout
+    out = capsys.readouterr()
+    assert "-stale table" in out.out and "differ from the records" in out.err
+    assert pt.main([records, "--embedded", str(readme), "--write"]) == 0
+    text = readme.read_text()
+    assert text == _embedded_doc("t", pt.format_table(tables["tables"][0], pt.EMBED_LEVEL))
+    assert "#### T (`t`)" in text and "| a | Em | 1 of 3 | 100.0 |" in text and text.endswith("After, kept.\n")
+    capsys.readouterr()
+    assert pt.main([records, "--embedded", str(readme)]) == 0
+    assert "1 embedded tables equal the records (t)" in capsys.readouterr().out
+    # one changed figure in the copy is caught
+    readme.write_text(text.replace("| 100.0 |", "| 99.0 |", 1))
+    assert pt.main([records, "--embedded", str(readme)]) == 1
+
+
+@pytest.mark.parametrize(
+    "doc, match",
+    [
+        (_embedded_doc("nope", ""), "no table 'nope' in the records"),
+        (f"{pt.EMBED_BEGIN.format(name='t')}\nrow\n", "table 't' is never closed"),
+        (f"text\n{pt.EMBED_END}\n", "line 2: an end marker with no table open"),
+        (f"{pt.EMBED_BEGIN.format(name='t')}\n{pt.EMBED_BEGIN.format(name='t')}\n{pt.EMBED_END}\n", "begins inside table 't'"),
+        ("# no tables here\n", "embeds no table of record"),
+    ],
+)
+def test_embedded_markers_that_do_not_pair_are_errors(tmp_path, capsys, doc, match):
+    recs = [_rec("x", "m", True, "stopped")]
+    tor.write_artifacts(tmp_path, _header(), recs)
+    readme = tmp_path / "README.md"
+    readme.write_text(doc)
+    assert pt.main([str(tmp_path / tor.RECORDS_FILE), "--embedded", str(readme), "--write"]) == 2
+    assert match in capsys.readouterr().err
+    assert readme.read_text() == doc  # nothing written
