@@ -154,7 +154,10 @@ def _track(recs: list[dict]) -> dict:
 
 
 def _row(table: dict, part_index: int, method: str, recs: list[dict]) -> dict:
-    """One row: a method on one set of a table (SR / OSR / CR in %, FT s, NE m, SPL in [0, 1])."""
+    """One row: a method on one set of a table (SR / OSR / CR in %, FT s, NE m, SPL in [0, 1],
+    and ``min_clearance_m``: the smallest exact distance from the vehicle's centre to the scene
+    over its episodes, metres, from the truth; the body's radius is 0.25 m, so a collided
+    episode reads below it)."""
     part = table["parts"][part_index]
     label = table["labels"].get(method, method)
     ms = [r["metrics"] for r in recs]
@@ -173,6 +176,7 @@ def _row(table: dict, part_index: int, method: str, recs: list[dict]) -> dict:
         "FT": _mean([m["flight_time_s"] for m in ms]),
         "NE": _mean([m["navigation_error_m"] for m in ms]),
         "SPL": _mean([m["spl"] for m in ms]),
+        "min_clearance_m": min((c for r in recs if (c := r.get("min_clearance_m")) is not None), default=None),
         "end_reasons": _end_reasons(recs),
     }
     if table["paper"]:
@@ -327,7 +331,8 @@ def _cells(t: dict, r: dict) -> list[str]:
     cols = t["columns"]
     cells = [r["set"]] if len(t["parts"]) > 1 else []
     n = str(r["episodes"]) if r["episodes"] == r["planned"] else f"{r['episodes']} of {r['planned']}"
-    cells += [r["label"], n, _f(r["SR"]), _f(r["OSR"]), _f(r["CR"]), _f(r["FT"]), _f(r["NE"], "{:.2f}"), _f(r["SPL"], "{:.2f}")]
+    cells += [r["label"], n, _f(r["SR"]), _f(r["OSR"]), _f(r["CR"]), _f(r["FT"]), _f(r["NE"], "{:.2f}"), _f(r["SPL"], "{:.2f}"),
+              _f(r["min_clearance_m"], "{:.2f}")]  # fmt: skip
     if cols["paper"]:
         p = r["paper"] or {}
         cells += [_f(p.get(k)) for k in ("SR", "OSR", "CR", "FT")]
@@ -346,8 +351,8 @@ def _columns(t: dict) -> tuple[list[str], list[str]]:
     cols = t["columns"]
     names = ["set"] if len(t["parts"]) > 1 else []
     align = ["---"] if names else []
-    names += ["method", "episodes", "SR %", "OSR %", "CR %", "FT s", "NE m", "SPL"]
-    align += ["---"] + ["---:"] * 7
+    names += ["method", "episodes", "SR %", "OSR %", "CR %", "FT s", "NE m", "SPL", "min clear m"]
+    align += ["---"] + ["---:"] * 8
     extra: list[str] = []
     if cols["paper"]:
         extra += ["paper SR %", "paper OSR %", "paper CR %", "paper FT s"]

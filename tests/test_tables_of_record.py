@@ -369,7 +369,7 @@ def test_printer_refuses_what_is_not_a_records_file(tmp_path, capsys):
     assert "**Subset check (count 2): not a table of record.**" in (tmp_path / "tables.md").read_text()
 
 
-def _rec(task, method, success, end, *, part=0, view=None, track=None, collided=False):
+def _rec(task, method, success, end, *, part=0, view=None, track=None, collided=False, clearance=None):
     r = {"key": f"h/{method}/{task}", "tables": {"t": [part]}, "method": method, "task": task, "run": 0, "end_reason": end,
          "failure": "" if success else end, "cpu_s": 1.0,
          "metrics": {"success": success, "oracle_success": success or end == "time_limit", "collided": collided,
@@ -377,6 +377,8 @@ def _rec(task, method, success, end, *, part=0, view=None, track=None, collided=
                      "spl": 0.5 if success else 0.0}}  # fmt: skip
     if view is not None:
         r["start_in_view"] = view
+    if clearance is not None:
+        r["min_clearance_m"] = clearance
     if track is not None:
         r["track"] = track
     return r
@@ -396,9 +398,9 @@ def test_rows_split_by_view_and_track_metrics_from_records_alone():
     t1 = {"in_band_frac": 0.8, "band_error_m": 0.2, "times_lost": 1, "times_refound": 1, "stop_ok": True}
     t2 = {"in_band_frac": 0.6, "band_error_m": 0.4, "times_lost": 2, "times_refound": 0, "stop_ok": None}
     recs = [
-        _rec("x", "m", False, "collision", view=False, track=t2, collided=True),
-        _rec("y", "m", True, "stopped", view=True, track=t1),
-        _rec("z", "m", True, "stopped", view=False),
+        _rec("x", "m", False, "collision", view=False, track=t2, collided=True, clearance=0.21),
+        _rec("y", "m", True, "stopped", view=True, track=t1, clearance=0.6),
+        _rec("z", "m", True, "stopped", view=False),  # no clearance recorded: left out of the minimum
         _rec("w", "m", False, "time_limit", part=1, view=True),
     ]
     table = pt.build_tables(_header(split_view=True, track=True), recs)["tables"][0]
@@ -411,8 +413,9 @@ def test_rows_split_by_view_and_track_metrics_from_records_alone():
                           "refound": 0.5, "stop_held_pct": 100.0}  # fmt: skip
     assert b["episodes"] == 1 and b["SR"] == 0.0 and b["OSR"] == 100.0 and b["track"]["in_band_pct"] is None
     md = pt.format_table(table)
-    assert "| a | Em | 3 | 66.7 | 66.7 | 33.3 | 16.7 | 1.00 | 0.33 | 100.0 (1) | 50.0 (2) | 70.0 | 0.30 | 1.50 | 0.50 | 100.0 | stopped 2, collision 1 |" in md
-    assert "| b | Em | 1 of 3 | 0.0 | 100.0 | 0.0 | 30.0 | 1.00 | 0.00 | 0.0 (1) | n/a (0) | n/a | n/a | n/a | n/a | n/a | time_limit 1 |" in md
+    assert a["min_clearance_m"] == 0.21 and b["min_clearance_m"] is None
+    assert "| a | Em | 3 | 66.7 | 66.7 | 33.3 | 16.7 | 1.00 | 0.33 | 0.21 | 100.0 (1) | 50.0 (2) | 70.0 | 0.30 | 1.50 | 0.50 | 100.0 | stopped 2, collision 1 |" in md
+    assert "| b | Em | 1 of 3 | 0.0 | 100.0 | 0.0 | 30.0 | 1.00 | 0.00 | n/a | 0.0 (1) | n/a (0) | n/a | n/a | n/a | n/a | n/a | time_limit 1 |" in md
     assert "error model: `weak` (per set)" in md and "- wall time: 5 s running this table" in md and "episodes: 4 of 6" in md
 
 
