@@ -460,9 +460,10 @@ def embedded_tables(text: str) -> list[tuple[str, int, int]]:
     return out
 
 
-def fill_embedded(text: str, tables: dict) -> str:
+def fill_embedded(text: str, tables: dict, spans: list[tuple[str, int, int]] | None = None) -> str:
     """``text`` with every embedded table replaced by the table built from the records
     (:func:`format_table` at :data:`EMBED_LEVEL`); the rest of the text is kept as it is.
+    ``spans``: :func:`embedded_tables` of ``text`` when the caller already has them.
 
     Raises EmbedError on unpaired markers and KeyError naming a table the records do not hold.
     """
@@ -470,7 +471,7 @@ def fill_embedded(text: str, tables: dict) -> str:
     lines = text.splitlines(keepends=True)
     out: list[str] = []
     pos = 0
-    for name, first, end in embedded_tables(text):
+    for name, first, end in embedded_tables(text) if spans is None else spans:
         if name not in by_name:
             raise KeyError(f"no table {name!r} in the records; their tables: {', '.join(by_name)}")
         out += lines[pos:first]
@@ -572,7 +573,7 @@ def _check_embedded(tables: dict, path: Path, *, write: bool) -> int:
     try:
         text = path.read_text(encoding="utf-8")
         found = embedded_tables(text)
-        filled = fill_embedded(text, tables)
+        filled = fill_embedded(text, tables, found)
     except OSError as exc:
         print(f"error: --embedded: cannot read {path}: {exc.strerror or exc}", file=sys.stderr)
         return 2
