@@ -245,9 +245,18 @@ def test_goals_are_raised_over_recent_movers_but_not_near_the_target():
     assert pilot._above_movers(10.0, goal, state) is goal  # no mover tracked yet
     pilot._movers_seen_s, pilot._movers_top_m = 5.0, 1.7
     raised = pilot._above_movers(10.0, goal, state)
-    assert raised[2] == pytest.approx(1.7 + cfg.planner.d_safe_m + cfg.above_movers_margin_m)
-    assert np.array_equal(raised[:2], goal[:2]) and goal[2] == 1.2  # a new array
+    z = 1.7 + cfg.planner.d_safe_m + cfg.above_movers_margin_m
+    assert raised[2] == pytest.approx(z) and goal[2] == 1.2  # a new array
+    # 0.95 m under that height the goal is drawn in along its bearing: climb first
+    reach = (z - 1.5) / np.tan(np.radians(cfg.above_movers_climb_deg))
+    np.testing.assert_allclose(raised[:2], [reach, 0.0], atol=1e-9)
     assert [e.kind for e in pilot.events] == ["over_movers"]
+    # at that height (within 0.1 m) it is not drawn in
+    level = VehicleState(10.0, np.array([0.0, 0.0, z - 0.05]), np.zeros(3), 0.0)
+    assert np.array_equal(pilot._above_movers(10.0, goal, level)[:2], goal[:2])
+    # nor nearer than 1 m: a goal straight above is a hover
+    close = VehicleState(10.0, np.array([0.0, 0.0, z - 0.2]), np.zeros(3), 0.0)
+    np.testing.assert_allclose(pilot._above_movers(10.0, goal, close)[:2], [1.0, 0.0], atol=1e-9)
     # the last metres to the target the vehicle was sent to keep its height
     pilot.goal_world = np.array([3.0, 1.0, 1.0])
     assert pilot._above_movers(10.0, goal, state) is goal
@@ -256,6 +265,9 @@ def test_goals_are_raised_over_recent_movers_but_not_near_the_target():
     # above_movers_s after the last mover the rule ends
     assert pilot._above_movers(5.0 + cfg.above_movers_s + 0.1, goal, state) is goal
     assert pilot.events[-1].kind == "over_movers_end"
-    for bad in ({"above_movers_s": -1.0}, {"above_movers_margin_m": float("nan")}, {"above_movers_release_m": -0.5}):
+    for bad in (
+        {"above_movers_s": -1.0}, {"above_movers_margin_m": float("nan")}, {"above_movers_release_m": -0.5},
+        {"above_movers_climb_deg": 0.0}, {"above_movers_climb_deg": 90.0}, {"above_movers_climb_deg": float("nan")},
+    ):  # fmt: skip
         with pytest.raises(PilotConfigError):
             PilotConfig(**bad)
