@@ -660,7 +660,8 @@ def frontier_target(
     """The reachable place next to the most promising frontier of the map's known space, or None
     (no map with frontiers, none at this height, or none reachable).
 
-    Frontier voxels (seen free, next to unknown; ``field_map.frontier_points()``) within 0.6 m
+    Frontier voxels (seen free, next to unknown beside them, not above or below;
+    ``field_map.frontier_points(axes=(0, 1))``) within 0.6 m
     of the flight height are grouped in 1 m cells; a group is reached through the map's free
     layer at that height (breadth-first, keeping ``explore_clearance_m``), and scored by its
     size, its direction (as in :func:`explore_target`), its path length, and the places already
@@ -672,7 +673,7 @@ def frontier_target(
     if not callable(frontier) or not callable(getattr(field_map, "distance_slice", None)):
         return None
     cfg = config
-    F = np.asarray(frontier(), dtype=float).reshape(-1, 3)
+    F = np.asarray(frontier(axes=(0, 1)), dtype=float).reshape(-1, 3)  # the ways on at a height
     F = F[np.abs(F[:, 2] - z_m) <= 0.6]
     if volume is not None and len(F):
         F = F[volume.contains(F, margin_m=volume_margin_m)]

@@ -575,15 +575,23 @@ class EsdfMap:
         """Bool (nx, ny, nz), a new array: observed voxels whose log-odds say obstacle."""
         return self._occ.observed & (self._occ.logodds > np.float32(self.config.occupied_logodds))
 
-    def frontier_points(self) -> np.ndarray:
+    def frontier_points(self, axes: tuple[int, ...] = (0, 1, 2)) -> np.ndarray:
         """World centres (m, 3), metres, of frontier voxels: observed free voxels with at least
         one unknown face neighbour inside the window (the edge of what has been seen free,
-        where exploration leads). Faces on the window boundary do not count."""
+        where exploration leads). Faces on the window boundary do not count.
+
+        axes : the grid axes (0 = x, 1 = y, 2 = z) whose faces count. ``(0, 1)`` gives the ways
+            on at a height: the unknown space over the vehicle's trail (the body sphere stops
+            ``body_clear_above_m`` over it, and a level camera never sees straight up) borders
+            every free voxel at the trail's top, a frontier no flight at that height leads to.
+        """
+        if not axes or any(a not in (0, 1, 2) for a in axes):
+            raise EsdfError(f"axes must be a non-empty subset of (0, 1, 2), got {axes!r}")
         known = self._occ.observed
         free = known & ~(self._occ.logodds > np.float32(self.config.occupied_logodds))
         unknown = ~known
         touch = np.zeros(self.shape, dtype=bool)
-        for axis in range(3):
+        for axis in sorted(set(axes)):
             lo = [slice(None)] * 3
             hi = [slice(None)] * 3
             lo[axis], hi[axis] = slice(None, -1), slice(1, None)

@@ -127,6 +127,20 @@ class EsdfConfig:
         ground. 0 turns it off. A caller that flies a planner with a tracking margin grows the
         radius by that margin each frame (``EsdfMap.integrate(body_margin_m=...)``), so the
         sphere keeps exceeding the clearance the planner asks for.
+    body_clear_above_m : the sphere clears no voxel whose centre lies more than this above the
+        vehicle, metres (None = the whole sphere). A level camera with a 60 deg vertical field
+        of view never sees the space straight above it, and a room's ceiling is often nearer
+        than the sphere's radius (2.6 m over a vehicle at 1.5 m: 1.1 m, inside 1.2 m); the
+        whole sphere marked that ceiling free, and it rose with the vehicle, so a goal raised
+        into it (the goal check's lift) was raised again every step: the oracle climbed at
+        0.3 m/s into the apartment's ceiling (``apartment-o09``, ``apartment-l05`` in the hard
+        set). Default 0.5 m: above ``d_safe_m`` (0.45 m) by a voxel, so a vehicle hovering at
+        the height it reached keeps its clearance, and under the 0.25 m lift step plus the goal
+        clearance (0.5 m), so a goal is never lifted into the sphere. The camera still clears
+        the space ahead and above in view (30 deg up), so a vehicle climbs while it flies on.
+        Like the radius it grows by ``body_margin_m`` (the planner's tracking margin, which the
+        MPC adds to ``d_safe_m``: fixed, it failed plans of a hovering vehicle in gusts), and
+        so does the goal check's clearance, so the lift still finds no room in it
     body_clear_in_view : False (default): the sphere leaves alone the voxels the frame's camera
         looks at (their centre projects into the image), so it only fills in what the camera
         cannot see from where it is: below, behind and beside its view. A voxel in view that
@@ -176,6 +190,7 @@ class EsdfConfig:
     no_reading_clear_m: float = 4.5
     no_reading_needs_below: bool = True
     body_clear_radius_m: float = 1.2
+    body_clear_above_m: float | None = 0.6
     body_clear_in_view: bool = False
     body_clear_recent_views: int = 20
     reach_cull: bool = True
@@ -192,6 +207,10 @@ class EsdfConfig:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise EsdfConfigError(f"{name} must be a finite number >= 0, got {value!r}")
+        if self.body_clear_above_m is not None:
+            above = self.body_clear_above_m
+            if not (isinstance(above, (int, float)) and not isinstance(above, bool) and math.isfinite(above) and above >= 0):
+                raise EsdfConfigError(f"body_clear_above_m must be a finite number >= 0 or None, got {above!r}")
         if self.min_range_m >= self.max_range_m:
             raise EsdfConfigError(
                 f"min_range_m ({self.min_range_m}) must be smaller than max_range_m ({self.max_range_m})"

@@ -23,8 +23,9 @@ One frame does, in order (the docstring of :meth:`RollingOccupancy.integrate` ha
    wins.
 3. **Log-odds update** on the touched voxels only, and the list of voxels whose obstacle state
    (the mask the distance transform sees) flipped.
-4. **Body sphere** -- the unknown voxels within ``body_clear_radius_m`` of the vehicle that
-   the frame's camera cannot see (below, behind or beside its view) are marked free
+4. **Body sphere** -- the unknown voxels within ``body_clear_radius_m`` of the vehicle, and
+   at most ``body_clear_above_m`` above it, that the frame's camera cannot see (below, behind
+   or beside its view) are marked free
    (:meth:`RollingOccupancy.mark_free_sphere`; voxblox's clear sphere, minus the view).
 """
 
@@ -333,7 +334,10 @@ class RollingOccupancy:
             body = T_world_cam[:3, 3] if body_world is None else np.asarray(body_world, dtype=float)
             view = None if cfg.body_clear_in_view else (camera, T_world_cam)
             earlier = tuple(self._recent_views) if view is not None and cfg.body_clear_recent_views > 0 else ()
-            cleared = self.mark_free_sphere(body, cfg.body_clear_radius_m + body_margin_m, view=view, earlier_views=earlier)
+            cleared = self.mark_free_sphere(
+                body, cfg.body_clear_radius_m + body_margin_m, view=view, earlier_views=earlier,
+                above_m=None if cfg.body_clear_above_m is None else cfg.body_clear_above_m + body_margin_m,
+            )
             if cleared.size:
                 flipped = np.union1d(flipped, cleared)
         if cfg.body_clear_recent_views > 0:
@@ -354,6 +358,7 @@ class RollingOccupancy:
         radius_m: float,
         view: tuple[PinholeCamera, np.ndarray] | None = None,
         earlier_views: tuple[tuple[PinholeCamera, np.ndarray], ...] = (),
+        above_m: float | None = None,
     ) -> np.ndarray:
         """Mark the *unknown* voxels whose centre lies within ``radius_m`` of ``center_world``
         (3,) metres observed and free (one miss). Observed voxels are left alone.
@@ -367,6 +372,8 @@ class RollingOccupancy:
             projected into one of their images with a z-depth in (``min_range_m``,
             ``no_reading_clear_m``] are left alone as well (looked at from within the reach of
             the no-reading rule, and still unknown).
+        above_m : metres, or None: voxels whose centre lies more than this above
+            ``center_world`` are left alone (``EsdfConfig.body_clear_above_m``).
 
         Returns the flat local indices whose obstacle state flipped (unknown -> free under
         ``unknown_policy="occupied"``; none under ``"free"``).
@@ -383,7 +390,10 @@ class RollingOccupancy:
             ((ax[0] - c[0]) ** 2)[:, None, None] + ((ax[1] - c[1]) ** 2)[None, :, None] + ((ax[2] - c[2]) ** 2)[None, None, :]
         )
         box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
-        new = (d2 <= r * r) & ~self.observed[box]
+        inside = d2 <= r * r
+        if above_m is not None:
+            inside &= (ax[2] - c[2])[None, None, :] <= float(above_m) / self.voxel_m
+        new = inside & ~self.observed[box]
         if view is not None and new.any():
             new[self._projects_into(view, lo, new)] = False
         for past in earlier_views:
@@ -407,9 +417,9 @@ class RollingOccupancy:
         self, view: tuple[PinholeCamera, np.ndarray], lo: np.ndarray, mask: np.ndarray, max_z_m: float = np.inf
     ) -> tuple[np.ndarray, ...]:
         """Indices into ``mask`` (a box of the grid starting at local voxel ``lo``) of its True
-        voxels whose centre projects into the image of ``view = (camera, T_world_cam)`` with a
-        z-depth above ``min_range_m`` (the pixel rule of the clearing step) and at most
-        ``max_z_m``."""
+        voxels whose centre projects into the image of ``view = (camera, T_world_cam)``, at
+        least half a pixel inside its border, with a z-depth above ``min_range_m`` (the pixel
+        rule of the clearing step) and at most ``max_z_m``."""
         camera, T_world_cam = view
         sub = np.nonzero(mask)
         centres = (np.stack(sub, axis=-1) + lo + self.origin_index + 0.5) * self.voxel_m
@@ -417,9 +427,13 @@ class RollingOccupancy:
         z = p_cam[:, 2]
         seen = (z > self.config.min_range_m) & (z <= max_z_m)
         zs = np.where(seen, z, 1.0)
-        u = np.floor(camera.fx * p_cam[:, 0] / zs + camera.cx + 0.5)
-        v = np.floor(camera.fy * p_cam[:, 1] / zs + camera.cy + 0.5)
-        seen &= (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+        # pixel coordinates (pixel i spans [i - 0.5, i + 0.5)), half a pixel inside the border:
+        # a voxel centre on the frustum's edge (a 45 deg diagonal from a voxel-aligned start)
+        # is in the image for float64 here and out of it for the clearing's float32, and the
+        # two together left it unknown, an obstacle 0.21 m from the vehicle
+        u = camera.fx * p_cam[:, 0] / zs + camera.cx
+        v = camera.fy * p_cam[:, 1] / zs + camera.cy
+        seen &= (u >= 0.0) & (u <= camera.width - 1.0) & (v >= 0.0) & (v <= camera.height - 1.0)
         return tuple(a[seen] for a in sub)
 
     def _backproject(self, depth_m: np.ndarray, camera: PinholeCamera, T_world_cam: np.ndarray) -> np.ndarray:

@@ -6,8 +6,9 @@ path's QP data compiled once per formulation and cached, :mod:`planning.mpc_code
 the first command and everything a log needs. One step (the fast path) is one real-time
 iteration:
 
-1. **Goal check.** A goal with clearance below ``d_safe + goal_clearance_margin`` is moved to
-   the nearest point with that clearance: Newton steps along the field gradient
+1. **Goal check.** A goal with clearance below ``d_safe + goal_clearance_margin`` (plus the
+   tracking margin, which the MPC adds to ``d_safe`` too: a goal nearer an obstacle than the
+   vehicle may fly is not one it can reach) is moved to the nearest point with that clearance: Newton steps along the field gradient
    (``g += (target - d) grad``), and if that fails within ``goal_search_max_m``, a line search
    back along the segment toward the vehicle. With a flight volume the goal is also clamped into
    it (shrunk by ``body_radius_m``). ``PlanResult.goal_adjusted`` says so.
@@ -596,7 +597,9 @@ class Planner:
         d0 = float(d_all[1])
 
         # goal check, attractor, yaw reference
-        goal_clear = c.d_safe_m + c.goal_clearance_margin_m
+        # with the tracking margin: the clearance the MPC keeps, and no lift (0.25 m) then lands
+        # in the body sphere's top, which grows by the same margin (EsdfConfig.body_clear_above_m)
+        goal_clear = c.d_safe_m + c.goal_clearance_margin_m + margin
         goal_used, adjusted = adjust_goal(
             goal, origin, field, goal_clear, c.goal_search_max_m, goal_query=(float(d_all[0]), g_all[0]),
             lift_max_m=c.goal_lift_max_m,

@@ -142,11 +142,15 @@ def test_body_sphere_is_free_and_never_overrides_an_observation():
     p = np.array([0.0, 0.0, HEIGHT_M])
     esdf.integrate(wall_depth(p, 4.0), CAMERA, pose(p))
     r = cfg.body_clear_radius_m
-    dirs = np.array([[-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1], [-0.6, 0.8, 0]], dtype=float)
+    dirs = np.array([[-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, -1], [-0.6, 0.8, 0]], dtype=float)
     inside = p + (r - 0.1) * dirs
-    outside = p + (r + 0.15) * dirs[[0, 3, 4]]  # behind, above, below: out of view
+    outside = p + (r + 0.15) * dirs[[0, 3]]  # behind, below: out of view
     assert esdf.observed_free(inside).all()
     assert not esdf.known(outside).any()
+    # above the vehicle only up to body_clear_above_m: the camera never saw the ceiling there
+    up = cfg.body_clear_above_m
+    assert esdf.observed_free(p + [[0.0, 0.0, up - 0.05], [-0.5, 0.3, up - 0.05]]).all()
+    assert not esdf.known(p + [[0.0, 0.0, up + 0.1], [-0.5, 0.3, up + 0.1], [-0.9, 0.0, up + 0.1]]).any()
     # the vehicle's own position has room for the planner's safety distance
     assert esdf.query(p[None])[0][0] >= PlannerConfig().d_safe_m + 0.1
     # an obstacle seen inside the sphere stays an obstacle
@@ -387,7 +391,7 @@ def test_flying_level_beside_a_dark_box_keeps_it_an_obstacle():
 def _reference_known(esdf: EsdfMap, depth: np.ndarray, p: np.ndarray, reach_of_pixel) -> tuple[np.ndarray, np.ndarray]:
     """(known, hit) bool grids of one frame from the pinhole model, computed independently:
     hit = voxels holding a back-projected point (stride 2); cleared = voxel centres projecting
-    into the image with min_range < z < reach; plus the body sphere."""
+    into the image with min_range < z < reach; plus the body sphere up to body_clear_above_m."""
     cfg = esdf.config
     C = esdf.voxel_centers().reshape(-1, 3)
     P_cam = (C - p) @ ROT_LOOK_X  # R^T (c - t) as rows
@@ -409,6 +413,8 @@ def _reference_known(esdf: EsdfMap, depth: np.ndarray, p: np.ndarray, reach_of_p
     keep = np.all((idx >= 0) & (idx < np.array(esdf.shape)), axis=1)
     hit[tuple(idx[keep].T)] = True
     body = (np.linalg.norm(C - p, axis=1) <= cfg.body_clear_radius_m) & ~inside  # what the camera cannot see
+    if cfg.body_clear_above_m is not None:
+        body &= C[:, 2] - p[2] <= cfg.body_clear_above_m
     known = hit | (cleared | body).reshape(esdf.shape)
     return known, hit
 
@@ -500,3 +506,105 @@ def test_glass_door_rendered_from_a_scene_is_not_a_passage():
     old.integrate(obs.depth_m, obs.camera, obs.T_world_cam, center_world=obs.position)
     assert np.all(old.query(behind)[0] == old.config.max_distance_m)
     assert Planner(PlannerConfig()).step(start, goal, old).goal_used[0] < door_x
+
+
+# -- the sphere's cap: a ceiling the camera never saw ---------------------------------------------
+class _MapAndBoxes:
+    """The map with analytic boxes added (their union): distance and gradient of the nearer."""
+
+    def __init__(self, esdf: EsdfMap, boxes):
+        from planning.analytic_field import AnalyticField
+
+        self.esdf, self.boxes = esdf, AnalyticField(boxes=tuple(boxes))
+
+    def query(self, points):
+        d1, g1 = self.esdf.query(points)
+        d2, g2 = self.boxes.query(points)
+        nearer = d2 < d1
+        return np.where(nearer, d2, d1), np.where(nearer[:, None], g2, g1)
+
+
+def _lifted_goal(cfg: EsdfConfig, margin_m: float = 0.0) -> np.ndarray:
+    """The goal the goal check gives a vehicle at 1.4 m whose goal is round a corner
+    (everything from 0.9 m ahead is a wall here) with a cabinet beside it (top at 1.6 m, side
+    0.45 m away): the whole line toward the goal lacks the goal clearance, so it is lifted.
+    ``margin_m``: the planner's tracking margin (the sphere and the goal clearance grow by it)."""
+    from planning.analytic_field import Box
+    from planning.planner import adjust_goal
+
+    planner_cfg = PlannerConfig()
+    clearance = planner_cfg.d_safe_m + planner_cfg.goal_clearance_margin_m + margin_m
+    wall = Box(np.array([3.9, 0.0, 2.5]), np.array([3.0, 5.0, 2.5]))
+    cabinet = Box(np.array([0.0, 0.95, 0.8]), np.array([1.5, 0.5, 0.8]))
+    esdf = EsdfMap(cfg)
+    p = np.array([0.0, 0.0, 1.4])
+    esdf.integrate(wall_depth(p, 0.95), CAMERA, pose(p), center_world=p, body_margin_m=margin_m)
+    field = _MapAndBoxes(esdf, (wall, cabinet))
+    used, _ = adjust_goal(np.array([3.0, 0.0, 1.2]), p, field, clearance, planner_cfg.goal_search_max_m, lift_max_m=planner_cfg.goal_lift_max_m)
+    return used
+
+
+def test_the_sphere_never_claims_the_unseen_space_over_the_vehicle():
+    """The whole sphere marked free the space up to 1.2 m over the vehicle, which a level
+    camera never sees (a 2.6 m ceiling is 1.1 m over a vehicle at 1.5 m), and the goal check
+    lifted goals into it; the sphere rose with the vehicle, the next lift started from there,
+    and the oracle climbed at 0.3 m/s into the apartment's ceiling (``apartment-o09``; the
+    closed loop is ``tests/test_oracle.py``). Capped at ``body_clear_above_m`` the lift finds
+    no room over the vehicle in space the camera never saw."""
+    planner_cfg = PlannerConfig()
+    up = DEFAULT.body_clear_above_m
+    # room for the planner's clearance and the guide's margin, none for the smallest lift
+    assert up is not None and planner_cfg.d_safe_m + 0.1 <= up < 0.25 + planner_cfg.d_safe_m + planner_cfg.goal_clearance_margin_m
+    whole = _lifted_goal(dataclasses.replace(DEFAULT, body_clear_above_m=None))
+    assert whole[2] >= 1.4 + 0.25
+    # ... into space above the camera's 30 deg upper field edge: never seen
+    assert np.degrees(np.arctan2(whole[2] - 1.4, max(whole[0], 1e-9))) > 30.0
+    for margin in (0.0, 0.15, 0.3, 0.6):  # the sphere and the goal clearance grow alike
+        assert _lifted_goal(DEFAULT, margin)[2] <= 1.4 + 1e-9
+    grown = EsdfMap(DEFAULT)
+    p = np.array([0.0, 0.0, HEIGHT_M])
+    grown.integrate(wall_depth(p, 3.0), CAMERA, pose(p), center_world=p, body_margin_m=0.3)
+    assert grown.known(p + [[0.0, 0.0, up + 0.25]]).all() and not grown.known(p + [[0.0, 0.0, up + 0.4]]).any()
+    # the vehicle's own position keeps the planner's clearance and the guide search's margin
+    esdf = EsdfMap(DEFAULT)
+    p = np.array([0.0, 0.0, HEIGHT_M])
+    esdf.integrate(wall_depth(p, 3.0), CAMERA, pose(p), center_world=p)
+    assert esdf.query(p[None])[0][0] >= planner_cfg.d_safe_m + 0.1
+    assert not esdf.known(np.array([[0.0, 0.0, 2.55], [-0.5, 0.0, 2.3]])).any()
+    for bad in (-0.1, float("nan"), float("inf"), True):
+        with pytest.raises(EsdfConfigError, match="body_clear_above_m"):
+            dataclasses.replace(DEFAULT, body_clear_above_m=bad)
+
+
+@pytest.mark.parametrize("start", [(0.0, 0.0, HEIGHT_M), (1.4, 2.8, HEIGHT_M)])
+def test_the_frustum_edge_leaves_no_unknown_voxel_beside_the_vehicle(start):
+    """From a voxel-aligned start, voxel centres lie exactly on the 45 deg edges of a 90 deg
+    camera. The sphere's in-view test (float64) put some of them in the image and the clearing
+    (float32) put them out of it, so neither marked them: an obstacle 0.21 m from the vehicle
+    at the hard set's ``apartment-o02`` start (1.4, 2.8, 1.5), and the oracle never moved. The
+    in-view test now takes a centre as looked at only half a pixel inside the image's border."""
+    cam = PinholeCamera.from_fov(320, 214, 90.0, 60.0)
+    p = np.array(start)
+    esdf = EsdfMap(DEFAULT)
+    esdf.integrate(np.full((cam.height, cam.width), 3.0, np.float32), cam, pose(p), center_world=p)
+    C = esdf.voxel_centers().reshape(-1, 3)
+    near = (np.linalg.norm(C - p, axis=1) <= DEFAULT.body_clear_radius_m - 0.1) & (C[:, 2] - p[2] <= DEFAULT.body_clear_above_m - 0.05)
+    assert near.sum() > 4000 and esdf.known(C[near]).all()
+    assert esdf.query(p[None])[0][0] >= PlannerConfig().d_safe_m + 0.1
+
+
+def test_the_capped_sphere_is_no_frontier_to_fly_to():
+    """The sphere's top (``body_clear_above_m`` over the vehicle) borders unknown space the
+    camera never sees; as a frontier it drew the search back along its own trail (the pocket
+    test of ``tests/test_search.py`` timed out). The ways on at a height are the horizontal
+    faces (``axes=(0, 1)``); all three stay the default."""
+    p = np.array([0.0, 0.0, HEIGHT_M])
+    esdf = EsdfMap(DEFAULT)
+    esdf.integrate(wall_depth(p, 3.0), CAMERA, pose(p), center_world=p)
+    top = p[2] + DEFAULT.body_clear_above_m - 0.05
+    over = lambda F: F[(np.abs(F[:, 2] - top) < 0.01) & (np.hypot(F[:, 0] - p[0], F[:, 1] - p[1]) < 0.5)]  # noqa: E731
+    assert len(over(esdf.frontier_points())) > 10
+    assert len(over(esdf.frontier_points(axes=(0, 1)))) == 0
+    assert esdf.frontier_points(axes=(0, 1)).shape[0] > 0  # the sphere's rim behind the camera
+    with pytest.raises(EsdfError, match="axes"):
+        esdf.frontier_points(axes=(3,))

@@ -537,7 +537,7 @@ def test_vlm_dies_mid_flight_the_flight_holds_then_a_takeover_stops_the_companio
     assert 1.5 <= goal_timeout["t_s"] - last_goal <= 1.5 + 0.2 and goal_timeout["t_s"] <= died + 1.5 + 0.2
     assert 1.0 <= fs["vlm_silent"]["t_s"] - last_ok <= 1.0 + 0.2
     assert [x["cause"] for x in summary.failsafes if x["cause"] == "vlm_silent"] == ["vlm_silent"]  # held until the end
-    assert holding and all(s.kind is SetpointKind.HOLD for s in holding)
+    assert holding and all(s.kind is SetpointKind.HOLD for s in holding), [(round(s.t_s - backend.died_at, 2), s.kind.value) for s in holding if s.kind is not SetpointKind.HOLD][:8]
     # braking from up to 0.6 m/s at 0.6 m/s^2 onto the captured hold point: slow and close to it 3 s after the death
     T_world_scene = np.linalg.inv(bridge.T_local_world) @ vehicle.T_local_scene  # the pilot's frame is anchored at the start
     p_hold_world = T_world_scene[:3, :3] @ p_hold + T_world_scene[:3, 3]

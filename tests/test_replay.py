@@ -104,9 +104,11 @@ def test_fixed_goal_is_handed_to_the_planner_every_frame():
 def test_path_clearance_is_the_distance_from_the_camera_to_the_observed_wall():
     # a wall 1 m in front of a camera at rest; the clamp raised so 1 m is not clamped. The
     # shell of clear_margin_m in front of the wall stays unknown (an obstacle): no ray passed
-    # it, and the body sphere leaves what the camera looks at to the camera
+    # it, and the body sphere leaves what the camera looks at to the camera. The sphere runs
+    # to its full radius above (body_clear_above_m=None): capped, the space 0.65 m over the
+    # camera, which it never saw, would be the nearest obstacle
     source = ListSource(_obs(0.1 * i, 0.0, 1.0, i) for i in range(3))
-    esdf = EsdfConfig(max_distance_m=2.0)
+    esdf = EsdfConfig(max_distance_m=2.0, body_clear_above_m=None)
     config = ReplayConfig(goal_mode="fixed", goal_world=(0.0, 0.0, 1.5), esdf=esdf)
     report = replay(source, config, progress=False)
     expected = 1.0 - esdf.clear_margin_m
@@ -120,7 +122,8 @@ def test_path_clearance_exposes_a_pose_inside_the_mapped_wall():
     # centre, where the field's zero level lies); it has no depth readings, so the map keeps
     # the wall and the camera sits in it
     source = ListSource([_obs(0.0, 0.0, 1.0, 0), _obs(0.5, 1.05, 0.0, 1)])
-    report = replay(source, ReplayConfig(goal_mode="fixed", goal_world=(0.0, 0.0, 1.5)), progress=False)
+    config = ReplayConfig(goal_mode="fixed", goal_world=(0.0, 0.0, 1.5), esdf=EsdfConfig(body_clear_above_m=None))
+    report = replay(source, config, progress=False)
     assert report.per_frame[0].path_clearance_m > 0.8  # the wall at 1 m less the unknown shell
     assert report.path_clearance_min_m <= 0.01
     assert report.path_clearance_min_index == 1

@@ -734,7 +734,7 @@ class FrontierMap:
     def known(self, points):
         return np.asarray(points)[:, 0] < 2.0
 
-    def frontier_points(self):
+    def frontier_points(self, axes=(0, 1, 2)):
         return self.frontier
 
     def distance_slice(self, z_m):
