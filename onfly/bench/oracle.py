@@ -10,8 +10,13 @@ verifier-free path of the real pilot:
 - the goal of each control period is a *carrot* ``lookahead_m`` of arc length ahead of the
   vehicle's progress along the reference polyline (progress is the nearest polyline point in
   a window ahead of the last one, so it never jumps back), and on the last stretch the
-  reference's end, the free point next to the goal region;
-- :class:`planning.planner.Planner` plans to it;
+  reference's end, the free point next to the goal region; drawn back along the reference to
+  the farthest point in line of sight of the vehicle (a carrot round a doorway's corner
+  points through the wall);
+- :class:`planning.planner.Planner` plans to it, the camera facing the carrot (the yaw
+  reference is its bearing): unknown space is an obstacle, so a carrot the planner holds back
+  at the edge of what the camera has seen (round a doorway's frame) must be looked at, not
+  only flown toward;
 - it declares the task done when the vehicle is within ``done_radius_m`` of the goal region
   (or 0.3 m beyond the reference's end, if that lies farther out) and slower than
   ``done_speed_mps``.
@@ -177,6 +182,35 @@ class OraclePilot:
         k = int(np.searchsorted(self.arc, self.arc[self._progress] + c.lookahead_m, side="left"))
         return self.path[min(k, len(self.path) - 1)]
 
+    def _visible_carrot(self, p: np.ndarray, field, movers_field=None) -> np.ndarray:
+        """The farthest reference point up to the carrot (``lookahead_m`` of arc ahead) whose
+        straight segment from ``p`` keeps the goal check's clearance (``d_safe_m +
+        goal_clearance_margin_m``) in the static map ``field``: a carrot round a corner pulled
+        the goal check back along the segment through the wall, to the vehicle, which hovered
+        to the time limit (21 of the oracle's 22 hard-set failures at ``47e1c57``, 1 m doorways).
+        Without such a point, the reference point 0.25 m ahead; but if ``movers_field`` (the
+        map with the movers' predicted lanes) holds that one under the clearance, the carrot,
+        which the goal check then holds back: the vehicle waits outside a walker's lane
+        instead of stepping into it (``tests/test_movers.py``, the pacing walker)."""
+        far = self._carrot(p)
+        k_far = int(np.flatnonzero(np.all(self.path == far, axis=1))[0])
+        c = self.planner_config
+        clearance = c.d_safe_m + c.goal_clearance_margin_m
+        step = max(1, int(round(0.25 / self.config.path_step_m)))
+        for k in range(k_far, self._progress, -step):
+            q = self.path[k]
+            n = max(2, int(np.ceil(np.linalg.norm(q - p) / 0.1)) + 1)
+            seg = p[None, :] + np.linspace(0.0, 1.0, n)[:, None] * (q - p)[None, :]
+            d, _ = field.query(seg[1:])
+            if np.all(d >= clearance):
+                return q
+        near = self.path[min(self._progress + step, len(self.path) - 1)]
+        if movers_field is not None:
+            d, _ = movers_field.query(near[None, :])
+            if float(d[0]) < clearance:
+                return far
+        return near
+
     def step(self, t_s: float, state: VehicleState, obs: Observation | None) -> MethodStep:
         if obs is not None:
             self.movers.observe(t_s, obs.depth_m, obs.camera, obs.T_world_cam, self.esdf)
@@ -190,8 +224,11 @@ class OraclePilot:
         speed = float(np.linalg.norm(state.v))
         if gap <= self._done_gap_m and speed <= self.config.done_speed_mps:
             return MethodStep(None, True, {"goal_gap_m": gap})
-        carrot = self._carrot(state.p)
-        plan = self.planner.step(state, carrot, self.movers.field(self.esdf, t_s))
+        field = self.movers.field(self.esdf, t_s)
+        carrot = self._visible_carrot(state.p, self.esdf, field)
+        to = carrot[:2] - state.p[:2]
+        yaw = float(np.arctan2(to[1], to[0])) if float(np.hypot(to[0], to[1])) > self.planner_config.yaw_hold_radius_m else None
+        plan = self.planner.step(state, carrot, field, yaw_ref=yaw)
         self._fallbacks[plan.fallback.value] += 1
         self._min_pred_clearance = min(self._min_pred_clearance, float(plan.min_predicted_clearance_m))
         self._plan_ms.append(float(plan.solve_time_ms))
