@@ -140,7 +140,7 @@ class EsdfConfig:
         the space ahead and above in view (30 deg up), so a vehicle climbs while it flies on.
         Like the radius it grows by ``body_margin_m`` (the planner's tracking margin, which the
         MPC adds to ``d_safe_m``: fixed, it failed plans of a hovering vehicle in gusts), and
-        so does the goal check's clearance, so the lift still finds no room in it
+        so does the clearance the goal check's lift asks, so the lift still finds no room in it
     body_clear_in_view : False (default): the sphere leaves alone the voxels the frame's camera
         looks at (their centre projects into the image), so it only fills in what the camera
         cannot see from where it is: below, behind and beside its view. A voxel in view that

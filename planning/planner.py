@@ -6,9 +6,8 @@ path's QP data compiled once per formulation and cached, :mod:`planning.mpc_code
 the first command and everything a log needs. One step (the fast path) is one real-time
 iteration:
 
-1. **Goal check.** A goal with clearance below ``d_safe + goal_clearance_margin`` (plus the
-   tracking margin, which the MPC adds to ``d_safe`` too: a goal nearer an obstacle than the
-   vehicle may fly is not one it can reach) is moved to the nearest point with that clearance: Newton steps along the field gradient
+1. **Goal check.** A goal with clearance below ``d_safe + goal_clearance_margin`` is moved to
+   the nearest point with that clearance: Newton steps along the field gradient
    (``g += (target - d) grad``), and if that fails within ``goal_search_max_m``, a line search
    back along the segment toward the vehicle. With a flight volume the goal is also clamped into
    it (shrunk by ``body_radius_m``). ``PlanResult.goal_adjusted`` says so.
@@ -260,6 +259,7 @@ def adjust_goal(
     iterations: int = 30,
     goal_query: tuple[float, np.ndarray] | None = None,
     lift_max_m: float = 0.0,
+    lift_margin_m: float = 0.0,
 ) -> tuple[np.ndarray, bool]:
     """Move ``goal`` to the nearest point with clearance at least ``clearance_m``.
 
@@ -268,10 +268,10 @@ def adjust_goal(
     clearance (a medial ridge, a thick obstacle), the segment from the goal back toward the
     vehicle is searched in 2.5 cm steps for the first point with the clearance. If no point on
     it has the clearance, the same segment raised in 0.25 m steps up to ``lift_max_m`` is
-    searched, and the point with the clearance nearest the goal is returned (a target on a
-    floor or a ledge lower than the clearance allows: the whole line toward it is too close to
-    the floor, a point above it is not). If none has it either, the point of largest clearance
-    on the segment is returned.
+    searched, and the point with the clearance (plus ``lift_margin_m``) nearest the goal is
+    returned (a target on a floor or a ledge lower than the clearance allows: the whole line
+    toward it is too close to the floor, a point above it is not). If none has it either, the
+    point of largest clearance on the segment is returned.
 
     Parameters
     ----------
@@ -281,6 +281,8 @@ def adjust_goal(
     search_max_m : largest displacement of the gradient ascent, metres
     goal_query : optional ``(d, grad (3,))`` already known at ``goal`` (saves a query)
     lift_max_m : highest raise of the segment searched last, metres (0: none)
+    lift_margin_m : metres a raised point needs beyond ``clearance_m`` (the planner's tracking
+        margin, by which the body sphere's top grows: no lift then lands in that top)
 
     Returns
     -------
@@ -318,7 +320,7 @@ def adjust_goal(
         lifts = _GOAL_LIFT_STEP_M * np.arange(1, n_lifts + 1)
         raised = (pts[None, :, :] + lifts[:, None, None] * np.array([0.0, 0.0, 1.0])).reshape(-1, 3)
         dr, _ = _query(field, raised)
-        ok = np.flatnonzero(dr >= clearance_m)
+        ok = np.flatnonzero(dr >= clearance_m + lift_margin_m)
         if ok.size:
             best = ok[int(np.argmin(np.linalg.norm(raised[ok] - goal, axis=1)))]
             return raised[best].copy(), True
@@ -597,12 +599,12 @@ class Planner:
         d0 = float(d_all[1])
 
         # goal check, attractor, yaw reference
-        # with the tracking margin: the clearance the MPC keeps, and no lift (0.25 m) then lands
-        # in the body sphere's top, which grows by the same margin (EsdfConfig.body_clear_above_m)
-        goal_clear = c.d_safe_m + c.goal_clearance_margin_m + margin
+        goal_clear = c.d_safe_m + c.goal_clearance_margin_m
+        # a lift needs the tracking margin too: the body sphere's top grows by it
+        # (EsdfConfig.body_clear_above_m), and a lift (0.25 m) must never land in that top
         goal_used, adjusted = adjust_goal(
             goal, origin, field, goal_clear, c.goal_search_max_m, goal_query=(float(d_all[0]), g_all[0]),
-            lift_max_m=c.goal_lift_max_m,
+            lift_max_m=c.goal_lift_max_m, lift_margin_m=margin,
         )
         if box is not None and adjusted:
             goal_used = box.clamp(goal_used)

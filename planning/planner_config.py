@@ -87,7 +87,7 @@ class PlannerConfig:
     w_prox_accel : QP-only proximal weight on ``||a_k - a_bar_k||^2`` toward the linearization
         point; damps the sequential linearization, zero at a fixed point (not in the NLP)
     goal_clearance_margin_m : a goal is moved until its clearance is ``d_safe_m`` plus this
-        (plus the step's tracking margin)
+        (a goal lifted over the segment to it: plus the step's tracking margin too)
     goal_search_max_m : how far the goal may be moved by gradient ascent before the line
         search back toward the vehicle takes over, metres
     goal_lift_max_m : when no point of that line has the goal clearance, the line raised by up to

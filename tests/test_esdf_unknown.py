@@ -528,19 +528,22 @@ def _lifted_goal(cfg: EsdfConfig, margin_m: float = 0.0) -> np.ndarray:
     """The goal the goal check gives a vehicle at 1.4 m whose goal is round a corner
     (everything from 0.9 m ahead is a wall here) with a cabinet beside it (top at 1.6 m, side
     0.45 m away): the whole line toward the goal lacks the goal clearance, so it is lifted.
-    ``margin_m``: the planner's tracking margin (the sphere and the goal clearance grow by it)."""
+    ``margin_m``: the planner's tracking margin (the sphere and the lift's clearance grow by it)."""
     from planning.analytic_field import Box
     from planning.planner import adjust_goal
 
     planner_cfg = PlannerConfig()
-    clearance = planner_cfg.d_safe_m + planner_cfg.goal_clearance_margin_m + margin_m
+    clearance = planner_cfg.d_safe_m + planner_cfg.goal_clearance_margin_m
     wall = Box(np.array([3.9, 0.0, 2.5]), np.array([3.0, 5.0, 2.5]))
     cabinet = Box(np.array([0.0, 0.95, 0.8]), np.array([1.5, 0.5, 0.8]))
     esdf = EsdfMap(cfg)
     p = np.array([0.0, 0.0, 1.4])
     esdf.integrate(wall_depth(p, 0.95), CAMERA, pose(p), center_world=p, body_margin_m=margin_m)
     field = _MapAndBoxes(esdf, (wall, cabinet))
-    used, _ = adjust_goal(np.array([3.0, 0.0, 1.2]), p, field, clearance, planner_cfg.goal_search_max_m, lift_max_m=planner_cfg.goal_lift_max_m)
+    used, _ = adjust_goal(
+        np.array([3.0, 0.0, 1.2]), p, field, clearance, planner_cfg.goal_search_max_m, lift_max_m=planner_cfg.goal_lift_max_m,
+        lift_margin_m=margin_m,
+    )
     return used
 
 
@@ -559,7 +562,7 @@ def test_the_sphere_never_claims_the_unseen_space_over_the_vehicle():
     assert whole[2] >= 1.4 + 0.25
     # ... into space above the camera's 30 deg upper field edge: never seen
     assert np.degrees(np.arctan2(whole[2] - 1.4, max(whole[0], 1e-9))) > 30.0
-    for margin in (0.0, 0.15, 0.3, 0.6):  # the sphere and the goal clearance grow alike
+    for margin in (0.0, 0.15, 0.3, 0.6):  # the sphere and the lift's clearance grow alike
         assert _lifted_goal(DEFAULT, margin)[2] <= 1.4 + 1e-9
     grown = EsdfMap(DEFAULT)
     p = np.array([0.0, 0.0, HEIGHT_M])
