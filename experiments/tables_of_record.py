@@ -48,7 +48,6 @@ import hashlib
 import json
 import os
 import re
-import signal
 import subprocess
 import sys
 import time
@@ -69,6 +68,7 @@ from onfly.bench.runner import (
     plan_jobs,
     read_records,
     run_bench,
+    sigterm_exits,
     world_camera,
 )
 from onfly.bench.tasks import Task
@@ -889,10 +889,6 @@ def _start_ray(address: str, workers: int) -> Callable[[], None]:
     return ray.shutdown if init_ray(address, workers) else (lambda: None)
 
 
-def _exit_on_sigterm(signum: int, frame: Any) -> None:
-    raise SystemExit(128 + signum)
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--manifest", required=True, help="tables-of-record manifest (experiments/configs/tables_of_record.toml)")
@@ -938,16 +934,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             workers = args.workers or manifest.workers
             # a TERM (a session's end, a scheduler's stop) unwinds like Ctrl-C: the running
             # table's wall time is written and the finished episodes are already on disk
-            previous = signal.signal(signal.SIGTERM, _exit_on_sigterm)
-            stop_ray = _start_ray(args.ray, workers) if args.ray else None
-            try:
-                state = run_tables(planned, out, names, code=code_version(), check=lambda: code_version(), allow_mixed=args.allow_mixed,
-                                   workers=workers, ray_address=args.ray, report=report, episode_lines=not args.no_progress,
-                                   methods=only)  # fmt: skip
-            finally:
-                signal.signal(signal.SIGTERM, previous)
-                if stop_ray is not None:
-                    stop_ray()
+            with sigterm_exits():
+                stop_ray = _start_ray(args.ray, workers) if args.ray else None
+                try:
+                    state = run_tables(planned, out, names, code=code_version(), check=lambda: code_version(), allow_mixed=args.allow_mixed,
+                                       workers=workers, ray_address=args.ray, report=report, episode_lines=not args.no_progress,
+                                       methods=only)  # fmt: skip
+                finally:
+                    if stop_ray is not None:
+                        stop_ray()
     except CodeVersionError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -157,3 +157,73 @@ def test_ray_gives_the_same_records(serial_run, tmp_path):
     res = run_bench(_config(), tmp_path, workers=2, ray_address="local")
     assert res.ran == 4
     assert _comparable(res.records) == _comparable(serial.records)
+
+
+def _children(pid: int) -> list[int]:
+    """Live (not zombie) processes whose parent is ``pid``, from /proc."""
+    out = []
+    for stat in __import__("pathlib").Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid and fields[0] != "Z":
+            out.append(int(stat.parent.name))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    from pathlib import Path
+
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def test_a_terminated_bench_stops_its_workers_and_keeps_its_episodes(tmp_path):
+    """``kill`` (TERM) on ``onfly bench --workers 2`` ends the workers with it: before, the pool's
+    workers flew on, orphaned, through the episodes already queued to them (two ran for 20 min
+    after their parent had gone). The finished episodes stay on disk, whole."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "onfly.cli", "bench", "--config", "experiments/configs/quick.toml", "--methods", "oracle",
+           "--count", "8", "--workers", "2", "--out", str(out), "--no-progress"]  # fmt: skip
+    # stderr to a file: orphaned workers would hold a pipe open, and reading it would hang
+    log = (tmp_path / "stderr.txt").open("w")
+    proc = subprocess.Popen(cmd, cwd=repo, stdout=subprocess.DEVNULL, stderr=log, text=True)
+    workers: list[int] = []
+    try:
+        deadline = time.monotonic() + 180.0
+        episodes = out / "episodes.jsonl"
+        while time.monotonic() < deadline and proc.poll() is None:
+            workers = sorted(set(workers) | set(_children(proc.pid)))
+            if len(workers) >= 2 and episodes.exists() and episodes.read_text().count("\n") >= 1:
+                break
+            time.sleep(0.1)
+        assert proc.poll() is None and len(workers) >= 2, "the run ended before two workers had flown an episode"
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        log.close()
+    err = (tmp_path / "stderr.txt").read_text()
+    deadline = time.monotonic() + 10.0
+    while time.monotonic() < deadline and any(_alive(w) for w in workers):
+        time.sleep(0.1)
+    survivors = [w for w in workers if _alive(w)]
+    for w in survivors:  # leave no orphan behind, whatever the outcome
+        os.kill(w, signal.SIGKILL)
+    assert not survivors, "workers outlived the terminated bench"
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    lines = episodes.read_text().splitlines()
+    assert 1 <= len(lines) < 8 and all(json.loads(line)["method"] == "oracle" for line in lines)

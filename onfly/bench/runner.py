@@ -27,12 +27,14 @@ workers, and equal on Ray (``ray_address``) and local processes.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import functools
 import hashlib
 import json
 import logging
 import multiprocessing as mp
 import os
+import signal
 import time
 import tomllib
 from dataclasses import asdict, dataclass, field, fields, replace
@@ -758,9 +760,42 @@ def _run_local(jobs: list[EpisodeJob], workers: int, on_record: Callable[[dict],
         for fut in cf.as_completed(futures):
             on_record(fut.result())
     except BaseException:
-        pool.shutdown(wait=False, cancel_futures=True)
+        _stop_pool(pool)
         raise
     pool.shutdown(wait=True)
+
+
+def _stop_pool(pool: cf.ProcessPoolExecutor) -> None:
+    """Cancel the episodes not started and end the workers now (Ctrl-C, a TERM, an error).
+
+    ``shutdown(wait=False, cancel_futures=True)`` alone lets every worker finish its episode and
+    the ones already queued to it, as orphans once this process has exited (two benchmark workers
+    ran on for 20 minutes). The episodes finished are on disk already; the ones cut short are
+    flown again by a rerun, which resumes."""
+    # no public handle on the workers before Python 3.14's terminate_workers()
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in procs:
+        if proc.is_alive():
+            proc.terminate()
+    for proc in procs:
+        proc.join(timeout=5.0)
+
+
+@contextlib.contextmanager
+def sigterm_exits():
+    """Within the block a TERM (a session's end, a scheduler's stop, ``kill``) unwinds like
+    Ctrl-C, as ``SystemExit(143)``: ``finally`` blocks run and the workers are stopped. Restores
+    the previous handler after. Main thread only (Python's rule for signal handlers)."""
+
+    def _exit(signum: int, frame: Any) -> None:
+        raise SystemExit(128 + signum)
+
+    previous = signal.signal(signal.SIGTERM, _exit)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def init_ray(address: str, workers: int) -> bool:

@@ -3,7 +3,9 @@
 Runs every selected method on every selected task ``runs`` times (in parallel, resumable;
 see :mod:`onfly.bench.runner`), prints the summary table per method and task kind, and writes
 ``episodes.jsonl``, ``summary.json`` and ``summary.md`` to the output folder (default
-``runs/bench/<config name>``); ``--json PATH`` writes the summary JSON there as well.
+``runs/bench/<config name>``); ``--json PATH`` writes the summary JSON there as well. A TERM
+or Ctrl-C stops the worker processes with the command; the finished episodes stay on disk and a
+rerun resumes.
 """
 
 from __future__ import annotations
@@ -71,13 +73,14 @@ def run(args) -> int:
             raise CliError(f"--{option} must be a positive integer, got {v}")
     if args.seed is not None and args.seed < 0:
         raise CliError(f"--seed must be >= 0, got {args.seed}")
-    from onfly.bench.runner import check_bench, format_summary, run_bench
+    from onfly.bench.runner import check_bench, format_summary, run_bench, sigterm_exits
 
     cfg = build_config(args)
     tasks = check_bench(cfg)  # before anything is written or flown
     out = Path(args.out) if args.out else Path("runs") / "bench" / cfg.name
     t0 = time.perf_counter()
-    res = run_bench(cfg, out, ray_address=args.ray, progress=not args.no_progress, checked_tasks=tasks)
+    with sigterm_exits():  # a TERM stops the workers too; finished episodes stay, a rerun resumes
+        res = run_bench(cfg, out, ray_address=args.ray, progress=not args.no_progress, checked_tasks=tasks)
     print(format_summary(res.summary))
     print(
         f"\n{res.ran} episodes run, {res.skipped} already done (resumed), wall {time.perf_counter() - t0:.1f} s, "
