@@ -174,13 +174,18 @@ class OraclePilot:
         self._reset_counters()
 
     def _carrot(self, p: np.ndarray) -> np.ndarray:
+        return self.path[self._carrot_index(p)]
+
+    def _carrot_index(self, p: np.ndarray) -> int:
+        """Advance the progress along the reference from ``p`` and return the index of the
+        point ``lookahead_m`` of arc ahead of it."""
         c = self.config
         i0 = self._progress
         i1 = int(np.searchsorted(self.arc, self.arc[i0] + c.progress_window_m, side="right"))
         window = self.path[i0 : max(i1, i0 + 1)]
         self._progress = i0 + int(np.argmin(np.linalg.norm(window - p, axis=1)))
         k = int(np.searchsorted(self.arc, self.arc[self._progress] + c.lookahead_m, side="left"))
-        return self.path[min(k, len(self.path) - 1)]
+        return min(k, len(self.path) - 1)
 
     def _visible_carrot(self, p: np.ndarray, field, movers_field=None) -> np.ndarray:
         """The farthest reference point up to the carrot (``lookahead_m`` of arc ahead) whose
@@ -192,8 +197,8 @@ class OraclePilot:
         map with the movers' predicted lanes) holds that one under the clearance, the carrot,
         which the goal check then holds back: the vehicle waits outside a walker's lane
         instead of stepping into it (``tests/test_movers.py``, the pacing walker)."""
-        far = self._carrot(p)
-        k_far = int(np.flatnonzero(np.all(self.path == far, axis=1))[0])
+        k_far = self._carrot_index(p)
+        far = self.path[k_far]
         c = self.planner_config
         clearance = c.d_safe_m + c.goal_clearance_margin_m
         step = max(1, int(round(0.25 / self.config.path_step_m)))
