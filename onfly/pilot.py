@@ -90,6 +90,9 @@ _TURN_FIRST_MIN_M = 1.0
 # a routed goal keeps this much more than the planner's safety distance from every obstacle and
 # from the target: the guide search needs a cell of slack around the goal to end on
 _ROUTE_MARGIN_M = 0.15
+#: a vehicle slower than this is at rest, m/s (a leg the planner cannot plan on ends)
+_AT_REST_MPS = 0.1
+
 #: how often a leg's sides are checked for an opening to glance into, seconds (a frame's period)
 _GLANCE_CHECK_PERIOD_S = 0.5
 
@@ -426,6 +429,7 @@ class OnFlyPilot:
         self._rejected_streak = 0  # of the decisions without a goal, those the verifier rejected
         self._answered_s = -np.inf  # when the decision agent last gave a parseable answer
         self._last_seen: np.ndarray | None = None  # where the current subtask's target was last pointed at
+        self._dead_spots: list[np.ndarray] = []  # where the vehicle stalled on the current subtask
         self._goal_target: np.ndarray | None = None  # the object the current goal was set for
         self._in_view_logged_t: float | None = None  # goal_t_s of the goal last moved back (one event each)
         self._start_z: float | None = None  # altitude at the first tick (the search's cruise default)
@@ -622,6 +626,10 @@ class OnFlyPilot:
             out = replace(out, goal_world=raised)
         if out.goal_world is not None:
             out = replace(out, goal_world=self._clamp_to_volume(t_s, out.goal_world, "decision"))
+        if out.goal_world is not None and self._at_dead_spot(out.goal_world):
+            # the vehicle stalled there on this subtask: flying back is no way on
+            self._event(t_s, "goal_dead_spot", {"goal": out.goal_world})
+            out = replace(out, goal_world=None, reason="dead_spot")
         self._count_decision(t_s, out, state)
         if self.mode is PilotMode.CONFIRMING:
             if out.goal_world is not None:  # kept for when the STOP is withdrawn
@@ -635,6 +643,8 @@ class OnFlyPilot:
             if self.mode is not PilotMode.SEARCHING:
                 self._face_yaw = out.pixel_yaw
             return
+        if self.mode is PilotMode.SEARCHING and not self.search.may_hand_back(state.p):
+            return  # backing out of a dead end first: the model's goals led into it
         self._end_search(t_s, "target_pointed")
         self._face_yaw = None
         self._speculative = speculative
@@ -707,6 +717,7 @@ class OnFlyPilot:
             self.goal_world = None
             self._face_yaw = None
             self._last_seen = self._look = None
+            self._dead_spots = []
             self._no_goal_streak = self._not_visible_streak = self._rejected_streak = 0
             self.mode = PilotMode.HOLDING
             self._event(t_s, "advanced", {"subtask": self.tasks.current, "index": self.tasks.index})
@@ -752,6 +763,8 @@ class OnFlyPilot:
             if stall_watch and model_alive and self.search.stalled(t_s):
                 # a dead end: no progress while the task is not done; back out and search
                 self._event(t_s, "stalled", {"position": state.p, "window_s": cfg.search.stall_window_s})
+                self._dead_spots.append(state.p.copy())
+                self.search.leg_failed()
                 self._start_search(t_s, state, SearchTrigger.STALL, explore_first=True)
             if self.mode is PilotMode.SEARCHING:
                 search_goal, yaw_ref = self._search_control(t_s, state)
@@ -825,7 +838,9 @@ class OnFlyPilot:
                 and float(np.linalg.norm(plan.goal_used[:2] - state.p[:2])) <= arrive
                 and float(np.linalg.norm(search_goal[:2] - state.p[:2])) > arrive + 0.5
             )
-            if self.search.leg_blocked(t_s, held):
+            # no safe plan toward the leg's end, the vehicle at rest on the last one flown
+            unplanned = not plan.ok and float(np.linalg.norm(state.v)) < _AT_REST_MPS
+            if self.search.leg_blocked(t_s, held or unplanned):
                 self._event(t_s, "search_leg_blocked", {"target": search_goal, "position": state.p, "held_at": plan.goal_used})
         if plan is not None and not plan.ok:
             key = plan.fallback.value
@@ -976,6 +991,8 @@ class OnFlyPilot:
 
     def _count_decision(self, t_s: float, out: DecisionOutcome, state: VehicleState) -> None:
         """Streaks of decisions without a goal; start a search when one is long enough."""
+        if out.parse is not None:
+            self._answered_s = t_s  # the model answers (a goal or not): a stall is a dead end
         if out.goal_world is not None:
             self._no_goal_streak = self._not_visible_streak = self._rejected_streak = 0
             # the pointed object itself, not the goal: a goal shortened by the bearing gating or
@@ -985,7 +1002,6 @@ class OnFlyPilot:
             return
         if out.parse is None:
             return  # the call itself failed: a search cannot hand back without a working model
-        self._answered_s = t_s
         self._no_goal_streak += 1
         if out.verified is not None and not out.verified.accepted:
             self._rejected_streak += 1
@@ -1025,6 +1041,15 @@ class OnFlyPilot:
             # goal in front of it): the monitor's STOP gets longer to arrive before we turn away
             self._start_search(t_s, state, SearchTrigger.NO_GOAL)
 
+    def _at_dead_spot(self, goal: np.ndarray) -> bool:
+        """True when ``goal`` lies within ``dead_end_radius_m`` (horizontally) of a place where
+        the vehicle stalled on the current subtask (:class:`SearchConfig`)."""
+        if not self._dead_spots or not self.config.search.enabled:
+            return False
+        spots = np.asarray(self._dead_spots, dtype=float)
+        near = np.linalg.norm(spots[:, :2] - np.asarray(goal, float)[None, :2], axis=1)
+        return bool(near.min() <= self.config.search.dead_end_radius_m)
+
     def _look_leg(self, t_s: float, state: VehicleState) -> np.ndarray | None:
         """The leg toward the freshest look point (:func:`onfly.search.look_target`), or None
         (no look point younger than ``look_max_age_s``, or no leg that way)."""
@@ -1033,7 +1058,7 @@ class OnFlyPilot:
             return None
         return look_target(
             state.p, self._look[1], self.esdf, config=scfg, volume=self.volume, volume_margin_m=self._volume_margin_m,
-            visited=self.search.visited, z_m=self._cruise_z(state),
+            visited=self.search.visited, z_m=self._cruise_z(state), dead_ends=self.search.dead_ends,
         )  # fmt: skip
 
     def _last_seen_yaw(self, state: VehicleState) -> float | None:
@@ -1082,14 +1107,15 @@ class OnFlyPilot:
         keep = self.search.heading0 if self.search.heading0 is not None else self.search.yaw0
         return best_look_target(
             state.p, looks, self.esdf, config=self.config.search, volume=self.volume, volume_margin_m=self._volume_margin_m,
-            visited=self.search.visited, z_m=self._cruise_z(state), keep_yaw=keep,
+            visited=self.search.visited, z_m=self._cruise_z(state), dead_ends=self.search.dead_ends, keep_yaw=keep,
         )  # fmt: skip
 
     def _explore(self, t_s: float, state: VehicleState) -> None:
         """Pick the next exploration point and fly toward it (or scan again if none)."""
         z = self._cruise_z(state)
         common = dict(
-            config=self.config.search, volume=self.volume, volume_margin_m=self._volume_margin_m, visited=self.search.visited, z_m=z
+            config=self.config.search, volume=self.volume, volume_margin_m=self._volume_margin_m, visited=self.search.visited, z_m=z,
+            dead_ends=self.search.dead_ends,
         )
         # where the model would look first; then the most promising frontier of the map; the
         # ring of straight legs where the map has no reachable frontier at this height

@@ -62,11 +62,18 @@ Policy (parameters in :class:`SearchConfig`):
    do not re-aim the leg (:meth:`Search.during_glance`): those views are oblique, and their
    deepest directions pull the leg sideways.
 3d. **A leg that cannot be flown ends**: when the planner's goal check holds the leg's end
-   back where the vehicle already is (an end behind a wall) for ``leg_blocked_s``, the leg is
-   over (:meth:`Search.leg_blocked`) and the next one is chosen, instead of a hover until the
-   stall window ends.
+   back where the vehicle already is (an end behind a wall), or the planner finds no safe plan
+   toward it while the vehicle is at rest (a gap its linearized clearance cannot thread), for
+   ``leg_blocked_s``, the leg is over (:meth:`Search.leg_blocked`) and the next one is chosen,
+   instead of a hover until the stall window ends. Its end is a dead end (as is the end of a
+   leg the vehicle stalled on): no later leg ends within ``dead_end_radius_m`` of one
+   (:attr:`Search.dead_ends`), so the next choice from the same place is another way.
 4. **Hand back**: any decision that yields a verified goal for the current subtask ends the
-   search (the pilot flies that goal). A STOP from the monitor pauses it (the vehicle hovers
+   search (the pilot flies that goal), except in a search that a stall started, until the
+   vehicle is ``backout_m`` from where it stalled or its first leg is over
+   (:meth:`Search.may_hand_back`): the model's goals led into the dead end. A goal within
+   ``dead_end_radius_m`` of a place where the vehicle stalled on the current subtask is no
+   goal at all (the pilot's ``goal_dead_spot`` event). A STOP from the monitor pauses it (the vehicle hovers
    while the STOP is confirmed) and a withdrawn STOP resumes it where it was; a LOST while
    searching, with no sighting to turn back to, does not interrupt it (the search is already
    the recovery).
@@ -222,8 +229,20 @@ class SearchConfig:
         its tasks, 80 % of the 150's), its rooms hold look-alikes that the turn shows the
         decision agent (``parking_garage-p07`` stopped at a second level sign behind the start),
         and at 0.6 m/s the 12 s of turning is a sixth of the 70 s limit
-    leg_blocked_s : a leg ends when the planner has held its end back at the vehicle this long,
-        seconds (:meth:`Search.leg_blocked`)
+    leg_blocked_s : a leg ends when the planner has held its end back at the vehicle, or has
+        failed to plan with the vehicle at rest, this long, seconds (:meth:`Search.leg_blocked`)
+    backout_m : a search that a stall started hands control back to the model's goals only once
+        the vehicle is this far (horizontally) from where it stalled, or its first leg is over,
+        metres (:meth:`Search.may_hand_back`): the model's goals led into the dead end, and
+        from the same view they lead back into it (a wall filling the frame, the history point
+        it is shown); a new view is worth asking first
+    dead_end_radius_m : a place the pilot could not get on from, metres: a leg's end that the
+        leg did not reach (blocked, or the vehicle stalled on it) is not chosen again within
+        this (:meth:`Search.dead_ends`), and a decision goal within this of where the vehicle
+        stalled is no goal for the rest of the subtask (the pilot's rule): hovering there did
+        not finish it, and the model's point from a view of a wall (the history point it is
+        shown, the deepest pixel of a frame that is all wall) would hand a stall's search
+        straight back to the same hover
     glance : on a leg, look into an opening the vehicle passes (step 3c of the module
         docstring); False = look aside only after a leg
     glance_reach_m : how far the rays that look for an opening beside the leg reach, metres
@@ -276,6 +295,8 @@ class SearchConfig:
     look_visited_max: float = 1.0
     scan_first_search: bool = True
     leg_blocked_s: float = 2.0
+    dead_end_radius_m: float = 1.0
+    backout_m: float = 2.0
     glance: bool = True
     glance_reach_m: float = 4.0
     glance_open_within_m: float = 2.5
@@ -307,6 +328,8 @@ class SearchConfig:
             "look_visited_max",
             "glance_reach_m",
             "leg_blocked_s",
+            "dead_end_radius_m",
+            "backout_m",
             "glance_open_within_m",
             "glance_spacing_m",
         ):
@@ -388,6 +411,17 @@ def _visited_near(visited: np.ndarray, point: np.ndarray, radius_m: float) -> fl
     return float(np.sum(np.clip(1.0 - d / radius_m, 0.0, 1.0)))
 
 
+def _at_dead_end(dead_ends: np.ndarray | None, point: np.ndarray, radius_m: float) -> bool:
+    """True when ``point`` lies within ``radius_m`` (horizontally) of one of ``dead_ends``
+    (k, 3), the ends of legs that could not be flown (:meth:`Search.dead_ends`)."""
+    if dead_ends is None:
+        return False
+    ends = np.asarray(dead_ends, dtype=float).reshape(-1, 3)
+    if not len(ends):
+        return False
+    return bool(np.min(np.linalg.norm(ends[:, :2] - np.asarray(point, float)[None, :2], axis=1)) <= radius_m)
+
+
 def explore_target(
     position: np.ndarray,
     yaw: float | None,
@@ -398,6 +432,7 @@ def explore_target(
     volume_margin_m: float,
     visited: np.ndarray,
     z_m: float,
+    dead_ends: np.ndarray | None = None,
     prefer_yaw: float | None = None,
 ) -> np.ndarray | None:
     """The next exploration point, or None when no candidate is reachable.
@@ -415,6 +450,8 @@ def explore_target(
         worthless
     visited : (k, 3) metres, places already visited (penalized within ``visit_radius_m``)
     z_m : altitude of the candidates, metres
+    dead_ends : (k, 3) metres, ends of legs that could not be flown, or None: no candidate
+        within ``dead_end_radius_m`` of one (the same for every target function here)
     prefer_yaw : heading where the target was last seen, radians, or None (a bonus toward it)
 
     Returns
@@ -430,6 +467,8 @@ def explore_target(
         for r in cfg.explore_ranges_m:
             cand = p0 + r * d
             if volume is not None and not bool(volume.contains(cand, margin_m=volume_margin_m)[0]):
+                continue
+            if _at_dead_end(dead_ends, cand, cfg.dead_end_radius_m):
                 continue
             seg = p0 + np.outer(np.arange(0.25, r + 1e-9, 0.25), d)
             dist, _ = field_map.query(seg)
@@ -457,6 +496,7 @@ def open_ray_target(
     volume_margin_m: float,
     visited: np.ndarray,
     z_m: float,
+    dead_ends: np.ndarray | None = None,
 ) -> np.ndarray | None:
     """Down the longest line of sight: the point on the horizontal ray (of
     ``explore_headings`` around the vehicle, at ``z_m``) that runs furthest through seen free
@@ -482,6 +522,8 @@ def open_ray_target(
         if reach < cfg.min_leg_m:
             continue
         tgt = p0 + reach * dirs[k]
+        if _at_dead_end(dead_ends, tgt, cfg.dead_end_radius_m):
+            continue
         score = (reach / cfg.open_ray_max_m) * _direction_weight(th, yaw, cfg.forward_weight)
         score -= 0.3 * _visited_near(visited, tgt, cfg.visit_radius_m)
         if score > best_score:
@@ -518,6 +560,7 @@ def look_target(
     volume_margin_m: float,
     visited: np.ndarray,
     z_m: float,
+    dead_ends: np.ndarray | None = None,
 ) -> np.ndarray | None:
     """A leg toward where the model would look (``look_yaw``, radians, world ENU: the look
     point's viewing ray), or None.
@@ -543,6 +586,8 @@ def look_target(
         tgt = _look_along_rays(p0, look_yaw, field_map, cfg, volume, volume_margin_m)
     if tgt is None or _visited_near(visited, tgt, cfg.visit_radius_m) >= cfg.look_visited_max:
         return None
+    if _at_dead_end(dead_ends, tgt, cfg.dead_end_radius_m):
+        return None
     return tgt
 
 
@@ -556,6 +601,7 @@ def best_look_target(
     volume_margin_m: float,
     visited: np.ndarray,
     z_m: float,
+    dead_ends: np.ndarray | None = None,
     keep_yaw: float | None,
 ) -> np.ndarray | None:
     """After a scan, the leg toward the best of the look points the model gave from its headings
@@ -571,7 +617,7 @@ def best_look_target(
     best, best_score = None, -np.inf
     for yaw in look_yaws:
         tgt = look_target(position, float(yaw), field_map, config=config, volume=volume, volume_margin_m=volume_margin_m,
-                          visited=visited, z_m=z_m)
+                          visited=visited, z_m=z_m, dead_ends=dead_ends)
         if tgt is None:
             continue
         d = tgt[:2] - np.asarray(position, float)[:2]
@@ -656,6 +702,7 @@ def frontier_target(
     volume_margin_m: float,
     visited: np.ndarray,
     z_m: float,
+    dead_ends: np.ndarray | None = None,
 ) -> np.ndarray | None:
     """The reachable place next to the most promising frontier of the map's known space, or None
     (no map with frontiers, none at this height, or none reachable).
@@ -701,6 +748,8 @@ def frontier_target(
         if near[k] > 1.0:
             continue  # nothing reachable next to it
         tgt = np.array([cells[k, 0], cells[k, 1], z_m])
+        if _at_dead_end(dead_ends, tgt, cfg.dead_end_radius_m):
+            continue
         path_m = float(steps[ri[k], rj[k]])
         if path_m < 1.0:
             continue  # already here: the camera sees it from where it is
@@ -855,6 +904,9 @@ class Search:
     _dwell_s: float | None = None  # this scan's dwell (None: ``scan_dwell_s``)
     _resume: tuple | None = None  # the leg a glance interrupted: (end, start, bearing, kind, t_s)
     _glanced: list[np.ndarray] = field(default_factory=list)  # where glances were taken
+    _dead_ends: list[np.ndarray] = field(default_factory=list)  # ends of legs that could not be flown
+    _start_p: np.ndarray | None = None  # where this search began
+    _backed_out: bool = True  # a stall's search has taken the vehicle out of the dead end
     _blocked_since_s: float | None = None  # since when the planner holds the leg's end back
     _leg_over: bool = False  # the leg ends at the next tick (its end cannot be approached)
     _glance_window: tuple[float, float] = (np.inf, -np.inf)  # the last glance, (began, ended) seconds
@@ -867,6 +919,29 @@ class Search:
     @property
     def visited(self) -> np.ndarray:
         return np.asarray(self._visited, dtype=float).reshape(-1, 3)
+
+    @property
+    def dead_ends(self) -> np.ndarray:
+        """(k, 3) metres, world ENU: the ends of the episode's legs that could not be flown (the
+        planner held the end back or could not plan toward it, or the vehicle stalled on the
+        leg). No later leg ends within ``dead_end_radius_m`` of one: a stall's search would
+        otherwise choose the same leg again from the same place (the map and the model's view
+        have not changed), and hover on it to the next stall."""
+        return np.asarray(self._dead_ends, dtype=float).reshape(-1, 3)
+
+    def may_hand_back(self, position: np.ndarray) -> bool:
+        """Whether a verified goal from the model may end this search now: always, unless a
+        stall started it and the vehicle is still within ``backout_m`` of where it stalled
+        with its first leg not over (see :class:`SearchConfig`)."""
+        if not self._backed_out and self._start_p is not None:
+            away = float(np.linalg.norm(np.asarray(position, float)[:2] - self._start_p[:2]))
+            self._backed_out = away >= self.config.backout_m
+        return self._backed_out
+
+    def leg_failed(self) -> None:
+        """The current leg could not be flown: remember its end (:attr:`dead_ends`)."""
+        if self.phase is SearchPhase.EXPLORE and self._explore_p is not None:
+            self._dead_ends.append(np.asarray(self._explore_p, dtype=float).copy())
 
     def remember(self, t_s: float, position: np.ndarray) -> None:
         """Record the vehicle's track (visited places and the stall window)."""
@@ -927,6 +1002,8 @@ class Search:
         self.trigger = trigger
         self._end_glance_window()
         self.started_s = float(t_s)
+        self._start_p = np.asarray(position, dtype=float).copy()
+        self._backed_out = trigger is not SearchTrigger.STALL
         self.searches += 1
         self._hold_p = np.asarray(position, dtype=float).copy()
         self._scan_reached_s = None
@@ -1014,12 +1091,13 @@ class Search:
         self._dwell_s = self.config.glance_dwell_s
 
     def leg_blocked(self, t_s: float, blocked: bool) -> bool:
-        """Report, each tick of a leg, whether the planner holds the leg's end back at the
-        vehicle (its goal check moved an end behind a wall or inside an obstacle's clearance to
-        the nearest feasible point, and that point is where the vehicle already is). After
-        ``leg_blocked_s`` of it the leg ends (the next :meth:`control` says
-        ``"explore_done"``) and True is returned once: the vehicle would otherwise hover there
-        until the stall window ends."""
+        """Report, each tick of a leg, whether the leg cannot be flown from here: the planner
+        holds its end back at the vehicle (its goal check moved an end behind a wall or inside
+        an obstacle's clearance to the nearest feasible point, and that point is where the
+        vehicle already is), or it finds no safe plan toward it while the vehicle is at rest.
+        After ``leg_blocked_s`` of it the leg ends (the next :meth:`control` says
+        ``"explore_done"``), its end is a dead end (:attr:`dead_ends`) and True is returned
+        once: the vehicle would otherwise hover there until the stall window ends."""
         if not blocked or self.phase is not SearchPhase.EXPLORE:
             self._blocked_since_s = None
             return False
@@ -1027,6 +1105,7 @@ class Search:
             self._blocked_since_s = float(t_s)
         if self._leg_over or t_s - self._blocked_since_s < self.config.leg_blocked_s:
             return False
+        self.leg_failed()
         self._leg_over = True
         return True
 
@@ -1132,6 +1211,7 @@ class Search:
                 self._glance_window = (self._glance_window[0], float(t_s))
             near = float(np.hypot(*to_go)) <= cfg.explore_arrive_m
             if near or self._leg_over or t_s - self._explore_start_s > cfg.explore_timeout_s:
+                self._backed_out = True
                 return np.asarray(position, float).copy(), None, "explore_done"
             return self._explore_p, self._weave_yaw(t_s, to_go), None
         return np.asarray(position, float).copy(), None, None

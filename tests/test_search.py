@@ -517,6 +517,36 @@ def test_travel_heading_is_the_recent_displacement():
 
 
 # -- closed loop ------------------------------------------------------------------------------
+def test_a_blocked_or_stalled_leg_is_a_dead_end_that_no_later_leg_chooses():
+    cfg = SearchConfig(leg_blocked_s=1.0, explore_timeout_s=30.0)
+    s = Search(cfg)
+    s.start(0.0, np.zeros(3), 0.0, SearchTrigger.NOT_VISIBLE)
+    end = np.array([-3.5, 0.0, 1.5])
+    s.explore_from(0.0, end, np.zeros(3), 0.0)
+    assert s.dead_ends.shape == (0, 3)
+    assert not s.leg_blocked(0.5, True) and s.leg_blocked(1.6, True)
+    np.testing.assert_allclose(s.dead_ends, [end])
+    s.leg_failed()  # outside a leg (the blocked one is over): nothing more to remember
+    assert s.control(1.7, np.zeros(3), 0.0)[2] == "explore_done"
+    # from the pocket the only way out is -x; with every end that way dead, there is none
+    f = KnownField(pocket_field(), [-1.0, -1.2, 0.0], [4.0, 1.2, 3.0])
+    kw = dict(config=SearchConfig(), volume=None, volume_margin_m=0.45, visited=np.zeros((0, 3)), z_m=1.5)
+    p0 = np.array([3.0, 0.0, 1.5])
+    first = explore_target(p0, 0.0, f, **kw)
+    assert first is not None
+    dead = np.array([first])
+    radius = SearchConfig().dead_end_radius_m
+
+    def clear_of(point, dead_end):
+        return point is None or float(np.linalg.norm(point[:2] - dead_end[:2])) > radius
+
+    assert clear_of(explore_target(p0, 0.0, f, dead_ends=dead, **kw), first)
+    ray = open_ray_target(p0, 0.0, f, **kw)
+    assert ray is not None and clear_of(open_ray_target(p0, 0.0, f, dead_ends=np.array([ray]), **kw), ray)
+    look = look_target(p0, math.pi, f, **kw)
+    assert look is not None and look_target(p0, math.pi, f, dead_ends=np.array([look]), **kw) is None
+
+
 class SeeingVlm(ScriptedVlm):
     """The simulated model's answers, except that a decision with the target out of the frame
     says it cannot see it (a model that never invents a point)."""
@@ -623,13 +653,15 @@ def _box(c, size):
     return {"type": "box", "center_m": list(c), "size_m": list(size)}
 
 
-def _crate_scene(name, walls, crate, bounds, start_m):
-    """A scene of ``walls`` (box parts) over a ground plane, with one red crate (a box part)."""
+def _crate_scene(name, walls, crate, bounds, start_m, extra=()):
+    """A scene of ``walls`` (box parts) over a ground plane, with one red crate (a box part)
+    and the ``extra`` objects (scene-format dicts)."""
     objects = [
         {"name": "ground", "label": "ground", "instance_id": 1, "color": "#777777", "target": False,
          "parts": [{"type": "plane", "center_m": [0, 0, 0], "size_m": [40, 40]}]},
         {"name": "walls", "label": "wall", "instance_id": 2, "color": "#bbbbaa", "target": False, "parts": walls},
         {"name": "red crate", "label": "crate", "instance_id": 3, "color": "#cc2222", "parts": [crate]},
+        *extra,
     ]
     data = {
         "format": "onfly-scene/1", "name": name,
@@ -640,11 +672,12 @@ def _crate_scene(name, walls, crate, bounds, start_m):
     return parse_scene(data, f"<{name}>")
 
 
-def pocket_scene():
+def pocket_scene(extra=()):
     """A 2.4 m wide dead-end pocket open toward -x; a red crate around the corner outside it,
     hidden from anywhere inside the pocket by its left wall."""
     walls = [_box([2.0, 1.3, 1.5], [4.0, 0.2, 3.0]), _box([2.0, -1.3, 1.5], [4.0, 0.2, 3.0]), _box([4.1, 0.0, 1.5], [0.2, 2.8, 3.0])]
-    return _crate_scene("pocket", walls, _box([-2.0, 5.0, 0.6], [1.2, 1.2, 1.2]), ([-8, -8, 0], [6, 10, 5]), [3.0, 0.0, 1.5])
+    crate = _box([-2.0, 5.0, 0.6], [1.2, 1.2, 1.2])
+    return _crate_scene("pocket", walls, crate, ([-8, -8, 0], [6, 10, 5]), [3.0, 0.0, 1.5], extra)
 
 
 def test_a_vehicle_in_a_dead_end_corner_gets_out_and_finds_the_target(planner):
@@ -658,6 +691,44 @@ def test_a_vehicle_in_a_dead_end_corner_gets_out_and_finds_the_target(planner):
     assert "search_start" in kinds and "search_explore" in kinds
     assert not r.metrics.collided
     # out of the pocket (x < 0) and at the crate
+    assert r.end_reason == "stopped" and r.metrics.success, (r.end_reason, kinds[-12:])
+    assert_plans_inside(world, plans)
+
+
+class RepeatingVlm(SeeingVlm):
+    """As :class:`SeeingVlm`, but with the target out of the frame the model answers that it
+    sees it: at the history point when the prompt shows one, else straight ahead (the image
+    centre). So the simulated model answers a leg that names nothing to find; once the
+    vehicle is at a goal in front of a wall, every frame hands it the same goal again."""
+
+    def complete(self, messages, images=(), **kw):
+        prompt = parse_prompt(messages)
+        if isinstance(prompt, DecisionPrompt) and images:
+            ann = images[-1].annotation
+            if int(np.count_nonzero(ann.instance_ids == self.target_id)) < self.min_px:
+                self.hidden += 1
+                self.counts["decision"] += 1
+                w, h = images[-1].size
+                uv = [int(round(x)) for x in prompt.history_uv] if prompt.history_uv is not None else [w // 2, h // 2]
+                return text(json.dumps({"target_visible": True, "point_2d": uv}), 0.81)
+        return super().complete(messages, images, **kw)
+
+
+def test_a_model_that_keeps_pointing_at_the_wall_of_a_dead_end_does_not_hold_the_vehicle_there(planner):
+    # the vehicle flies to the pocket's end wall and the model keeps handing it a goal there:
+    # the stall starts a search, goals at the stall spot are no goals, and the vehicle gets out
+    scene = pocket_scene()
+    start = VehicleState(0.0, np.array([1.0, 0.0, 1.5]), np.zeros(3), 0.0)
+    world = World(scene, camera=CAM, initial_state=start)
+    m = PilotMethod(RepeatingVlm(3), planner=planner)
+    region = GoalRegion([-2.0, 5.0, 0.6], [0.6, 0.6, 0.6])
+    r, plans = fly(world, m, "Find the red crate and stop next to it.", region, limit_s=100.0)
+    events = m.pilot.events
+    kinds = [e.kind for e in events]
+    stall = next(e for e in events if e.kind == "stalled")
+    assert stall.data["position"][0] > 2.0  # it did fly into the pocket's end first
+    assert "goal_dead_spot" in kinds
+    assert not r.metrics.collided
     assert r.end_reason == "stopped" and r.metrics.success, (r.end_reason, kinds[-12:])
     assert_plans_inside(world, plans)
 
