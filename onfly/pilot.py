@@ -871,6 +871,10 @@ class OnFlyPilot:
         if self._turn_p is None and err > self._half_hfov:
             self._turn_p = state.p.copy()
             self._event(t_s, "turn_first", {"bearing": bearing, "yaw": state.yaw, "goal": goal})
+            if float(np.hypot(*away)) > cfg.search.stall_distance_m:
+                # holding position on purpose to face a goal whose reach is progress: no dead
+                # end (a goal nearer than that, turned to again and again, is one)
+                self.search.reset_stall()
         elif self._turn_p is not None and err <= 0.5 * self._half_hfov:
             self._turn_p = None
         if self._turn_p is None:

@@ -412,6 +412,28 @@ def test_a_goal_outside_the_view_is_turned_to_before_the_vehicle_flies():
     assert off._turn_first(3.0, at(0.0), behind, None)[0] is behind
 
 
+def test_turning_to_a_new_goal_restarts_the_stall_window_and_a_goal_answer_keeps_the_watch_alive():
+    from onfly.agents import DecisionOutcome
+    from planning.trajectory import VehicleState
+    from vlm.parsing import PointParse
+
+    pilot = OnFlyPilot(PilotConfig(), ScriptedVlm("perfect"), ClockRuntime())
+    here = np.array([2.0, 1.0, 1.5])
+    window = pilot.config.search.stall_window_s
+    for k in range(int(window * 10) + 2):  # hovering in place for a whole window
+        pilot.search.remember(0.1 * k, here)
+    t = 0.1 * (int(window * 10) + 1)
+    assert pilot.search.stalled(t)
+    # an answer with a goal counts as the model answering (the stall watch needs one)
+    parse = PointParse(ok=True, uv=(80.0, 50.0), candidates=((80.0, 50.0),), raw="", reason="", source="json:point_2d")
+    out = DecisionOutcome("f1", "Fly to the TV screen.", text(""), None, parse, None, goal_world=here.copy())
+    pilot._count_decision(t, out, VehicleState(t, here, np.zeros(3), 0.0))
+    assert pilot._answered_s == pytest.approx(t)
+    # holding position to turn toward a goal behind, on purpose: no longer a stall
+    pilot._turn_first(t, VehicleState(t, here, np.zeros(3), 0.0), np.array([-4.0, 1.5, 1.5]), None)
+    assert not pilot.search.stalled(t + 0.1)
+
+
 def test_a_goal_on_a_low_target_is_kept_where_the_camera_still_sees_the_target():
     """A goal at a coffee table below the vehicle is moved back toward it, level, until the table
     lies keep_in_view_margin_rad inside the level camera's lower image edge (exact geometry);
