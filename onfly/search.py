@@ -228,7 +228,9 @@ class SearchConfig:
         ahead (the first 3 m of the reference path within 45 deg of the start heading in 93 % of
         its tasks, 80 % of the 150's), its rooms hold look-alikes that the turn shows the
         decision agent (``parking_garage-p07`` stopped at a second level sign behind the start),
-        and at 0.6 m/s the 12 s of turning is a sixth of the 70 s limit
+        and at 0.6 m/s the 12 s of turning is a sixth of the 70 s limit. With the look legs,
+        glances and dead-end rules since, the hard set turned round: at ``219fba4`` it scores
+        55.1 % SR with the scan and 47.8 % without (out of view 45.1 against 35.3 %)
     leg_blocked_s : a leg ends when the planner has held its end back at the vehicle, or has
         failed to plan with the vehicle at rest, this long, seconds (:meth:`Search.leg_blocked`)
     backout_m : a search that a stall started hands control back to the model's goals only once
