@@ -563,24 +563,21 @@ class SeeingVlm(ScriptedVlm):
             if int(np.count_nonzero(ann.instance_ids == self.target_id)) < self.min_px:
                 self.hidden += 1
                 self.counts["decision"] += 1
-                return text(NOT_VISIBLE, 0.81)
+                return text(self.hidden_answer(prompt, images[-1]), 0.81)
         return super().complete(messages, images, **kw)
+
+    def hidden_answer(self, prompt: DecisionPrompt, image) -> str:
+        """The decision answer with the target out of the frame."""
+        return NOT_VISIBLE
 
 
 class LookingVlm(SeeingVlm):
     """As :class:`SeeingVlm`, but "not visible" carries where the model would look
     (``decision/v3``): the centre of the image, straight ahead."""
 
-    def complete(self, messages, images=(), **kw):
-        prompt = parse_prompt(messages)
-        if isinstance(prompt, DecisionPrompt) and images:
-            ann = images[-1].annotation
-            if int(np.count_nonzero(ann.instance_ids == self.target_id)) < self.min_px:
-                self.hidden += 1
-                self.counts["decision"] += 1
-                w, h = images[-1].size
-                return text(json.dumps({"target_visible": False, "point_2d": [w // 2, h // 2]}), 0.81)
-        return super().complete(messages, images, **kw)
+    def hidden_answer(self, prompt, image):
+        w, h = image.size
+        return json.dumps({"target_visible": False, "point_2d": [w // 2, h // 2]})
 
 
 class PilotMethod(OnFlyMethod):
@@ -701,17 +698,10 @@ class RepeatingVlm(SeeingVlm):
     centre). So the simulated model answers a leg that names nothing to find; once the
     vehicle is at a goal in front of a wall, every frame hands it the same goal again."""
 
-    def complete(self, messages, images=(), **kw):
-        prompt = parse_prompt(messages)
-        if isinstance(prompt, DecisionPrompt) and images:
-            ann = images[-1].annotation
-            if int(np.count_nonzero(ann.instance_ids == self.target_id)) < self.min_px:
-                self.hidden += 1
-                self.counts["decision"] += 1
-                w, h = images[-1].size
-                uv = [int(round(x)) for x in prompt.history_uv] if prompt.history_uv is not None else [w // 2, h // 2]
-                return text(json.dumps({"target_visible": True, "point_2d": uv}), 0.81)
-        return super().complete(messages, images, **kw)
+    def hidden_answer(self, prompt, image):
+        w, h = image.size
+        uv = [int(round(x)) for x in prompt.history_uv] if prompt.history_uv is not None else [w // 2, h // 2]
+        return json.dumps({"target_visible": True, "point_2d": uv})
 
 
 def test_a_model_that_keeps_pointing_at_the_wall_of_a_dead_end_does_not_hold_the_vehicle_there(planner):
