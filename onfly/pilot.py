@@ -51,6 +51,7 @@ from onfly.search import (
     SearchConfig,
     SearchPhase,
     SearchTrigger,
+    at_dead_end,
     best_look_target,
     explore_target,
     frontier_target,
@@ -1048,11 +1049,7 @@ class OnFlyPilot:
     def _at_dead_spot(self, goal: np.ndarray) -> bool:
         """True when ``goal`` lies within ``dead_end_radius_m`` (horizontally) of a place where
         the vehicle stalled on the current subtask (:class:`SearchConfig`)."""
-        if not self._dead_spots or not self.config.search.enabled:
-            return False
-        spots = np.asarray(self._dead_spots, dtype=float)
-        near = np.linalg.norm(spots[:, :2] - np.asarray(goal, float)[None, :2], axis=1)
-        return bool(near.min() <= self.config.search.dead_end_radius_m)
+        return self.config.search.enabled and at_dead_end(self._dead_spots, goal, self.config.search.dead_end_radius_m)
 
     def _look_leg(self, t_s: float, state: VehicleState) -> np.ndarray | None:
         """The leg toward the freshest look point (:func:`onfly.search.look_target`), or None

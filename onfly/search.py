@@ -105,6 +105,7 @@ __all__ = [
     "SearchPhase",
     "SearchTrigger",
     "Search",
+    "at_dead_end",
     "best_look_target",
     "explore_target",
     "frontier_target",
@@ -413,9 +414,10 @@ def _visited_near(visited: np.ndarray, point: np.ndarray, radius_m: float) -> fl
     return float(np.sum(np.clip(1.0 - d / radius_m, 0.0, 1.0)))
 
 
-def _at_dead_end(dead_ends: np.ndarray | None, point: np.ndarray, radius_m: float) -> bool:
+def at_dead_end(dead_ends: np.ndarray | None, point: np.ndarray, radius_m: float) -> bool:
     """True when ``point`` lies within ``radius_m`` (horizontally) of one of ``dead_ends``
-    (k, 3), the ends of legs that could not be flown (:meth:`Search.dead_ends`)."""
+    (k, 3): the ends of legs that could not be flown (:attr:`Search.dead_ends`), or the places
+    where the vehicle stalled (the pilot's dead spots)."""
     if dead_ends is None:
         return False
     ends = np.asarray(dead_ends, dtype=float).reshape(-1, 3)
@@ -470,7 +472,7 @@ def explore_target(
             cand = p0 + r * d
             if volume is not None and not bool(volume.contains(cand, margin_m=volume_margin_m)[0]):
                 continue
-            if _at_dead_end(dead_ends, cand, cfg.dead_end_radius_m):
+            if at_dead_end(dead_ends, cand, cfg.dead_end_radius_m):
                 continue
             seg = p0 + np.outer(np.arange(0.25, r + 1e-9, 0.25), d)
             dist, _ = field_map.query(seg)
@@ -524,7 +526,7 @@ def open_ray_target(
         if reach < cfg.min_leg_m:
             continue
         tgt = p0 + reach * dirs[k]
-        if _at_dead_end(dead_ends, tgt, cfg.dead_end_radius_m):
+        if at_dead_end(dead_ends, tgt, cfg.dead_end_radius_m):
             continue
         score = (reach / cfg.open_ray_max_m) * _direction_weight(th, yaw, cfg.forward_weight)
         score -= 0.3 * _visited_near(visited, tgt, cfg.visit_radius_m)
@@ -588,7 +590,7 @@ def look_target(
         tgt = _look_along_rays(p0, look_yaw, field_map, cfg, volume, volume_margin_m)
     if tgt is None or _visited_near(visited, tgt, cfg.visit_radius_m) >= cfg.look_visited_max:
         return None
-    if _at_dead_end(dead_ends, tgt, cfg.dead_end_radius_m):
+    if at_dead_end(dead_ends, tgt, cfg.dead_end_radius_m):
         return None
     return tgt
 
@@ -750,7 +752,7 @@ def frontier_target(
         if near[k] > 1.0:
             continue  # nothing reachable next to it
         tgt = np.array([cells[k, 0], cells[k, 1], z_m])
-        if _at_dead_end(dead_ends, tgt, cfg.dead_end_radius_m):
+        if at_dead_end(dead_ends, tgt, cfg.dead_end_radius_m):
             continue
         path_m = float(steps[ri[k], rj[k]])
         if path_m < 1.0:
