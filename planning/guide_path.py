@@ -178,6 +178,23 @@ def _cells(extent: np.ndarray, res: float) -> float:
     return float(np.prod(np.floor(extent / res + 1e-9) + 1))
 
 
+def _lattice_through(start: np.ndarray, lo: np.ndarray, hi: np.ndarray, res: float) -> np.ndarray:
+    """The grid's lowest corner: ``lo`` raised by less than ``res`` on each axis whose range
+    ``[lo, hi]`` holds ``start``, so that ``start`` is a cell centre.
+
+    A cell is free only when its centre keeps the clearance, and a passage whose free band is
+    thinner than the spacing (a duct above a desk, each 0.6 m from the height the vehicle flies
+    at, leaves a band of about 0.2 m at a 0.55 m clearance) is seen by the grid only when a layer
+    of centres falls in it. The vehicle is there already: a lattice through its position always
+    has the layer it flies at (and a search leg's end is mostly at that height too), wherever
+    the flight volume's floor puts ``lo``.
+    """
+    s, lo = np.asarray(start, dtype=float), np.asarray(lo, dtype=float)
+    inside = (s >= lo) & (s <= hi)
+    aligned = s - np.floor((s - lo) / res + 1e-9) * res
+    return np.where(inside, aligned, lo)
+
+
 def guide_search(
     field: DistanceField,
     start: np.ndarray,
@@ -253,7 +270,8 @@ def guide_search(
                 status = "budget"
                 break
         t_level = time.perf_counter()
-        path = _grid_level(field, start, goal, lo, hi, res, clearance_m, preferred_clearance_m, unknown_blocked)
+        path = _grid_level(field, start, goal, _lattice_through(start, lo, hi, res), hi, res, clearance_m,
+                           preferred_clearance_m, unknown_blocked)
         prev_t, prev_cells = time.perf_counter() - t_level, n_cells
         run += 1
         if path is not None:

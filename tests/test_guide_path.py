@@ -64,3 +64,24 @@ def test_grid_resolution_is_respected_and_capped(res):
     # a huge extent is coarsened instead of exploding the cell count
     far = search_guide_path(field, start, np.array([200.0, 50.0, 1.0]), 0.5, 1.0, resolution_m=res, max_cells=20000)
     assert far is not None and len(far) < 2000
+
+
+def test_a_passage_thinner_than_the_grid_spacing_is_found_at_the_height_the_vehicle_flies():
+    """A slot between a slab below (top at z = 0.9) and one above (bottom at z = 2.12), 4 m long
+    and closing the grid from floor to ceiling: a 0.55 m clearance holds only for z in
+    [1.45, 1.57], thinner than the 0.25 m spacing. The floor (z_min_m = 0.35, a flight volume's)
+    puts the grid's layers at 1.35 and 1.60 m, both in the slabs' clearance; the lattice runs
+    through the start instead, so the layer at 1.5 m is there and the slot is found."""
+    below = Box(np.array([4.0, 0.0, 0.45]), np.array([2.0, 30.0, 0.45]))
+    above = Box(np.array([4.0, 0.0, 3.56]), np.array([2.0, 30.0, 1.44]))
+    field = AnalyticField(boxes=(below, above), half_spaces=(GROUND,))
+    start, goal = np.array([0.0, 0.0, 1.5]), np.array([8.0, 0.0, 1.5])
+    path = search_guide_path(field, start, goal, 0.55, 1.0, resolution_m=0.25, z_min_m=0.35, z_max_m=2.4)
+    assert path is not None
+    inside = path[(path[:, 0] > 2.0) & (path[:, 0] < 6.0)]
+    assert len(inside) and np.allclose(inside[:, 2], 1.5)
+    assert field.distance(path[1:-1]).min() >= 0.55
+    # the slot closed (a slab 0.1 m lower above): no path, the lattice invents none
+    above2 = Box(np.array([4.0, 0.0, 3.46]), np.array([2.0, 30.0, 1.44]))
+    shut = AnalyticField(boxes=(below, above2), half_spaces=(GROUND,))
+    assert search_guide_path(shut, start, goal, 0.55, 1.0, resolution_m=0.25, z_min_m=0.35, z_max_m=2.4) is None
