@@ -180,6 +180,10 @@ class MonitorOutcome:
     ``judged_*`` describe ``o_t``, the latest frame of the memory snapshot the call judged: a
     CONTINUE makes *that* pose the normal point (not the pose when the answer lands, up to one
     call later). None / NaN when the memory was empty.
+
+    ``seen_*`` describe the frame a LOST names as the last to show the target (``LOST keyframe
+    2``, :attr:`vlm.parsing.StatusParse.seen_image`): its id, and the pose it was taken from
+    (metres and radians, world). None / NaN when the answer named none.
     """
 
     subtask: str
@@ -192,6 +196,9 @@ class MonitorOutcome:
     judged_t_s: float = float("nan")
     judged_position: np.ndarray | None = None
     judged_yaw: float = float("nan")
+    seen_frame_id: str | None = None
+    seen_position: np.ndarray | None = None
+    seen_yaw: float = float("nan")
 
     @property
     def latency_s(self) -> float:
@@ -341,8 +348,11 @@ class MonitoringAgent:
         )
         if response.status is not CallStatus.OK:
             return MonitorOutcome(subtask, response, None, None, ids, reason=f"call {response.status.value}: {response.error}", **where)
-        parse = parse_status(response.text)
+        parse = parse_status(response.text, n_keyframes=len(records) - 2)
         if not parse.ok:
             log.info("monitor parse failed (%s): %r", parse.reason, response.text[:200])
             return MonitorOutcome(subtask, response, parse, None, ids, reason=f"parse: {parse.reason}", **where)
-        return MonitorOutcome(subtask, response, parse, parse.status, ids, **where)
+        if parse.seen_image is not None:
+            seen = records[parse.seen_image]  # the prompt's images are the records, in order
+            where.update(seen_frame_id=seen.frame_id, seen_position=seen.position.copy(), seen_yaw=float(seen.yaw))
+        return MonitorOutcome(subtask, response, parse, parse.status, ids, reason=parse.reason, **where)

@@ -15,18 +15,20 @@ from vlm.types import CallStatus, Usage, VlmResponse
 
 
 class _RecordingBackend:
-    """Answers CONTINUE and records the frame ids and subtask of every monitoring prompt."""
+    """Answers ``answer`` (CONTINUE) and records the frame ids and subtask of every monitoring
+    prompt."""
 
     name = "recording"
 
-    def __init__(self) -> None:
+    def __init__(self, answer: str = "CONTINUE") -> None:
         self.seen: list[tuple[str, tuple[str, ...]]] = []
+        self.answer = answer
 
     def complete(self, messages, images=(), **kwargs) -> VlmResponse:
         prompt = parse_prompt(messages)
         assert isinstance(prompt, MonitorPrompt)
         self.seen.append((prompt.subtask, tuple(im.frame_id for im in images)))
-        return VlmResponse(CallStatus.OK, text="CONTINUE", usage=Usage(), latency_s=0.0)
+        return VlmResponse(CallStatus.OK, text=self.answer, usage=Usage(), latency_s=0.0)
 
     def features(self, image):
         return None
@@ -64,3 +66,27 @@ def test_assess_judges_the_snapshot_and_reports_its_pose():
     # Without a snapshot the call takes one itself: the newest frame is judged.
     later = agent.assess("fly to the tree")
     assert later.judged_frame_id == "f9" and backend.seen[-1][1][-1] == "f9"
+
+
+def test_a_lost_that_names_an_image_carries_that_frames_pose():
+    # memory [first, k1, k2, latest]: "keyframe 2" is the third image of the prompt
+    backend = _RecordingBackend("LOST keyframe 2")
+    agent = MonitoringAgent(backend, HybridMemory(MemoryConfig(slots=2)), None)
+    for i in range(6):
+        agent.observe(_obs(i))
+    out = agent.assess("fly to the tree")
+    ids = backend.seen[-1][1]
+    assert len(ids) == 4 and out.status.value == "LOST"
+    named = _obs(int(ids[2][1:]))
+    assert out.seen_frame_id == ids[2] == named.frame_id
+    np.testing.assert_allclose(out.seen_position, named.position)
+    assert out.seen_yaw == named.yaw
+    # a keyframe the prompt did not hold is no place; the status stands
+    backend.answer = "LOST keyframe 3"
+    out = agent.assess("fly to the tree")
+    assert out.status.value == "LOST" and out.seen_frame_id is None and out.seen_position is None
+    assert "keyframe 3 of 2" in out.reason
+    # the first frame
+    backend.answer = "**LOST first**"
+    out = agent.assess("fly to the tree")
+    assert out.seen_frame_id == backend.seen[-1][1][0] == "f0"

@@ -196,6 +196,49 @@ def test_status_refusals(text, reason):
     assert not res.ok and res.status is None and reason in res.reason and res.raw == text
 
 
+@pytest.mark.parametrize(
+    "text,seen",
+    [
+        ("LOST first", 0),
+        ("LOST: first", 0),
+        ("lost, first", 0),
+        ("**LOST keyframe 2**", 2),
+        ("Status: LOST (first frame).", 0),
+        ("LOST. The target was last visible in key frame #3.", 3),
+        ("LOST keyframe1", 1),
+        ('{"status": "LOST", "last_seen": "first"}', 0),
+        ('```json\n{"status": "LOST", "last_seen": "keyframe 3"}\n```', 3),
+        ("LOST", None),
+        ('{"status": "LOST", "last_seen": null}', None),
+        ('{"status": "LOST", "last_seen": "the hallway"}', None),
+        ("First, the drone is LOST.", None),  # "first" as a word of the sentence names no image
+    ],
+)
+def test_lost_names_the_image_that_last_showed_the_target(text, seen):
+    res = parse_status(text, n_keyframes=3)
+    assert res.ok and res.status is MonitorStatus.LOST and res.seen_image == seen and res.reason == ""
+
+
+@pytest.mark.parametrize(
+    "text,reason",
+    [
+        ("LOST keyframe 4", "keyframe 4 of 3"),  # beyond what the prompt held
+        ("LOST keyframe 0", "keyframe 0"),
+        ("LOST first frame, or keyframe 2", "ambiguous"),
+        ('{"status": "LOST", "last_seen": "keyframe 9"}', "keyframe 9 of 3"),
+    ],
+)
+def test_a_place_that_is_not_one_image_of_the_prompt_is_dropped_and_the_lost_kept(text, reason):
+    res = parse_status(text, n_keyframes=3)
+    assert res.ok and res.status is MonitorStatus.LOST and res.seen_image is None and reason in res.reason
+
+
+@pytest.mark.parametrize("text", ["STOP first", "CONTINUE keyframe 2", '{"status": "CONTINUE", "last_seen": "first"}'])
+def test_only_a_lost_names_a_place(text):
+    res = parse_status(text, n_keyframes=3)
+    assert res.ok and res.status is not MonitorStatus.LOST and res.seen_image is None
+
+
 # ---------------------------------------------------------------------------------------------
 # point + depth, subtasks
 
@@ -513,8 +556,9 @@ def test_fuzz_point_depth_status_subtasks_are_total(text, size):
     if pd.ok:
         assert 0 <= pd.uv[0] <= size[0] - 1 and 0 <= pd.uv[1] <= size[1] - 1
         assert math.isfinite(pd.depth_m) and pd.depth_m > 0
-    s = parse_status(text)
+    s = parse_status(text, n_keyframes=4)
     assert s.ok == (s.status is not None) and s.raw == text
+    assert s.seen_image is None or (s.status is MonitorStatus.LOST and 0 <= s.seen_image <= 4)
     t = parse_subtasks(text)
     assert t.ok == bool(t.subtasks)
 

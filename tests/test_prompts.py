@@ -38,7 +38,7 @@ from vlm.types import ChatMessage, VlmImage
 # version must name one exact text. Bump "## version:" in the file and update the pin.
 PINNED = {
     "decision": ("decision/v3", "747a6933aa59ecad0d1cbcce0cb8f187cb19daf16fb7093cbd9510043b686907"),
-    "monitor": ("monitor/v2", "0c82ac88a7066fb7704704cc28a8e434ed24bc16e5335c25f9de24589481b51b"),
+    "monitor": ("monitor/v3", "007d38e3620cf4154e9acc23ae1bec52c789539cb9d922eff5ae00f7731b253e"),
     "decompose": ("decompose/v1", "531dcedca5041025b19524364a85a208ff85a9b1c8c2bf4598b36aff21d5aa4c"),
     "typefly": ("typefly/v1", "91e40abda5ab5999748b97cba358b7ca2d18629e22d4c1efcc17ebc8aa72a563"),
     "pivot": ("pivot/v1", "36e94787a2fcc626451c252d525b8a36cccf3b3348111317faebc2fa2667a935"),
@@ -125,7 +125,7 @@ def test_monitor_prompt_order_first_keyframes_latest():
             < user.index("Latest frame:"))
     for word in ("CONTINUE", "STOP", "LOST"):
         assert word in messages[0].content
-    assert parse_prompt(messages) == MonitorPrompt("monitor/v2", "stop next to the red van", 3)
+    assert parse_prompt(messages) == MonitorPrompt("monitor/v3", "stop next to the red van", 3)
     messages0, images0 = build_monitor_prompt("stop", first, [], latest)
     assert "Keyframes: none" in messages0[1].content and len(images0) == 2
     assert parse_prompt(messages0).n_keyframes == 0

@@ -339,6 +339,42 @@ def test_perfect_monitoring_stop_lost_continue():
     assert s([gone1, gone1, gone2]) is MonitorStatus.CONTINUE  # never seen: not lost
 
 
+def test_perfect_lost_names_the_latest_image_that_showed_the_target():
+    sim = SimulatedVlm("perfect", seed=0)
+    far = frame("p1", [dataclasses.replace(VAN, depth_m=10.0)])
+    gone = [frame(f"p{k}", [TREE]) for k in range(2, 6)]
+    answer = lambda frames: parse_status(monitor(sim, "stop next to the red van", frames).text, n_keyframes=len(frames) - 2)  # noqa: E731
+    # [first, k1, k2, k3, latest]: seen in keyframe 1 only
+    res = answer([gone[0], far, gone[1], gone[2], gone[3]])
+    assert res.status is MonitorStatus.LOST and res.seen_image == 1
+    # seen in the first frame and keyframe 2: the later one
+    res = answer([far, gone[0], renamed(far, "p1b"), gone[1], gone[2]])
+    assert res.status is MonitorStatus.LOST and res.seen_image == 2
+    res = answer([far, gone[0], gone[1]])
+    assert res.status is MonitorStatus.LOST and res.seen_image == 0
+    # structured output carries it as "last_seen"
+    text = monitor(sim, "stop next to the red van", [gone[0], far, gone[1], gone[2]], json_schema=status_schema()).text
+    assert json.loads(text) == {"status": "LOST", "last_seen": "keyframe 1"}
+
+
+def test_lost_place_errs_at_the_status_error_rate():
+    """Nominal: with the target perceived in keyframe 2 only, the place is keyframe 2 unless the
+    forced-choice error (``status_error_prob``) names another earlier image."""
+    model = dataclasses.replace(PRESETS["nominal"], malformed_prob=0.0, status_error_prob=0.2, miss_prob_far=0.0, miss_prob_small=0.0)
+    sim = SimulatedVlm(model, seed=4)
+    near = dataclasses.replace(VAN, depth_m=6.0)
+    wrong = lost = 0
+    for k in range(N):
+        frames = [frame(f"q{k}a", [TREE]), frame(f"q{k}b", [TREE]), frame(f"q{k}c", [near]), frame(f"q{k}d", [TREE]), frame(f"q{k}e", [TREE])]
+        res = parse_status(monitor(sim, "stop next to the red van", frames).text, n_keyframes=3)
+        if res.status is MonitorStatus.LOST:
+            lost += 1
+            assert res.seen_image in (0, 1, 2, 3)
+            wrong += res.seen_image != 2
+    assert lost > 0.7 * N
+    assert binomial_ok(wrong, lost, model.status_error_prob)
+
+
 def test_answers_depend_only_on_the_annotation_not_the_pixels():
     sim = SimulatedVlm("noisy", seed=5)
     a = decide(sim, "fly to the red van", frame("same", [VAN, TREE], rgb_value=0))

@@ -85,6 +85,16 @@ Statuses
 case, markdown and punctuation (``**STOP**``, ``Status: stop.``, ``{"status": "LOST"}``).
 Text naming two *different* statuses (``CONTINUE or STOP``) is refused as ambiguous; text
 naming none is a failure. ``STOPPED`` or ``continuing`` are not status words.
+
+A LOST may say where the target was last visible (monitor prompt ``monitor/v3``): the image
+of the prompt that showed it, ``first`` (the first frame) or ``keyframe N``
+(:attr:`StatusParse.seen_image`: 0 for the first frame, N for keyframe N, the prompt's image
+order). Accepted: ``first`` right after the status word (``LOST first``, ``LOST: first``),
+``first frame`` / ``first image`` anywhere, ``keyframe N`` / ``key frame N`` / ``keyframe #N``
+anywhere, and a JSON ``"last_seen"`` string holding one of those. The place is optional and
+never decides the status: a place naming two different images, a keyframe outside ``1 ..
+n_keyframes`` (when the caller says how many it sent) or a place after another status leaves
+``seen_image`` None, with the status kept and the reason in :attr:`StatusParse.reason`.
 """
 
 from __future__ import annotations
@@ -200,12 +210,14 @@ class PointDepthParse:
 
 @dataclass(frozen=True)
 class StatusParse:
-    """Outcome of :func:`parse_status`."""
+    """Outcome of :func:`parse_status`. ``seen_image``: with a LOST, the image of the prompt
+    that last showed the target (0 = the first frame, N = keyframe N), or None."""
 
     ok: bool
     status: MonitorStatus | None
     raw: str
     reason: str = ""
+    seen_image: int | None = None
 
 
 @dataclass(frozen=True)
@@ -653,8 +665,40 @@ def parse_point_depth(
 _STATUS_RE = re.compile(r"(?<![A-Za-z0-9_])(continue|stop|lost)(?![A-Za-z0-9_])", re.IGNORECASE)
 
 
-def parse_status(text: str) -> StatusParse:
-    """Read CONTINUE / STOP / LOST from a monitoring answer (rules in the module docstring)."""
+_PLACE_FIRST_AFTER_RE = re.compile(r"(?<![A-Za-z0-9_])lost[\s:,.;\-\u2013\u2014(*\"']*first(?![A-Za-z0-9_])", re.IGNORECASE)
+_PLACE_FIRST_RE = re.compile(r"(?<![A-Za-z0-9_])first[\s_-]*(?:frame|image)(?![A-Za-z0-9_])", re.IGNORECASE)
+_PLACE_KEYFRAME_RE = re.compile(r"(?<![A-Za-z0-9_])key[\s_-]?frame[\s_]*#?\s*(\d{1,3})(?![A-Za-z0-9_])", re.IGNORECASE)
+
+
+def _seen_image(text: str, n_keyframes: int | None) -> tuple[int | None, str]:
+    """The image a LOST answer names as the last to show the target (see the module
+    docstring), and why there is none when a place was named but not taken."""
+    texts = [text]
+    if "last_seen" in text:
+        texts += [
+            "LOST " + value["last_seen"] for _, value in _json_values(text)
+            if isinstance(value, dict) and isinstance(value.get("last_seen"), str)
+        ]  # fmt: skip
+    named: set[int] = set()
+    for t in texts:
+        named |= {0 for _ in _PLACE_FIRST_AFTER_RE.finditer(t)} | {0 for _ in _PLACE_FIRST_RE.finditer(t)}
+        named |= {int(m.group(1)) for m in _PLACE_KEYFRAME_RE.finditer(t)}
+    if not named:
+        return None, ""
+    if len(named) > 1:
+        return None, f"place ambiguous: names images {sorted(named)}"
+    index = named.pop()
+    if index == 0 and _PLACE_KEYFRAME_RE.search(text) is not None:
+        return None, "place: keyframe 0 does not exist"
+    if n_keyframes is not None and index > n_keyframes:
+        return None, f"place: keyframe {index} of {n_keyframes}"
+    return index, ""
+
+
+def parse_status(text: str, n_keyframes: int | None = None) -> StatusParse:
+    """Read CONTINUE / STOP / LOST from a monitoring answer, and with a LOST the image that
+    last showed the target (rules in the module docstring). ``n_keyframes``: how many
+    keyframes the prompt held (a place beyond them is not taken); None: not checked."""
     raw = text if isinstance(text, str) else repr(text)
     if not isinstance(text, str):
         return StatusParse(False, None, raw, f"text must be str, got {type(text).__name__}")
@@ -665,7 +709,11 @@ def parse_status(text: str) -> StatusParse:
         return StatusParse(False, None, raw, "no status word (CONTINUE, STOP, LOST)")
     if len(named) > 1:
         return StatusParse(False, None, raw, f"ambiguous: names {sorted(named)}")
-    return StatusParse(True, MonitorStatus(named.pop()), raw)
+    status = MonitorStatus(named.pop())
+    if status is not MonitorStatus.LOST:
+        return StatusParse(True, status, raw)
+    seen, why = _seen_image(text, n_keyframes)
+    return StatusParse(True, status, raw, why, seen_image=seen)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -570,10 +570,15 @@ def decision_schema() -> dict:
 
 
 def status_schema() -> dict:
-    """Schema of a structured monitoring answer ``{"status": "STOP"}``."""
+    """Schema of a structured monitoring answer ``{"status": "STOP"}``; a LOST may add where the
+    target was last visible, ``{"status": "LOST", "last_seen": "keyframe 2"}`` (``"first"`` or
+    ``"keyframe N"``, read by :func:`vlm.parsing.parse_status`)."""
     return {
         "type": "object",
-        "properties": {"status": {"type": "string", "enum": ["CONTINUE", "STOP", "LOST"]}},
+        "properties": {
+            "status": {"type": "string", "enum": ["CONTINUE", "STOP", "LOST"]},
+            "last_seen": {"type": "string", "pattern": "^(first|keyframe [1-9][0-9]*)$"},
+        },
         "required": ["status"],
         "additionalProperties": False,
     }

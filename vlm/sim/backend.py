@@ -366,15 +366,31 @@ class SimulatedVlm:
         if u_flip < m.status_error_prob:
             others = [s for s in _STATUSES if s != status]
             status = others[int(rng.integers(2))]
+        place = self._lost_place(seen, rng) if status == "LOST" else None
         if structured:
-            return json.dumps({"status": status})
+            return json.dumps({"status": status} if place is None else {"status": status, "last_seen": place})
         if u_malformed < m.malformed_prob:
             variants = ("The drone is still approaching the target.", "CONTINUE or STOP", "", "I am not sure.", "Status:")
             return variants[int(rng.integers(len(variants)))]
+        answer = status if place is None else f"{status} {place}"
         if u_variety >= m.format_variety_prob:
-            return status
-        variants = (f"**{status}**", f"Status: {status}.", status.lower(), f"{status}\n")
+            return answer
+        variants = (f"**{answer}**", f"Status: {answer}.", answer.lower(), f"{answer}\n")
         return variants[int(rng.integers(len(variants)))]
+
+    def _lost_place(self, seen: Sequence[Perception], rng: np.random.Generator) -> str:
+        """Where a LOST says the target was last visible (monitoring, rule *Place*): the most
+        recent earlier image in which it was perceived; with ``status_error_prob`` (or when no
+        earlier image showed it: a LOST the status flip made up) another earlier image, drawn
+        uniformly. Images are ``[first, *keyframes, latest]``; the latest is never named."""
+        earlier = len(seen) - 1
+        hits = [i for i in range(earlier) if seen[i].perceived]
+        u_wrong = rng.random()
+        index = hits[-1] if hits else None
+        if index is None or (u_wrong < self.model.status_error_prob and earlier > 1):
+            choices = [i for i in range(earlier) if i != index]
+            index = choices[int(rng.integers(len(choices)))]
+        return "first" if index == 0 else f"keyframe {index}"
 
     # -- baseline prompts: shared rules -----------------------------------------------------------
     def _close(self, per: Perception | None, jitter_m: float) -> bool:

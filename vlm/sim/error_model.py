@@ -115,6 +115,18 @@ Monitoring (``CONTINUE`` / ``STOP`` / ``LOST``, images ``[first, *keyframes, lat
     With probability ``status_error_prob`` the answer is replaced by one of the two other
     statuses, uniformly.
 
+    *Place* (``monitor/v3``: ``LOST keyframe 2``, ``LOST first``): a LOST names the most recent
+    image before the latest in which the target was perceived (by the per-frame draws above,
+    so a frame that missed the target is never named for it). With probability
+    ``status_error_prob`` it names another earlier image instead, drawn uniformly: the same
+    forced-choice error as the status, now among the images. That rate is an assumption, not a
+    measurement: telling which of several images shows an object is a multi-image task current
+    VLMs are benchmarked on and far from solve (X. Fu et al., "BLINK: Multimodal Large Language
+    Models Can See but Not Perceive", ECCV 2024; F. Meng et al., "MMIU: Multimodal Multi-image
+    Understanding for Evaluating Large Vision-Language Models", arXiv 2408.02718, 2024). A LOST
+    that the flip made up, with no earlier image that showed the target, names an earlier image
+    drawn uniformly.
+
 Decomposition (JSON array of strings)
     The deterministic splitter :func:`vlm.decompose.split_instruction`, then each boundary
     between adjacent subtasks is merged (joined with ``" then "``) with probability
