@@ -430,11 +430,10 @@ class OnFlyPilot:
         self._rejected_streak = 0  # of the decisions without a goal, those the verifier rejected
         self._answered_s = -np.inf  # when the decision agent last gave a parseable answer
         self._last_seen: np.ndarray | None = None  # where the current subtask's target was last pointed at
-        # where the monitor's latest LOST said the target was last visible: (frame id, the
-        # point seen_range_m ahead of that frame's pose, the frame's heading); the frames a
-        # search has flown a leg toward (one leg each)
-        self._seen_place: tuple[str, np.ndarray, float] | None = None
-        self._seen_flown: set[str] = set()
+        # the frame the monitor's latest LOST said last showed the target: (frame id, its
+        # heading, radians); the frames a search has turned back to (one look each)
+        self._seen_place: tuple[str, float] | None = None
+        self._seen_looked: set[str] = set()
         self._dead_spots: list[np.ndarray] = []  # where the vehicle stalled on the current subtask
         self._goal_target: np.ndarray | None = None  # the object the current goal was set for
         self._in_view_logged_t: float | None = None  # goal_t_s of the goal last moved back (one event each)
@@ -684,8 +683,7 @@ class OnFlyPilot:
             return
         status = Status(out.status.value)
         if status is Status.LOST and out.seen_position is not None and self.config.search.enabled and self.config.search.seen_place:
-            ahead = self.config.search.seen_range_m * np.array([np.cos(out.seen_yaw), np.sin(out.seen_yaw), 0.0])
-            self._seen_place = (str(out.seen_frame_id), np.asarray(out.seen_position, float) + ahead, float(out.seen_yaw))
+            self._seen_place = (str(out.seen_frame_id), float(out.seen_yaw))
         joined = not same_subtask(out.subtask, self.tasks.current)  # asked with the next subtask as its later step
         if out.judged_position is not None:
             # the normal point is where the judged frame was taken, not where the answer landed
@@ -703,7 +701,7 @@ class OnFlyPilot:
         elif event is TaskEvent.NONE:
             if status is Status.LOST:  # already recovered toward this normal point: fly on
                 self._event(t_s, "lost_repeated", {"position": state.p})
-                if self.mode is PilotMode.SEARCHING and self._last_seen is None and self._fly_to_seen_place(t_s, state):
+                if self.mode is PilotMode.SEARCHING and self._last_seen is None and self._look_at_seen_place(t_s, state):
                     self._event(t_s, "lost", {"recovery": "seen_place", "frame": self._seen_place[0], "position": state.p})
             if self.mode is PilotMode.CONFIRMING:
                 # CONTINUE (or a repeated LOST) after an unconfirmed STOP: carry on toward the
@@ -717,7 +715,7 @@ class OnFlyPilot:
         if event is TaskEvent.LOST and self.search.active and self._last_seen is None:
             # the search is already the recovery, and there is no sighting to turn back to: a
             # leg toward the frame the monitor says last showed the target, if it named one
-            if self._fly_to_seen_place(t_s, state):
+            if self._look_at_seen_place(t_s, state):
                 self._event(t_s, "lost", {"recovery": "seen_place", "frame": self._seen_place[0], "position": state.p})
             else:
                 self._event(t_s, "lost", {"recovery": "searching", "position": state.p})
@@ -732,7 +730,7 @@ class OnFlyPilot:
             self.goal_world = None
             self._face_yaw = None
             self._last_seen = self._look = self._seen_place = None
-            self._seen_flown = set()
+            self._seen_looked = set()
             self._dead_spots = []
             self._no_goal_streak = self._not_visible_streak = self._rejected_streak = 0
             self.mode = PilotMode.HOLDING
@@ -754,7 +752,7 @@ class OnFlyPilot:
                 self._recovery_yaw = float(np.arctan2(seen[1] - state.p[1], seen[0] - state.p[0]))
                 source = "last_seen"
             elif self._seen_place is not None:
-                self._recovery_yaw = self._seen_place_yaw(state)
+                self._recovery_yaw = self._seen_place[1]
                 source = "seen_place"
             elif self.tasks.last_normal is not None or not self.config.search.enabled:
                 self._recovery_yaw = self.tasks.recovery_yaw(state.yaw)
@@ -1082,56 +1080,26 @@ class OnFlyPilot:
 
     def _last_seen_yaw(self, state: VehicleState) -> float | None:
         """Heading from the vehicle to where the target was last seen: the decision agent's
-        sighting, else the place the monitor's LOST named; None without either."""
+        sighting, else the heading of the frame the monitor's LOST named; None without either."""
         seen = self._last_seen
         if seen is None:
-            return None if self._seen_place is None else self._seen_place_yaw(state)
+            return None if self._seen_place is None else self._seen_place[1]
         if np.linalg.norm(seen[:2] - state.p[:2]) <= 0.5:
             return None
         return float(np.arctan2(seen[1] - state.p[1], seen[0] - state.p[0]))
 
-    def _seen_place_yaw(self, state: VehicleState) -> float:
-        """Heading from the vehicle to the place the monitor's LOST named (the named frame's
-        own heading when the vehicle is within half a metre of that place)."""
-        _, point, frame_yaw = self._seen_place
-        return frame_yaw
-
-    def _sighting_leg(self, state: VehicleState) -> np.ndarray | None:
-        """A search leg toward the decision agent's last sighting of the target
-        (:func:`onfly.search.look_target` along the bearing to it), once per sighting, when it
-        lies farther than a leg's arrival radius; else None."""
-        seen = self._last_seen
-        if seen is None or not self.config.search.seen_place:
-            return None
-        key = f"sighting:{seen[0]:.2f},{seen[1]:.2f}"
-        d = seen[:2] - state.p[:2]
-        if key in self._seen_flown or float(np.hypot(*d)) <= self.config.search.explore_arrive_m + 1.0:
-            return None
-        self._seen_flown.add(key)
-        return look_target(
-            state.p, float(np.arctan2(d[1], d[0])), self.esdf, config=self.config.search, volume=self.volume,
-            volume_margin_m=self._volume_margin_m, visited=self.search.visited, z_m=self._cruise_z(state),
-            dead_ends=self.search.dead_ends,
-        )  # fmt: skip
-
-    def _fly_to_seen_place(self, t_s: float, state: VehicleState) -> bool:
-        """While searching: a leg toward the place the monitor's LOST named
-        (:func:`onfly.search.look_target` along the bearing to it), or, with no leg that way,
-        a turn to face it; once per named frame. False when there is no new place."""
-        if self._seen_place is None or self._seen_place[0] in self._seen_flown:
+    def _look_at_seen_place(self, t_s: float, state: VehicleState) -> bool:
+        """While searching: turn the camera back to the heading of the frame the monitor's LOST
+        named (a short look, then the search goes on), once per named frame, so the decision
+        agent gets a fresh view of what that frame showed. False when there is no new place or
+        the camera already faces it (within a quarter of the field of view)."""
+        if self._seen_place is None or self._seen_place[0] in self._seen_looked:
             return False
-        self._seen_flown.add(self._seen_place[0])
-        yaw = self._seen_place_yaw(state)
-        target = look_target(
-            state.p, yaw, self.esdf, config=self.config.search, volume=self.volume, volume_margin_m=self._volume_margin_m,
-            visited=self.search.visited, z_m=self._cruise_z(state), dead_ends=self.search.dead_ends,
-        )  # fmt: skip
-        if target is None:
-            self.search.look(t_s, state.p, [yaw])
-        else:
-            self.search.heading0 = yaw
-            self.search.explore_from(t_s, target, state.p, state.yaw, kind="seen")
-            self._event(t_s, "search_explore", {"target": target, "position": state.p, "how": "seen"})
+        self._seen_looked.add(self._seen_place[0])
+        yaw = self._seen_place[1]
+        if abs(wrap_angle(yaw - state.yaw)) <= np.pi / 8:
+            return False
+        self.search.look(t_s, state.p, [yaw])
         return True
 
     def _start_search(self, t_s: float, state: VehicleState, trigger: SearchTrigger, explore_first: bool = False) -> None:
@@ -1186,9 +1154,7 @@ class OnFlyPilot:
         )
         # where the model would look first; then the most promising frontier of the map; the
         # ring of straight legs where the map has no reachable frontier at this height
-        target, how = self._sighting_leg(state), "seen"
-        if target is None:
-            target, how = (self._best_scan_look(state) if self._scan_looks else None), "look"
+        target, how = (self._best_scan_look(state) if self._scan_looks else None), "look"
         if target is None:
             target = self._look_leg(t_s, state)
         if target is None and self.config.search.explore_policy == "open_ray":

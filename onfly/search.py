@@ -233,15 +233,13 @@ class SearchConfig:
         glances and dead-end rules since, the hard set turned round: at ``219fba4`` it scores
         55.1 % SR with the scan and 47.8 % without (out of view 45.1 against 35.3 %)
     seen_place : a LOST that names the image which last showed the target (monitor prompt
-        ``monitor/v3``, ``LOST keyframe 2``) is followed: with no sighting of the decision
-        agent to turn back to, the LOST recovery turns toward it, and a search flies a leg
-        toward it (:func:`look_target` along the bearing), once per named frame. Where "it" is
-        the point ``seen_range_m`` ahead of the pose that frame was taken from, along its
-        heading. False = a LOST's place is ignored (the paper's recovery: the last normal
-        point's heading; the search goes on)
-    seen_range_m : how far ahead of the named frame's pose the target is taken to be, metres: a
-        frame names a direction, not a range, and within the depth camera's 7 m the direction
-        from a vehicle a few metres away is then right to within the camera's half field
+        ``monitor/v3``, ``LOST keyframe 2``) is used: with no sighting of the decision agent to
+        turn back to, the LOST recovery turns to that frame's heading, and a search turns the
+        camera back to it (a short look, once per named frame, unless the camera already
+        faces it) before it goes on, so the decision agent sees again what the frame showed.
+        A frame names a direction within the camera's field of view, not a place: legs flown
+        toward it were measured and lost more than they won (``docs/hard_tasks.md``). False =
+        the place is ignored (the paper's recovery: the last normal point's heading)
     leg_blocked_s : a leg ends when the planner has held its end back at the vehicle, or has
         failed to plan with the vehicle at rest, this long, seconds (:meth:`Search.leg_blocked`)
     backout_m : a search that a stall started hands control back to the model's goals only once
@@ -308,7 +306,6 @@ class SearchConfig:
     look_visited_max: float = 1.0
     scan_first_search: bool = True
     seen_place: bool = True
-    seen_range_m: float = 4.0
     leg_blocked_s: float = 2.0
     dead_end_radius_m: float = 1.0
     backout_m: float = 2.0
@@ -341,7 +338,6 @@ class SearchConfig:
             "look_min_leg_m",
             "look_max_age_s",
             "look_visited_max",
-            "seen_range_m",
             "glance_reach_m",
             "leg_blocked_s",
             "dead_end_radius_m",

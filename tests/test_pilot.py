@@ -489,19 +489,18 @@ def test_a_goal_on_a_low_target_is_kept_where_the_camera_still_sees_the_target()
             PilotConfig(**bad)
 
 
-def test_a_lost_that_names_the_first_frame_sends_the_search_that_way(planner):
+def test_a_lost_that_names_the_first_frame_turns_the_search_back_to_it(planner):
     """The decision agent never sees the van (it answers "not visible"), so the pilot searches;
-    the monitor then says LOST and names the first frame as the last to show the target. The
-    search flies one leg toward the place ahead of the first frame's pose (once: the same frame
-    named again changes nothing), and with the place ignored (``seen_place = False``) it does
-    not."""
+    the monitor then keeps saying LOST and names the first frame as the last to show the
+    target. The search turns the camera back to that frame's heading once (the same frame named
+    again changes nothing); with the place ignored (``seen_place = False``) it does not."""
     from dataclasses import replace
 
     def decision(i, resp):
         return text('{"target_visible": false, "point_2d": null}', 0.4)
 
     def monitor(i, resp):
-        return text("CONTINUE", 0.4) if i < 3 else text("LOST first", 0.4)
+        return text("CONTINUE", 0.4) if i < 1 else text("LOST first", 0.4)
 
     poses = []
     m, r = fly_scripted(
@@ -510,21 +509,17 @@ def test_a_lost_that_names_the_first_frame_sends_the_search_that_way(planner):
     )  # fmt: skip
     ev = m.pilot.events
     seen = [e for e in ev if e.kind == "lost" and e.data.get("recovery") == "seen_place"]
-    legs = [e for e in ev if e.kind == "search_explore" and e.data["how"] == "seen"]
     first_id = next(e.data["memory"][0] for e in ev if e.kind == "monitor" and e.data["memory"])
     assert len(seen) == 1 and seen[0].data["frame"] == first_id
-    assert len(legs) == 1
-    # the place: seen_range_m ahead of the first frame's pose, along its heading
-    _, p0, yaw0 = poses[0]
-    place = p0[:2] + PilotConfig().search.seen_range_m * np.array([np.cos(yaw0), np.sin(yaw0)])
-    at, to = np.asarray(legs[0].data["position"])[:2], np.asarray(legs[0].data["target"])[:2]
-    bearing_place = np.arctan2(*(place - at)[::-1])
-    bearing_leg = np.arctan2(*(to - at)[::-1])
-    assert abs(wrap_angle(bearing_leg - bearing_place)) <= PilotConfig().search.look_cone_rad + 1e-6
-    assert np.linalg.norm(to - at) >= PilotConfig().search.look_min_leg_m
+    assert sum(e.kind == "monitor" and e.data["status"] == "LOST" for e in ev) >= 3
+    # the camera comes back to the first frame's heading, and holds it for the dwell
+    yaw0 = poses[0][2]
+    tol = PilotConfig().search.scan_yaw_tolerance_rad
+    after = [(t, y) for t, _, y in poses if t > seen[0].t_s]
+    reached = [t for t, y in after if abs(wrap_angle(y - yaw0)) <= tol]
+    assert reached and reached[0] - seen[0].t_s < np.pi / 0.4 + 2.0  # at most half a turn at 0.4 rad/s
     assert not r.metrics.collided
 
     off = PilotConfig(search=replace(PilotConfig().search, seen_place=False))
     m2, _ = fly_scripted(ScriptedVlm("perfect", decision=decision, monitor=monitor), planner, lambda s: None, config=off)
-    assert not [e for e in m2.pilot.events if e.kind == "search_explore" and e.data["how"] == "seen"]
     assert not [e for e in m2.pilot.events if e.kind == "lost" and e.data.get("recovery") == "seen_place"]
