@@ -130,7 +130,7 @@ class BenchMemoryConfig:
     altitude_m : flight height above the ground, metres
     frame_period_s, monitor_period_s : camera and monitoring periods, seconds (integer ratio)
     slots : S, keyframes between o_1 and o_t
-    max_new_tokens : greedy tokens per monitoring call (the answer is one word)
+    max_new_tokens : greedy tokens per monitoring call (the answer is one status word; a LOST that names its image takes a few more)
     threads : torch intra-op threads
     advance_every : monitoring calls per subtask in the advance experiment
     """
