@@ -714,7 +714,7 @@ class OnFlyPilot:
                 self._event(t_s, "stop_withdrawn", {"position": state.p})
         if event is TaskEvent.LOST and self.search.active and self._last_seen is None:
             # the search is already the recovery, and there is no sighting to turn back to: a
-            # leg toward the frame the monitor says last showed the target, if it named one
+            # look back along the frame the monitor says last showed the target, if it named one
             if self._look_at_seen_place(t_s, state):
                 self._event(t_s, "lost", {"recovery": "seen_place", "frame": self._seen_place[0], "position": state.p})
             else:
