@@ -197,6 +197,45 @@ def test_grounding_on_the_head_of_the_noun_phrase():
     assert best("fly to the red sedan past door 103") == [5, 6]
 
 
+def test_an_object_that_says_where_the_target_is_is_a_landmark():
+    """``the charging station by the blue car``: the car says where the station is. Its mention
+    is flagged (``locates``) and ranks after the target's; after a verb the same words name the
+    goal (``stop next to the blue car``)."""
+    objs = {
+        1: VisibleObject(1, "charging station by the blue car", "charger", ("EV charger by the blue car",)),
+        2: VisibleObject(2, "blue car", "car"),
+        3: VisibleObject(3, "person", "person"),
+        4: VisibleObject(4, "entrance", "entrance"),
+    }
+    every = {k: 100 for k in objs}
+    flags = lambda s, areas=every: [(m.instance_id, m.locates) for m in ground(s, objs, areas)]  # noqa: E731
+    assert flags("Stop in front of the charging station by the blue car.") == [(1, False), (2, True)]
+    assert flags("Stop in front of the charging station by the blue car.", {2: 100}) == [(2, True)]
+    assert flags("stop next to the blue car") == [(2, False)]
+    assert flags("Go to the EV charger next to the blue car", {2: 100}) == [(2, True)]
+    assert flags("fly to the person standing by the entrance", {4: 100}) == [(4, True)]  # a participle between
+    assert flags("fly to the person, then by the entrance", {4: 100}) == [(4, False)]  # another clause
+    assert flags("hover in front of the entrance") == [(4, False)]
+
+
+def test_with_only_the_landmark_in_view_the_model_looks_there_and_never_stops_at_it():
+    sim = SimulatedVlm("perfect", seed=0)
+    charger = Obj(5, "charging station by the blue car", "charger", 4.0, rect=(120, 40, 130, 60))
+    car = Obj(6, "blue car", "car", 4.0, rect=(20, 50, 70, 100))
+    subtask = "Stop in front of the charging station by the blue car."
+    only_car = frame("lc1", [car], open_cols=(140, 160))
+    answer = json.loads(decide(sim, subtask, only_car).text)
+    assert answer["target_visible"] is False
+    u, v = answer["point_2d"]
+    assert 20 <= u < 70 and 50 <= v < 100  # on the car, not the deepest open direction (140-160)
+    both = frame("lc2", [car, charger])
+    u, v = json.loads(decide(sim, subtask, both).text)["point_2d"]
+    assert 120 <= u < 130 and 40 <= v < 60
+    near_car = frame("lc3", [dataclasses.replace(car, depth_m=1.5)])
+    assert parse_status(monitor(sim, subtask, [near_car, near_car]).text).status is MonitorStatus.CONTINUE
+    assert _spf(sim, subtask, near_car)["depth"] > 0  # the baselines' stop interface: not reached either
+
+
 def test_non_target_objects_are_never_the_goal():
     """Scene objects with target = false (walls, ground, parked cars) are never grounded."""
     objs = {

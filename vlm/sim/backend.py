@@ -80,6 +80,8 @@ class Perception:
     perceived : bool, False if there is none or it was missed
     small, far : bool, the miss conditions that applied
     moving : bool, the perceived object is moving in this frame (a walking person)
+    hint : Region or None, with no target in view: a visible object the subtask locates its
+        target by (``the charging station by the blue car``: the car), where the model looks
     """
 
     named_id: int | None
@@ -88,6 +90,7 @@ class Perception:
     small: bool = False
     far: bool = False
     moving: bool = False
+    hint: Region | None = None
 
 
 @dataclass(frozen=True)
@@ -236,9 +239,10 @@ class SimulatedVlm:
         ann: FrameAnnotation = image.annotation  # checked by the caller
         areas = visible_regions(ann)
         matches = ground(subtask, ann.objects, areas)
-        if not matches:
-            return Perception(None, None, False)
-        iid = (max(matches, key=_mention_end) if last_mention else matches[0]).instance_id
+        targets = [mt for mt in matches if not mt.locates]  # a landmark of the target is never it
+        if not targets:
+            return Perception(None, None, False, hint=region_of(ann, matches[0].instance_id) if matches else None)
+        iid = (max(targets, key=_mention_end) if last_mention else targets[0]).instance_id
         region = region_of(ann, iid)
         w, h = image.size
         small = region.area_px < self.model.small_target_frac * w * h
@@ -271,7 +275,7 @@ class SimulatedVlm:
             u0, v0 = anchor_pixel(region.mask)
             sigma = m.pixel_sigma_px(w, region.median_depth_m)
         elif _leg_names_target(legs, leg):
-            return self._not_visible(rng, u_malformed, u_variety, structured, ann.depth_m)
+            return self._not_visible(rng, u_malformed, u_variety, structured, ann.depth_m, None if per is None else per.hint)
         elif prompt.history_uv is not None:
             u0, v0 = prompt.history_uv
             sigma = m.pixel_sigma_px(w, 0.0)
@@ -294,7 +298,8 @@ class SimulatedVlm:
         return variants[int(rng.integers(len(variants)))]
 
     def _not_visible(
-        self, rng: np.random.Generator, u_malformed: float, u_variety: float, structured: bool, depth_m: np.ndarray
+        self, rng: np.random.Generator, u_malformed: float, u_variety: float, structured: bool, depth_m: np.ndarray,
+        hint: Region | None = None,
     ) -> str:
         """The decision answer "the target is not visible" (decision/v3) with the point where
         the model would look instead: the exploration point plus the pixel noise at ``d = 0``,
@@ -303,7 +308,7 @@ class SimulatedVlm:
         point); malformed with ``malformed_prob`` like any answer."""
         m = self.model
         h, w = depth_m.shape
-        u0, v0 = exploration_point(depth_m)
+        u0, v0 = exploration_point(depth_m) if hint is None else anchor_pixel(hint.mask)
         sigma = m.pixel_sigma_px(w, 0.0)
         du, dv = rng.normal(0.0, sigma, 2) if sigma > 0 else (0.0, 0.0)
         u = int(np.clip(round(u0 + du), 0, w - 1))
@@ -450,11 +455,15 @@ class SimulatedVlm:
         if pers[final].perceived:
             return LegTarget(final, pers[final], True, self._complete(instruction, pers[final], jitter_m))
         seen = [k for k, p in enumerate(pers) if p.perceived]
+
+        def unseen(k: int) -> Perception | None:  # a leg to explore for: where its landmark is, if one shows
+            return pers[k] if pers[k].hint is not None else None
+
         if not seen:
-            return LegTarget(0, None, final == 0, False)
+            return LegTarget(0, unseen(0), final == 0, False)
         j = max(seen)
         if self._close(pers[j], jitter_m):
-            return LegTarget(j + 1, None, j + 1 == final, False)
+            return LegTarget(j + 1, unseen(j + 1), j + 1 == final, False)
         return LegTarget(j, pers[j], False, False)
 
     def _aim(self, leg_text: str, image: VlmImage, per: Perception | None, rng: np.random.Generator, u_confuse: float):
@@ -472,7 +481,8 @@ class SimulatedVlm:
             sigma = m.pixel_sigma_px(w, region.median_depth_m)
         else:
             region = None
-            u0, v0 = exploration_point(ann.depth_m)
+            hint = None if per is None else per.hint
+            u0, v0 = exploration_point(ann.depth_m) if hint is None else anchor_pixel(hint.mask)
             sigma = m.pixel_sigma_px(w, 0.0)
         du, dv = rng.normal(0.0, sigma, 2) if sigma > 0 else (0.0, 0.0)
         return u0 + du, v0 + dv, region
@@ -693,9 +703,9 @@ def _detected_per_leg(
     objs, areas = scene_objects_as_visible(objects, annotation)
     out: list[SceneObject | None] = []
     for k, leg in enumerate(legs):
-        matches = [] if k > 0 and opens_with_back_reference(leg) else ground(leg, objs, areas)
+        matches = [] if k > 0 and opens_with_back_reference(leg) else [m for m in ground(leg, objs, areas) if not m.locates]
         if not matches and k > 0 and _BACK_REFERENCES & set(words(leg)):
-            matches = sorted(ground(legs[k - 1], objs, areas), key=_mention_end, reverse=True)
+            matches = sorted((m for m in ground(legs[k - 1], objs, areas) if not m.locates), key=_mention_end, reverse=True)
         out.append(objects[matches[0].instance_id - 1] if matches else None)
     return out
 

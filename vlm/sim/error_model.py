@@ -27,9 +27,21 @@ naive singular) and
   cars and street furniture the scene marks as background; :attr:`vlm.types.VisibleObject.target`)
   are never the goal of a subtask.
 
+*Landmarks that locate the target*: a mention right after a locating preposition (``by``,
+``near``, ``beside``, ``behind``, ``opposite``, ``next to``, ``across from``, ``in front of``)
+that itself follows a noun in the same clause (``the charging station by the blue car``, ``the
+person standing by the entrance``) says where that noun is: it is never the subtask's target.
+With the target out of view and the landmark in view, the model says the target is not visible
+and looks at the landmark (rule 4, and the baselines' *Aim*): the instruction says where to
+look. After a verb the same words name the goal (``stop next to the blue car``). Reading a
+prepositional phrase as a modifier of the noun before it is the referring-expression task
+grounding models are trained on (RefCOCO's relational expressions: L. Yu et al., "Modeling
+Context in Referring Expressions", ECCV 2016), and a target that is not there is answered as
+absent (gRefCOCO, rule 4).
+
 Among named objects: mentions after ``past`` / ``passed`` / ``beyond`` (a landmark flown past)
 and inside an opening place phrase closed by a comma (``On the upper deck, stop beside the
-chair``) rank last; then the earliest mention, the longer match, the object more of whose own
+chair``) rank last, then landmarks that locate the target; then the earliest mention, the longer match, the object more of whose own
 distinctive words the subtask uses (``the person standing by the entrance`` is ``person by
 the entrance``), the larger visible area, the lower instance id.
 
@@ -74,7 +86,9 @@ Decision (``decision/v3``: ``{"target_visible": true, "point_2d": [x, y]}`` or `
        the frame, or missed by rule 1): the answer is ``{"target_visible": false, "point_2d":
        [x, y]}`` with the point where to look instead: the exploration point of rule 5 plus
        noise ``sigma_px`` at ``d = 0``, the point every baseline prompt aims at when its target
-       is not perceived (no semantic prior: the deepest open direction, whatever the target);
+       is not perceived (no semantic prior: the deepest open direction, whatever the target),
+       or, when a landmark that locates the target is in view (Grounding), that landmark's
+       anchor pixel with the same noise;
        no target point is invented, whatever the history point. Abstaining on a referring
        expression with no referent is a trained behaviour of grounding models (gRefCOCO's
        no-target expressions: C. Liu, H. Ding, X. Jiang, "GRES: Generalized Referring
@@ -143,7 +157,8 @@ Baseline prompts (``spf``, ``pivot``, ``typefly`` templates; the paper's Table I
       last leg's target is perceived with ``d < stop_distance_m + stop_offset_m + e``.
       ``status_error_prob`` (a monitoring forced-choice error) does not apply.
     - *Aim*: the decision rule's point (anchor pixel, confusion with ``confusion_prob``, noise
-      ``sigma_px``); exploring: the exploration point plus noise at ``d = 0``.
+      ``sigma_px``); exploring: the exploration point plus noise at ``d = 0`` (the anchor pixel
+      of a landmark that locates the leg's target, when one is in view).
 
     ``spf``: ``{"point_2d": [x, y], "depth": k}`` with ``k`` the pointed object's median depth
     rounded to whole metres in ``[1, 10]`` (exploring: the median depth in a 9 x 9 px window

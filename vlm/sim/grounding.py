@@ -74,6 +74,10 @@ NON_OBJECT_WORDS = PHRASE_END_WORDS | frozenset(
 _DETERMINERS = frozenset("the a an this that these those".split())
 #: a mention after one of these is a landmark flown past, not the goal ("fly past the bench to ...")
 _PAST_WORDS = frozenset("past passed beyond".split())
+#: prepositions by which a noun phrase says where its head is ("the charger *by* the blue car"):
+#: the object named after one, when a noun comes right before it, is a landmark of that noun
+_LOCATING_PREPOSITIONS = (("in", "front", "of"), ("next", "to"), ("across", "from"), ("by",), ("near",), ("beside",),
+                          ("behind",), ("opposite",))
 #: prepositions that open a place phrase ("on the upper deck, stop beside the chair")
 _PLACE_OPENERS = frozenset("on in at inside outside upon from".split())
 #: nouns ending in -ing or -ed that are not participles (they can continue a noun phrase)
@@ -142,6 +146,8 @@ class Match:
     passed : bool, the mention follows ``past`` / ``passed`` / ``beyond`` (a landmark to fly
         past), or lies in an opening place phrase closed by a comma (``on the upper deck,
         stop beside the chair``: where, not what); ranked after every other mention
+    locates : bool, the mention says where an earlier noun is (``the charging station by the
+        blue car``: the car; :func:`locates_head`): a landmark, never the subtask's target
     """
 
     instance_id: int
@@ -149,6 +155,7 @@ class Match:
     n_words: int
     via: str
     passed: bool = False
+    locates: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -212,9 +219,9 @@ def ground(subtask: str, objects: Mapping[int, VisibleObject], areas_px: Mapping
                 while p > 0 and text[p - 1] in _DETERMINERS:
                     p -= 1
                 landmark = (p > 0 and text[p - 1] in _PAST_WORDS) or end <= opening
-                m = Match(iid, j, len(phrase) + (i - j), via, landmark)
+                m = Match(iid, j, len(phrase) + (i - j), via, landmark, locates_head(text, breaks, p))
                 cur = best.get(iid)
-                if cur is None or (m.passed, m.start, -m.n_words) < (cur.passed, cur.start, -cur.n_words):
+                if cur is None or (m.passed, m.locates, m.start, -m.n_words) < (cur.passed, cur.locates, cur.start, -cur.n_words):
                     best[iid] = m
     # ties between mentions at one place (a label shared by look-alikes): the object more of
     # whose own distinctive words the subtask uses ("the person standing by the entrance" is
@@ -226,8 +233,34 @@ def ground(subtask: str, objects: Mapping[int, VisibleObject], areas_px: Mapping
         for iid in best
     }  # fmt: skip
     return sorted(
-        best.values(), key=lambda m: (m.passed, m.start, -m.n_words, -overlap[m.instance_id], -areas_px[m.instance_id], m.instance_id)
+        best.values(),
+        key=lambda m: (m.passed, m.locates, m.start, -m.n_words, -overlap[m.instance_id], -areas_px[m.instance_id], m.instance_id),
     )
+
+
+def locates_head(text: list[str], breaks: list[bool], p: int) -> bool:
+    """Whether the noun phrase starting at word ``p`` of ``text`` (determiners included) says
+    where an earlier noun is: a locating preposition (``by``, ``near``, ``next to``, ``in front
+    of`` ...: :data:`_LOCATING_PREPOSITIONS`) right before it, and before that, in the same
+    clause, a noun: a word that is not a number, an attribute or one of
+    :data:`NON_OBJECT_WORDS`, optionally followed by one participle (``the person standing by
+    the entrance``, ``the van parked next to the kiosk``). ``stop next to the blue car`` has a
+    verb before the preposition, so the car is the goal; ``the charging station by the blue
+    car`` a noun, so the car only says where the station is."""
+    for prep in _LOCATING_PREPOSITIONS:
+        q = p - len(prep)
+        if q < 1 or text[q:p] != list(prep) or any(breaks[q - 1 : p - 1]):
+            continue
+        k = q - 1
+        if _is_participle(text[k]) and k >= 1 and not breaks[k - 1]:
+            k -= 1
+        w = text[k]
+        return not (w.isdigit() or w in NON_OBJECT_WORDS or w in ATTRIBUTE_WORDS or _is_participle(w))
+    return False
+
+
+def _is_participle(word: str) -> bool:
+    return len(word) > 4 and word.endswith(("ing", "ed")) and word not in _ING_NOUNS
 
 
 def _valid_depth(depth_m: np.ndarray) -> np.ndarray:
