@@ -302,7 +302,8 @@ class SimulatedVlm:
         hint: Region | None = None,
     ) -> str:
         """The decision answer "the target is not visible" (decision/v3) with the point where
-        the model would look instead: the exploration point plus the pixel noise at ``d = 0``,
+        the model would look instead: the exploration point (the anchor pixel of ``hint``, a
+        landmark in view that locates the target, when given) plus the pixel noise at ``d = 0``,
         the point every baseline prompt is given for an unperceived target (one rule for
         every prompt). In a real model's shapes (one of them, ``NOT_VISIBLE``, carries no
         point); malformed with ``malformed_prob`` like any answer."""
