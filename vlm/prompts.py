@@ -572,12 +572,13 @@ def decision_schema() -> dict:
 def status_schema() -> dict:
     """Schema of a structured monitoring answer ``{"status": "STOP"}``; a LOST may add where the
     target was last visible, ``{"status": "LOST", "last_seen": "keyframe 2"}`` (``"first"`` or
-    ``"keyframe N"``, read by :func:`vlm.parsing.parse_status`)."""
+    ``"keyframe N"``, read and checked by :func:`vlm.parsing.parse_status`: a plain string, since
+    string ``pattern`` is a JSON-Schema keyword not every guided-decoding engine compiles)."""
     return {
         "type": "object",
         "properties": {
             "status": {"type": "string", "enum": ["CONTINUE", "STOP", "LOST"]},
-            "last_seen": {"type": "string", "pattern": "^(first|keyframe [1-9][0-9]*)$"},
+            "last_seen": {"type": "string"},
         },
         "required": ["status"],
         "additionalProperties": False,
