@@ -115,7 +115,7 @@ def _ends_phrase(word: str) -> bool:
     """Whether ``word`` cannot continue the noun phrase before it (see :data:`PHRASE_END_WORDS`)."""
     if word in PHRASE_END_WORDS or word.isdigit() or (len(word) > 4 and word.endswith("ly")):
         return True
-    return len(word) > 4 and word.endswith(("ing", "ed")) and word not in _ING_NOUNS
+    return _is_participle(word)
 
 
 def names_target(text: str) -> bool:
@@ -260,6 +260,7 @@ def locates_head(text: list[str], breaks: list[bool], p: int) -> bool:
 
 
 def _is_participle(word: str) -> bool:
+    """An ``-ing`` / ``-ed`` word that is not one of the nouns of :data:`_ING_NOUNS`."""
     return len(word) > 4 and word.endswith(("ing", "ed")) and word not in _ING_NOUNS
 
 
