@@ -197,6 +197,45 @@ def test_grounding_on_the_head_of_the_noun_phrase():
     assert best("fly to the red sedan past door 103") == [5, 6]
 
 
+def test_a_landmark_flown_past_is_one_whatever_modifies_its_name():
+    """``go past the kitchen table``: the bare label ``table`` sits inside the name's phrase, so
+    it is flown past as the name is (it once ranked as the goal, ahead of the fridge)."""
+    objs = {
+        1: VisibleObject(1, "kitchen table", "table"),
+        2: VisibleObject(2, "office fridge", "fridge", ("fridge",)),
+        3: VisibleObject(3, "charging station", "charger"),
+        4: VisibleObject(4, "blue car", "car"),
+    }
+    every = {k: 100 for k in objs}
+    flags = lambda s, areas=every: [(m.instance_id, m.passed, m.locates) for m in ground(s, objs, areas)]  # noqa: E731
+    assert flags("go past the kitchen table and stop in front of the fridge") == [(2, False, False), (1, True, False)]
+    assert flags("go past the big kitchen table to the fridge") == [(2, False, False), (1, True, False)]
+    assert flags("go past the office table", {1: 100}) == [(1, True, False)]  # "office" modifies "table"
+    assert flags("stop at the kitchen table") == [(1, False, False)]
+    # a modifier between the locating preposition and the head: still a landmark of the noun before
+    assert flags("land at the charging station by the parked blue car") == [(3, False, False), (4, False, True)]
+
+
+def test_a_mention_made_of_place_words_says_where_not_what():
+    """``Go up to the second floor and hover in front of the balcony door``: ``second floor`` is
+    a platform's alias, but its words are place words (as :func:`names_target` reads them), so
+    the door is the goal; alone, the platform is."""
+    objs = {
+        1: VisibleObject(1, "second-floor platform", "platform", ("second floor", "upper deck")),
+        2: VisibleObject(2, "balcony door", "door"),
+        3: VisibleObject(3, "ground floor", "floor"),
+    }
+    every = {k: 100 for k in objs}
+    best = lambda s, areas=every: [m.instance_id for m in ground(s, objs, areas)]  # noqa: E731
+    upstairs = {1: 100, 2: 100}
+    assert best("Go up to the second floor and hover in front of the balcony door", upstairs) == [2, 1]
+    assert best("Go up to the second floor and hover in front of the balcony door", {1: 100}) == [1]
+    assert best("land on the second floor", upstairs) == [1]
+    assert best("fly up to the upper deck and stop at the balcony door", upstairs) == [1, 2]  # "deck" names a thing
+    assert best("stay on the ground floor") == [3]
+    assert not names_target("go up to the second floor")
+
+
 def test_an_object_that_says_where_the_target_is_is_a_landmark():
     """``the charging station by the blue car``: the car says where the station is. Its mention
     is flagged (``locates``) and ranks after the target's; after a verb the same words name the

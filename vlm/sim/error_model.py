@@ -39,9 +39,13 @@ grounding models are trained on (RefCOCO's relational expressions: L. Yu et al.,
 Context in Referring Expressions", ECCV 2016), and a target that is not there is answered as
 absent (gRefCOCO, rule 4).
 
-Among named objects: mentions after ``past`` / ``passed`` / ``beyond`` (a landmark flown past)
-and inside an opening place phrase closed by a comma (``On the upper deck, stop beside the
-chair``) rank last, then landmarks that locate the target; then the earliest mention, the longer match, the object more of whose own
+Among named objects: mentions after ``past`` / ``passed`` / ``beyond`` (a landmark flown past;
+the preposition is read before the whole noun phrase, so ``past the kitchen table`` flies past
+the table by its label too), inside an opening place phrase closed by a comma (``On the upper
+deck, stop beside the chair``), and mentions made of place words only (``Go up to the second
+floor and hover in front of the balcony door``: a platform's alias, read as where, not what, as
+:func:`vlm.sim.grounding.names_target` reads it) rank last, then landmarks that locate the
+target; then the earliest mention, the longer match, the object more of whose own
 distinctive words the subtask uses (``the person standing by the entrance`` is ``person by
 the entrance``), the larger visible area, the lower instance id.
 
@@ -64,6 +68,13 @@ units): ``fly forward``, ``continue through the intersection``, ``leave the stud
 the end of the corridor`` name none
 (:func:`vlm.sim.grounding.names_target`). This is the model's language knowledge, not
 perception: it needs no object in the frame.
+
+*Not modelled: relations as goals.* A goal that is a spatial relation between objects or a part
+of one (``halfway between the yellow robot and the orange robot``, ``between rack B and rack
+C``, ``right in the middle of`` the crossing, ``where the ramp meets the middle terrace``) is
+read as its first named object: the model points at it and says STOP beside it. A real model
+would aim between; this one is harsher than reality on such tasks, for every method alike
+(the paper's 150 hold about eight of them; README, Table II).
 
 Per call, with ``sigma_px = W * (pixel_noise_frac + pixel_noise_frac_per_m * d)`` where ``W`` is
 the image width and ``d`` the median z-depth of the pointed object's pixels:

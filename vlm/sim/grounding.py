@@ -53,7 +53,7 @@ PHRASE_END_WORDS = frozenset(
     proceed walk walking travel travelling traveling approach approaching climb climbing descend descending ascend
     rise rotate cross crossing enter entering exit exiting leave leaving follow following pass passing reach
     reaching return wait halt stand step veer bear circle face facing find finding look search get come carry
-    finish end stay squeeze duck check take make navigate head
+    finish end stay squeeze duck check take make navigate head hold
     left right straight ahead forward forwards backward backwards again slowly quickly carefully directly exactly
     just only also still very really please now first second third finally last north south east west
     all both each every some any no not none other another same such more most less least much many few little bit
@@ -66,10 +66,10 @@ PHRASE_END_WORDS = frozenset(
 #: ``continue through the intersection``, ``go to the end of the corridor``).
 NON_OBJECT_WORDS = PHRASE_END_WORDS | frozenset(
     """corridor hallway hall intersection junction crossing corner end middle center centre side edge lane road street
-    path footpath way area space spot place room level storey story floor ground air altitude height sky top bottom
+    path footpath way aisle area space spot place position room level storey story floor ground air altitude height sky top bottom
     distance direction degree metre meter foot feet yard inch m cm half halfway couple time times view sight
     zero two three four five six seven eight nine ten few
-    study bedroom bathroom kitchen laundry lobby foyer""".split()
+    study bedroom bathroom kitchen kitchenette laundry lobby foyer""".split()
 )
 _DETERMINERS = frozenset("the a an this that these those".split())
 #: a mention after one of these is a landmark flown past, not the goal ("fly past the bench to ...")
@@ -144,8 +144,10 @@ class Match:
     n_words : int, matched words (phrase + attributes)
     via : ``"name"``, ``"alias"`` or ``"label"``
     passed : bool, the mention follows ``past`` / ``passed`` / ``beyond`` (a landmark to fly
-        past), or lies in an opening place phrase closed by a comma (``on the upper deck,
-        stop beside the chair``: where, not what); ranked after every other mention
+        past), lies in an opening place phrase closed by a comma (``on the upper deck,
+        stop beside the chair``), or is made of place words only (``go up to the second floor
+        and hover in front of the balcony door``: a platform's alias); where, not what: ranked
+        after every other mention
     locates : bool, the mention says where an earlier noun is (``the charging station by the
         blue car``: the car; :func:`locates_head`): a landmark, never the subtask's target
     """
@@ -215,10 +217,8 @@ def ground(subtask: str, objects: Mapping[int, VisibleObject], areas_px: Mapping
                     j -= 1
                 if any(w not in own for w in text[j:i]):
                     continue
-                p = j
-                while p > 0 and text[p - 1] in _DETERMINERS:
-                    p -= 1
-                landmark = (p > 0 and text[p - 1] in _PAST_WORDS) or end <= opening
+                p = _phrase_start(text, breaks, j)
+                landmark = (p > 0 and text[p - 1] in _PAST_WORDS) or end <= opening or _is_place(text[j:end])
                 m = Match(iid, j, len(phrase) + (i - j), via, landmark, locates_head(text, breaks, p))
                 cur = best.get(iid)
                 if cur is None or (m.passed, m.locates, m.start, -m.n_words) < (cur.passed, cur.locates, cur.start, -cur.n_words):
@@ -236,6 +236,29 @@ def ground(subtask: str, objects: Mapping[int, VisibleObject], areas_px: Mapping
         best.values(),
         key=lambda m: (m.passed, m.locates, m.start, -m.n_words, -overlap[m.instance_id], -areas_px[m.instance_id], m.instance_id),
     )
+
+
+def _phrase_start(text: list[str], breaks: list[bool], j: int) -> int:
+    """Index of the first word of the noun phrase whose pre-modifiers begin at word ``j``:
+    back over determiners and any other modifier, participles included (a word that is not one
+    of :data:`PHRASE_END_WORDS`, a number or an ``-ly`` adverb, with no punctuation after it).
+    ``past the kitchen table``: the phrase of ``table`` begins at ``the``, so the preposition
+    before it (``past``) is seen from the bare label too; so is ``by`` in ``by the parked blue
+    car``."""
+    p = j
+    while p > 0 and not breaks[p - 1]:
+        w = text[p - 1]
+        if w not in _DETERMINERS and (w in PHRASE_END_WORDS or w.isdigit() or (len(w) > 4 and w.endswith("ly"))):
+            break
+        p -= 1
+    return p
+
+
+def _is_place(mention: list[str]) -> bool:
+    """Whether a mention's words are all place words (:data:`NON_OBJECT_WORDS`) or numbers:
+    ``the second floor``, the alias of a platform, says where, not what (the rule of
+    :func:`names_target`)."""
+    return all(w.isdigit() or w in NON_OBJECT_WORDS for w in mention)
 
 
 def locates_head(text: list[str], breaks: list[bool], p: int) -> bool:
