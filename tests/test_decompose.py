@@ -243,6 +243,24 @@ def test_back_references_in_a_model_answer_are_attached_and_no_word_is_lost():
     assert re.findall(r"\w+", " ".join(dec.subtasks)) == re.findall(r"\w+", "find the blue sofa fly up to it land on the roof")
 
 
+def test_a_subtask_about_a_part_of_the_previous_target_is_joined_to_it():
+    """``stop in front of its middle`` alone names nothing: asked alone, the door it belongs to
+    is in no prompt (``factory_hall-p03`` flew 15 m along the wall for it). A possessive that
+    opens the subtask's references points back as ``it`` does; one after a noun of its own
+    (``follow the assembly line to its end``) does not."""
+    from vlm.decompose import opens_with_back_reference
+
+    assert opens_with_back_reference("stop in front of its middle")
+    assert opens_with_back_reference("hover next to their entrance")
+    assert not opens_with_back_reference("follow the assembly line to its end")
+    assert attach_back_references(["Fly to the large roller door", "stop in front of its middle"]) == (
+        "Fly to the large roller door, stop in front of its middle",
+    )
+    assert decompose_detailed("Fly to the large roller door and stop in front of its middle.", None).subtasks == (
+        "Fly to the large roller door, stop in front of its middle",
+    )
+
+
 def test_a_scene_setting_statement_is_joined_to_the_subtask_after_it():
     text = "You're at the end of the hall. Fly back past the snack machine, then stop at the blue door."
     assert decompose(text) == ["You're at the end of the hall, Fly back past the snack machine", "stop at the blue door"]

@@ -215,13 +215,14 @@ def _is_back_reference(subtask: str) -> bool:
 
 
 #: pronouns that always point back (``him`` / ``her``: the person a following leg named,
-#: ``then stop next to him``)
-_PRONOUNS = frozenset({"it", "there", "them", "him", "her"})
+#: ``then stop next to him``; ``its`` / ``their``: ``stop in front of its middle``, a part of
+#: what the previous subtask named)
+_PRONOUNS = frozenset({"it", "its", "there", "them", "their", "him", "her"})
 
 
 def opens_with_back_reference(subtask: str) -> bool:
     """Whether the subtask's first reference points back: movement verbs and function words,
-    then ``it`` / ``there`` / ``them`` / ``him`` / ``her`` (or ``that`` / ``this`` / ``one`` closed by punctuation
+    then ``it`` / ``its`` / ``there`` / ``them`` / ``their`` / ``him`` / ``her`` (or ``that`` / ``this`` / ``one`` closed by punctuation
     or the end). ``stop beside it, across from office 105`` does: its goal is the previous
     subtask's target, ``office 105`` only says where to stand; ``go to that door`` does not."""
     low = subtask.lower()
