@@ -201,7 +201,7 @@ def test_a_landmark_flown_past_is_one_whatever_modifies_its_name():
     """``go past the kitchen table``: the bare label ``table`` sits inside the name's phrase, so
     it is flown past as the name is (it once ranked as the goal, ahead of the fridge)."""
     objs = {
-        1: VisibleObject(1, "kitchen table", "table"),
+        1: VisibleObject(1, "kitchen table", "table", ("big table",)),
         2: VisibleObject(2, "office fridge", "fridge", ("fridge",)),
         3: VisibleObject(3, "charging station", "charger"),
         4: VisibleObject(4, "blue car", "car"),
@@ -210,7 +210,7 @@ def test_a_landmark_flown_past_is_one_whatever_modifies_its_name():
     flags = lambda s, areas=every: [(m.instance_id, m.passed, m.locates) for m in ground(s, objs, areas)]  # noqa: E731
     assert flags("go past the kitchen table and stop in front of the fridge") == [(2, False, False), (1, True, False)]
     assert flags("go past the big kitchen table to the fridge") == [(2, False, False), (1, True, False)]
-    assert flags("go past the office table", {1: 100}) == [(1, True, False)]  # "office" modifies "table"
+    assert flags("go past the big table", {1: 100}) == [(1, True, False)]
     assert flags("stop at the kitchen table") == [(1, False, False)]
     # a modifier between the locating preposition and the head: still a landmark of the noun before
     assert flags("land at the charging station by the parked blue car") == [(3, False, False), (4, False, True)]
@@ -234,6 +234,50 @@ def test_a_mention_made_of_place_words_says_where_not_what():
     assert best("fly up to the upper deck and stop at the balcony door", upstairs) == [1, 2]  # "deck" names a thing
     assert best("stay on the ground floor") == [3]
     assert not names_target("go up to the second floor")
+
+
+def test_a_noun_before_the_head_says_which_object_of_the_kind():
+    """``the stairwell door`` is not the garage's exit shutter (label ``door``) and ``the palm
+    tree`` is not the apple tree: a word that modifies the head must be one of the object's own,
+    whatever its kind (it once held only for colours, sizes and materials, so with the named
+    object out of view any other object of its label was the goal). Classifying ``-ing`` words
+    count (``dining table``); an ``-ed`` state (``the parked car``) and a count (``the two
+    lanterns``) do not."""
+    objs = {
+        1: VisibleObject(1, "green stairwell door", "door", ("stairwell door",)),
+        2: VisibleObject(2, "garage exit shutter", "door"),
+        3: VisibleObject(3, "palm tree near the pool", "tree"),
+        4: VisibleObject(4, "apple tree", "tree"),
+        5: VisibleObject(5, "dining table", "table"),
+        6: VisibleObject(6, "coffee table", "table"),
+        7: VisibleObject(7, "blue car", "car"),
+        8: VisibleObject(8, "left garden lantern", "lantern"),
+        9: VisibleObject(9, "right garden lantern", "lantern"),
+    }
+    best = lambda s, ids: [m.instance_id for m in ground(s, objs, {k: 100 for k in ids})]  # noqa: E731
+    assert best("stop in front of the stairwell door", [1, 2]) == [1]
+    assert best("stop in front of the stairwell door", [2]) == []  # out of view: not the shutter
+    assert best("hover next to the door", [2]) == [2]  # the bare label names every door
+    assert best("fly to the palm tree", [4]) == []
+    assert best("land by the dining table", [6]) == []
+    assert best("land by the dining table", [5, 6]) == [5]
+    assert best("stop above the parked car", [7]) == [7]
+    assert best("hover between the two garden lanterns", [8, 9]) == [8, 9]
+    assert best("stop at the garden lantern", [9]) == [9]
+
+
+def test_a_route_and_a_contraction_name_nothing_to_reach():
+    """``continue along the wall`` flies a route: it names no target (walls never are), and
+    along a named object the object is a landmark, ranked after the goal. ``You're at the end
+    of the hall``: a clitic is a word (``are``), never a noun."""
+    assert not names_target("continue along the wall")
+    assert names_target("continue along the wall to the exit door")
+    assert not names_target("You're at the end of the hall")
+    assert not names_target("don't stop, you'll see it")
+    assert words("Won't you're I'd") == ["will", "not", "you", "are", "i", "would"]
+    objs = {1: VisibleObject(1, "bike cage fence", "fence"), 2: VisibleObject(2, "green gate", "gate", ("gate",))}
+    flags = [(m.instance_id, m.passed) for m in ground("fly along the fence to the gate", objs, {1: 100, 2: 100})]
+    assert flags == [(2, False), (1, True)]
 
 
 def test_an_object_that_says_where_the_target_is_is_a_landmark():

@@ -20,9 +20,16 @@ naive singular) and
   the fuel tank; ``the sedan parked on the right`` the sedan. English compounds are
   right-headed (E. Williams, "On the notions 'lexically related' and 'head of a word'",
   *Linguistic Inquiry* 12(2), 1981): a model reading "wall clock" looks for a clock;
-- every attribute word (colour, size, material: :data:`vlm.sim.grounding.ATTRIBUTE_WORDS`)
-  right before it belongs to the object's own words. ``red van`` thus names the object
-  ``red van`` (label ``van``) but not ``blue van``; ``the van`` names both;
+- every word that modifies it from before belongs to the object's own words: an attribute
+  (colour, size, material: :data:`vlm.sim.grounding.ATTRIBUTE_WORDS`) or a noun or ``-ing``
+  classifier (``stairwell`` in ``the stairwell door``, ``dining`` in ``the dining table``),
+  back to a determiner, a preposition, a count word or an ``-ed`` state (``the parked car``).
+  ``red van`` thus names the object ``red van`` (label ``van``) but not ``blue van``; ``the
+  stairwell door`` names the green stairwell door but not the garage's exit shutter (label
+  ``door``), so with the stairwell door out of view the model says the target is not visible
+  (rule 4) instead of pointing at the shutter; ``the van`` names both vans. Look-alikes are
+  confused only at ``confusion_prob`` (rule 2);
+- a contraction is read as its words (``you're``: ``you are``): a clitic is never a noun;
 - the object is a target: scene objects with ``target = false`` (ground, walls, roofs, parked
   cars and street furniture the scene marks as background; :attr:`vlm.types.VisibleObject.target`)
   are never the goal of a subtask.
@@ -38,6 +45,11 @@ prepositional phrase as a modifier of the noun before it is the referring-expres
 grounding models are trained on (RefCOCO's relational expressions: L. Yu et al., "Modeling
 Context in Referring Expressions", ECCV 2016), and a target that is not there is answered as
 absent (gRefCOCO, rule 4).
+
+A route is no target: the object of ``along`` (``continue along the wall``) is flown along,
+not reached; a text whose only mentions are routes names nothing to reach
+(:func:`vlm.sim.grounding.names_target`), and a named object along which the vehicle flies
+ranks as a landmark flown past.
 
 Among named objects: mentions after ``past`` / ``passed`` / ``beyond`` (a landmark flown past;
 the preposition is read before the whole noun phrase, so ``past the kitchen table`` flies past

@@ -29,8 +29,10 @@ __all__ = [
     "exploration_point",
 ]
 
-#: Words that distinguish objects of one label; a subtask's attribute right before an object
-#: mention must belong to the object's own name, aliases or label for the mention to count.
+#: Words that distinguish objects of one label (colour, size, material). Like every word that
+#: modifies a mention from before (:func:`_modifiers_start`), one right before an object mention
+#: must belong to the object's own name, aliases or label for the mention to count; they are
+#: never a head (``names_target``) nor the noun a landmark locates (``locates_head``).
 ATTRIBUTE_WORDS = frozenset(
     """red orange yellow green blue purple violet pink brown black white grey gray silver gold golden
     beige cyan magenta dark light big small large little tall short tiny huge long wide narrow high low
@@ -42,7 +44,7 @@ ATTRIBUTE_WORDS = frozenset(
 #: 103``), ``-ly`` adverbs, and ``-ed`` / ``-ing`` participles (``the sedan parked on the
 #: right``, ``the person standing by``) end a phrase; so does punctuation.
 PHRASE_END_WORDS = frozenset(
-    """a an the this that these those it its it's them they their there here you your me my we our one ones
+    """a an the this that these those it its it's them they their there here i you your me my we our one ones
     and or but nor so then than as if when while until till once before after because since where which who whose
     what whether to toward towards into onto in on at of off out by near nearby next beside besides behind between
     among through past along across around over under underneath beneath above below up down from with without
@@ -53,7 +55,7 @@ PHRASE_END_WORDS = frozenset(
     proceed walk walking travel travelling traveling approach approaching climb climbing descend descending ascend
     rise rotate cross crossing enter entering exit exiting leave leaving follow following pass passing reach
     reaching return wait halt stand step veer bear circle face facing find finding look search get come carry
-    finish end stay squeeze duck check take make navigate head hold
+    finish end stay squeeze duck check take make navigate head hold see sees saw seen
     left right straight ahead forward forwards backward backwards again slowly quickly carefully directly exactly
     just only also still very really please now first second third finally last north south east west
     all both each every some any no not none other another same such more most less least much many few little bit
@@ -72,8 +74,13 @@ NON_OBJECT_WORDS = PHRASE_END_WORDS | frozenset(
     study bedroom bathroom kitchen kitchenette laundry lobby foyer""".split()
 )
 _DETERMINERS = frozenset("the a an this that these those".split())
+#: words that count the objects of a noun phrase; they say how many, not which
+_COUNT_WORDS = frozenset("zero two three four five six seven eight nine ten few several both".split())
 #: a mention after one of these is a landmark flown past, not the goal ("fly past the bench to ...")
 _PAST_WORDS = frozenset("past passed beyond".split())
+#: a mention after one of these is a route flown along ("continue along the wall"): a landmark,
+#: and a text whose only mentions are routes names nothing to reach
+_ROUTE_WORDS = frozenset(["along"])
 #: prepositions by which a noun phrase says where its head is ("the charger *by* the blue car"):
 #: the object named after one, when a noun comes right before it, is a landmark of that noun
 _LOCATING_PREPOSITIONS = (("in", "front", "of"), ("next", "to"), ("across", "from"), ("by",), ("near",), ("beside",),
@@ -83,6 +90,11 @@ _PLACE_OPENERS = frozenset("on in at inside outside upon from".split())
 #: nouns ending in -ing or -ed that are not participles (they can continue a noun phrase)
 _ING_NOUNS = frozenset("building ceiling railing awning painting railing sibling shed bed sled".split())
 _WORD_RE = re.compile(r"[a-z0-9]+")
+_NOT_RE = re.compile(r"n['\u2019]t\b")
+_IRREGULAR_NOT_RE = re.compile(r"\b(won|can|shan)['\u2019]t\b")
+_IRREGULAR_NOT = {"won": "will not", "can": "can not", "shan": "shall not"}
+_CLITIC_RE = re.compile(r"['\u2019](re|ll|ve|d|m)\b")
+_CLITICS = {"re": "are", "ll": "will", "ve": "have", "d": "would", "m": "am"}
 _BREAK_RE = re.compile(r"[^\sa-z0-9'\u2019-]")
 _ES_STEMS = ("ch", "sh", "x", "z", "ss")
 
@@ -97,14 +109,22 @@ def _singular(w: str) -> str:
     return w
 
 
+def _lower(text: str) -> str:
+    """Lower case with contractions spelled out (``you're`` -> ``you are``, ``don't`` -> ``do
+    not``): a clitic is a word, never a noun. The possessive ``'s`` stays (its ``s`` ends a
+    phrase)."""
+    low = _NOT_RE.sub(" not", _IRREGULAR_NOT_RE.sub(lambda m: _IRREGULAR_NOT[m.group(1)], text.lower()))
+    return _CLITIC_RE.sub(lambda m: " " + _CLITICS[m.group(1)], low)
+
+
 def words(text: str) -> list[str]:
     """Lower-case alphanumeric words with a naive singular (``trees`` -> ``tree``)."""
-    return [_singular(w) for w in _WORD_RE.findall(text.lower())]
+    return [_singular(w) for w in _WORD_RE.findall(_lower(text))]
 
 
 def _tokens(text: str) -> tuple[list[str], list[bool]]:
     """Words as :func:`words`, and per word whether punctuation follows it (a phrase break)."""
-    low = text.lower()
+    low = _lower(text)
     found = list(_WORD_RE.finditer(low))
     out = [_singular(m.group(0)) for m in found]
     breaks = [bool(_BREAK_RE.search(low[a.end() : b.start()])) for a, b in zip(found, found[1:])] + [True]
@@ -128,8 +148,12 @@ def names_target(text: str) -> bool:
     for i, w in enumerate(toks):
         if w.isdigit() or w in NON_OBJECT_WORDS or w in ATTRIBUTE_WORDS:
             continue
-        if breaks[i] or i + 1 == len(toks) or _ends_phrase(toks[i + 1]):
-            return True
+        if not (breaks[i] or i + 1 == len(toks) or _ends_phrase(toks[i + 1])):
+            continue
+        p = _phrase_start(toks, breaks, _modifiers_start(toks, breaks, i))
+        if p > 0 and toks[p - 1] in _ROUTE_WORDS:
+            continue  # a route to fly along ("continue along the wall"), not a place to reach
+        return True
     return False
 
 
@@ -212,13 +236,11 @@ def ground(subtask: str, objects: Mapping[int, VisibleObject], areas_px: Mapping
                 end = i + len(phrase)
                 if end < len(text) and not breaks[end - 1] and not _ends_phrase(text[end]):
                     continue  # a modifier of a longer noun phrase, not its head
-                j = i
-                while j > 0 and text[j - 1] in ATTRIBUTE_WORDS and not breaks[j - 1]:
-                    j -= 1
+                j = _modifiers_start(text, breaks, i)
                 if any(w not in own for w in text[j:i]):
-                    continue
+                    continue  # a modifier says another object of the kind ("stairwell door", "palm tree")
                 p = _phrase_start(text, breaks, j)
-                landmark = (p > 0 and text[p - 1] in _PAST_WORDS) or end <= opening or _is_place(text[j:end])
+                landmark = (p > 0 and text[p - 1] in _PAST_WORDS | _ROUTE_WORDS) or end <= opening or _is_place(text[j:end])
                 m = Match(iid, j, len(phrase) + (i - j), via, landmark, locates_head(text, breaks, p))
                 cur = best.get(iid)
                 if cur is None or (m.passed, m.locates, m.start, -m.n_words) < (cur.passed, cur.locates, cur.start, -cur.n_words):
@@ -236,6 +258,30 @@ def ground(subtask: str, objects: Mapping[int, VisibleObject], areas_px: Mapping
         best.values(),
         key=lambda m: (m.passed, m.locates, m.start, -m.n_words, -overlap[m.instance_id], -areas_px[m.instance_id], m.instance_id),
     )
+
+
+def _modifiers_start(text: list[str], breaks: list[bool], i: int) -> int:
+    """Index of the first pre-modifier of the head that a mention starting at word ``i`` has:
+    back over attributes and nouns used as modifiers (``stairwell`` in ``the stairwell door``,
+    ``palm`` in ``the palm tree``, ``dining`` in ``the dining table``: :func:`_is_premodifier`),
+    to a determiner, a preposition or another word that ends a phrase, a count word (``the two
+    garden lanterns``) or punctuation. Each of those words must be one of the object's own for the mention to name it."""
+    j = i
+    while j > 0 and not breaks[j - 1] and _is_premodifier(text[j - 1]):
+        j -= 1
+    return j
+
+
+def _is_premodifier(word: str) -> bool:
+    """Whether ``word``, right before a noun, can modify it: any word that does not end a
+    phrase, and an ``-ing`` word that is not a verb of :data:`PHRASE_END_WORDS` (before a noun
+    it classifies it: ``dining table``, ``charging station``, ``meeting room``). Not a count
+    word, and not an ``-ed`` participle (``the parked car``: a state, not which car)."""
+    if word in _COUNT_WORDS:
+        return False
+    if not _ends_phrase(word):
+        return True
+    return word not in PHRASE_END_WORDS and word.endswith("ing") and _is_participle(word)
 
 
 def _phrase_start(text: list[str], breaks: list[bool], j: int) -> int:
