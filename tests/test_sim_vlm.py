@@ -299,6 +299,10 @@ def test_an_object_that_says_where_the_target_is_is_a_landmark():
     assert flags("fly to the person standing by the entrance", {4: 100}) == [(4, True)]  # a participle between
     assert flags("fly to the person, then by the entrance", {4: 100}) == [(4, False)]  # another clause
     assert flags("hover in front of the entrance") == [(4, False)]
+    # where a thing is kept: in, inside, on, under, above a named object
+    assert flags("stop by the person in the entrance", {4: 100}) == [(4, True)]
+    assert flags("land on the blue car") == [(2, False)]  # after a verb, the goal
+    assert flags("the person on the blue car, stop there", {2: 100}) == [(2, True)]
 
 
 def test_with_only_the_landmark_in_view_the_model_looks_there_and_never_stops_at_it():

@@ -35,9 +35,10 @@ naive singular) and
   are never the goal of a subtask.
 
 *Landmarks that locate the target*: a mention right after a locating preposition (``by``,
-``near``, ``beside``, ``behind``, ``opposite``, ``next to``, ``across from``, ``in front of``)
-that itself follows a noun in the same clause (``the charging station by the blue car``, ``the
-person standing by the entrance``) says where that noun is: it is never the subtask's target.
+``near``, ``beside``, ``behind``, ``opposite``, ``next to``, ``across from``, ``in front of``,
+``in``, ``inside``, ``on``, ``under``, ``above``) that itself follows a noun in the same clause
+(``the charging station by the blue car``, ``the person standing by the entrance``, ``the red
+motorcycle in the bike cage``) says where that noun is: it is never the subtask's target.
 With the target out of view and the landmark in view, the model says the target is not visible
 and looks at the landmark (rule 4, and the baselines' *Aim*): the instruction says where to
 look. After a verb the same words name the goal (``stop next to the blue car``). Reading a

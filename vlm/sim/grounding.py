@@ -84,7 +84,7 @@ _ROUTE_WORDS = frozenset(["along"])
 #: prepositions by which a noun phrase says where its head is ("the charger *by* the blue car"):
 #: the object named after one, when a noun comes right before it, is a landmark of that noun
 _LOCATING_PREPOSITIONS = (("in", "front", "of"), ("next", "to"), ("across", "from"), ("by",), ("near",), ("beside",),
-                          ("behind",), ("opposite",))
+                          ("behind",), ("opposite",), ("in",), ("inside",), ("on",), ("under",), ("above",))
 #: prepositions that open a place phrase ("on the upper deck, stop beside the chair")
 _PLACE_OPENERS = frozenset("on in at inside outside upon from".split())
 #: nouns ending in -ing or -ed that are not participles (they can continue a noun phrase)
