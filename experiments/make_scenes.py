@@ -789,6 +789,28 @@ def wall_run(axis, at, a0, a1, h, t, gaps=(), lintel=2.1):
     return out
 
 
+def doorway(b, name, axis, at, g0, g1, t, height=2.1, label="doorway", aliases=(), color="#F4F1EA", trim=0.08, proud=0.015):
+    """A doorway's casing as an object the camera sees: trims ``trim`` wide round the opening
+    ``g0``..``g1`` of a wall run (``axis``, ``at``, thickness ``t``; :func:`wall_run`), standing
+    ``proud`` off both faces of the wall, up to ``height`` (the lintel's underside).
+
+    A real camera sees a doorway and a real model points at it ("leave through the doorway by
+    the dining table"); an opening alone is no instance the simulated VLM could name. The trims
+    lie over the wall ends and the lintel, never inside the opening: the clear width and height
+    are the wall run's.
+    """
+    d = t + 2 * proud
+
+    def seg(s0, s1, z0, z1):
+        mid, length = (s0 + s1) / 2, s1 - s0
+        if axis == "x":
+            return box((mid, at, (z0 + z1) / 2), (length, d, z1 - z0))
+        return box((at, mid, (z0 + z1) / 2), (d, length, z1 - z0))
+
+    parts = [seg(g0 - trim, g0, 0.0, height), seg(g1, g1 + trim, 0.0, height), seg(g0 - trim, g1 + trim, height, height + trim)]
+    return b.add(name, label, color, parts, aliases)
+
+
 def room_shell(b, name, x1, y1, h, runs, wall_color="#E6E1D8", floor_color="#A07850", ceiling_color="#EEEDEA", t_ext=0.25,
                floor_texture=None):
     """Exterior walls of the rectangle 0..x1 x 0..y1 (``runs`` adds interior runs), a floor and a ceiling."""
@@ -922,6 +944,14 @@ def apartment(rng) -> SceneBuilder:
     b.add("study bookshelf", "shelf", "#8D6E63", [box((12.24, 10.5, 1.0), (0.35, 2.0, 2.0))], ["bookshelf in the study", "bookcase in the study"],
           texture={"pattern": "stripes", "period_m": 0.4, "contrast": 0.35, "axis": "z"})
     b.add("floor lamp in the study", "lamp", "#3A3A3A", floor_lamp(12.7, 11.6), ["study lamp"])
+    # the doorways of the runs above (added last: the other objects keep their instance ids)
+    doorway(b, "kitchen doorway", "y", 8.0, 0.9, 2.7, ti, aliases=["doorway to the kitchen"])
+    doorway(b, "living room doorway", "x", 6.5, 3.9, 5.7, ti, aliases=["doorway to the hallway", "doorway to the living room"])
+    doorway(b, "laundry doorway", "y", 12.0, 6.6, 8.4, ti, aliases=["doorway to the laundry room", "laundry room doorway"])
+    doorway(b, "main bedroom doorway", "x", 8.5, 1.7, 3.3, ti, aliases=["doorway to the main bedroom", "bedroom doorway"])
+    doorway(b, "kid's room doorway", "x", 8.5, 5.9, 7.5, ti, aliases=["doorway to the kid's room", "second bedroom doorway"])
+    doorway(b, "bathroom doorway", "x", 8.5, 9.5, 11.1, ti, aliases=["doorway of the bathroom", "doorway to the bathroom"])
+    doorway(b, "study doorway", "x", 8.5, 12.9, 14.7, ti, aliases=["doorway to the study"])
     return b
 
 
@@ -1019,6 +1049,16 @@ def office_floor(rng) -> SceneBuilder:
           ["server rack", "racks", "servers"], texture={"pattern": "stripes", "period_m": 0.6, "contrast": 0.3, "axis": "x"})
     b.add("air conditioning unit", "air conditioner", "#CFD8DC", [box((25.45, 14.75, 0.95), (0.8, 1.5, 1.9))], ["AC unit", "cooling unit"])
     b.add("UPS cabinet", "cabinet", "#455A64", [box((25.3, 16.45, 0.9), (0.9, 0.6, 1.8))], ["UPS", "battery cabinet"])
+    # the doorways of the runs above (added last: the other objects keep their instance ids)
+    doorway(b, "double doors of the large meeting room", "y", 17.0, 2.0, 3.8, ti, label="door",
+            aliases=["double doors", "large meeting room doors", "big meeting room doors", "meeting room doors"])
+    doorway(b, "west corridor doorway", "x", 10.5, 1.5, 3.5, ti, aliases=["doorway to the corridor", "doorway to the open office"])
+    doorway(b, "east corridor doorway", "x", 10.5, 12.9, 14.7, ti, aliases=["doorway to the corridor", "doorway to the open office"])
+    doorway(b, "small meeting room doorway", "x", 10.5, 19.9, 21.7, ti, aliases=["doorway to the small meeting room"])
+    doorway(b, "kitchenette doorway", "x", 12.5, 4.0, 5.8, ti, aliases=["doorway to the kitchenette"])
+    doorway(b, "copy room doorway", "x", 12.5, 8.1, 9.7, ti, aliases=["doorway to the copy room"])
+    doorway(b, "storage room doorway", "x", 12.5, 13.9, 15.5, ti, aliases=["doorway to the storage room"])
+    doorway(b, "server room doorway", "x", 12.5, 23.4, 25.1, ti, aliases=["doorway to the server room"])
     return b
 
 
@@ -1083,6 +1123,10 @@ def parking_garage(rng) -> SceneBuilder:
     b.add("fire hose cabinet", "cabinet", "#C62828", [box((16.0, 14.55, 1.3), (0.8, 0.1, 0.8))], ["fire hose", "red cabinet"])
     b.add("level sign", "sign", "#FDD835", [box((16.0, 9.47, 1.9), (1.2, 0.04, 0.5))], ["P1 sign", "yellow sign"])
     b.add("traffic cones", "cone", "#FF6F00", [cyl((x, 17.0, 0.0), 0.17, 0.5, 8) for x in (9.0, 9.6)], ["cones", "orange cones"])
+    # the doorways (added last: the other objects keep their instance ids)
+    doorway(b, "elevator lobby doorway", "y", 4.5, 11.1, 12.9, t, aliases=["doorway to the elevator lobby", "lobby doorway"], color="#D6D6D0")
+    doorway(b, "bike cage gate", "y", 26.0, 11.0, 12.8, 0.05, height=2.2, label="gate",
+            aliases=["bike cage", "bike cage entrance", "entrance to the bike cage", "cage gate"], color="#6F767A")
     return b
 
 
