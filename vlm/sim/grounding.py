@@ -131,11 +131,13 @@ def _tokens(text: str) -> tuple[list[str], list[bool]]:
     return out, breaks
 
 
-def _ends_phrase(word: str) -> bool:
-    """Whether ``word`` cannot continue the noun phrase before it (see :data:`PHRASE_END_WORDS`)."""
+def _ends_phrase(word: str, participles: bool = True) -> bool:
+    """Whether ``word`` cannot continue the noun phrase before it (see :data:`PHRASE_END_WORDS`);
+    ``participles=False``: an ``-ed`` / ``-ing`` participle can (it modifies a noun after it:
+    ``the parked car``)."""
     if word in PHRASE_END_WORDS or word.isdigit() or (len(word) > 4 and word.endswith("ly")):
         return True
-    return _is_participle(word)
+    return participles and _is_participle(word)
 
 
 def names_target(text: str) -> bool:
@@ -286,15 +288,15 @@ def _is_premodifier(word: str) -> bool:
 
 def _phrase_start(text: list[str], breaks: list[bool], j: int) -> int:
     """Index of the first word of the noun phrase whose pre-modifiers begin at word ``j``:
-    back over determiners and any other modifier, participles included (a word that is not one
-    of :data:`PHRASE_END_WORDS`, a number or an ``-ly`` adverb, with no punctuation after it).
+    back over determiners and any other modifier, participles included (:func:`_ends_phrase`
+    with ``participles=False``; no punctuation after it).
     ``past the kitchen table``: the phrase of ``table`` begins at ``the``, so the preposition
     before it (``past``) is seen from the bare label too; so is ``by`` in ``by the parked blue
     car``."""
     p = j
     while p > 0 and not breaks[p - 1]:
         w = text[p - 1]
-        if w not in _DETERMINERS and (w in PHRASE_END_WORDS or w.isdigit() or (len(w) > 4 and w.endswith("ly"))):
+        if w not in _DETERMINERS and _ends_phrase(w, participles=False):
             break
         p -= 1
     return p
