@@ -84,8 +84,10 @@ def test_false_boxes_take_known_names_at_the_documented_rate():
 def test_text_queries_use_names_aliases_and_labels():
     det = SimulatedDetector(DetectorConfig(miss_prob=0.0, miss_prob_small=0.0, false_positive_prob=0.0))
     out = det.detect(annotation([BIG, SMALL, (4, "blue van", "van", (0, 0, 30, 30), ())]), "q")
-    # the alias with its own attribute ranks first; "van" alone also names the blue van (label)
-    assert [d.name for d in det.matching("fly to the red delivery van", out)] == ["red van", "blue van"]
+    # the alias with its own modifiers names the red van; they are not the blue van's, so the
+    # label inside that phrase does not name it
+    assert [d.name for d in det.matching("fly to the red delivery van", out)] == ["red van"]
+    assert [d.name for d in det.matching("fly to the delivery van", out)] == ["red van"]
     assert [d.name for d in det.matching("red van", out)] == ["red van"]  # exact name only
     assert {d.name for d in det.matching("the van", out)} == {"red van", "blue van"}
     assert det.matching("find the green dumpster", out) == []
