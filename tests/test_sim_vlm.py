@@ -242,7 +242,7 @@ def test_a_noun_before_the_head_says_which_object_of_the_kind():
     whatever its kind (it once held only for colours, sizes and materials, so with the named
     object out of view any other object of its label was the goal). Classifying ``-ing`` words
     count (``dining table``); an ``-ed`` state (``the parked car``) and a count (``the two
-    lanterns``) do not."""
+    lanterns``) do not. Nor does an ``of`` phrase after it (``the doorway of the bathroom``)."""
     objs = {
         1: VisibleObject(1, "green stairwell door", "door", ("stairwell door",)),
         2: VisibleObject(2, "garage exit shutter", "door"),
@@ -264,6 +264,12 @@ def test_a_noun_before_the_head_says_which_object_of_the_kind():
     assert best("stop above the parked car", [7]) == [7]
     assert best("hover between the two garden lanterns", [8, 9]) == [8, 9]
     assert best("stop at the garden lantern", [9]) == [9]
+    # an "of" phrase after the head says which object too
+    objs[10] = VisibleObject(10, "bathroom doorway", "doorway", ("doorway of the bathroom",))
+    objs[11] = VisibleObject(11, "kitchen doorway", "doorway")
+    assert best("Stop in the doorway of the bathroom, looking at the tub", [10, 11]) == [10]
+    assert best("Stop in the doorway of the bathroom, looking at the tub", [11]) == []
+    assert best("go through the doorway", [10, 11]) == [10, 11]
 
 
 def test_a_route_and_a_contraction_name_nothing_to_reach():

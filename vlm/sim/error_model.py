@@ -27,8 +27,9 @@ naive singular) and
   ``red van`` thus names the object ``red van`` (label ``van``) but not ``blue van``; ``the
   stairwell door`` names the green stairwell door but not the garage's exit shutter (label
   ``door``), so with the stairwell door out of view the model says the target is not visible
-  (rule 4) instead of pointing at the shutter; ``the van`` names both vans. Look-alikes are
-  confused only at ``confusion_prob`` (rule 2);
+  (rule 4) instead of pointing at the shutter; ``the van`` names both vans. The head of an
+  ``of`` phrase after it must be the object's own too (``the doorway of the bathroom``, ``the
+  painting of a sailboat``). Look-alikes are confused only at ``confusion_prob`` (rule 2);
 - a contraction is read as its words (``you're``: ``you are``): a clitic is never a noun;
 - the object is a target: scene objects with ``target = false`` (ground, walls, roofs, parked
   cars and street furniture the scene marks as background; :attr:`vlm.types.VisibleObject.target`)

@@ -241,6 +241,9 @@ def ground(subtask: str, objects: Mapping[int, VisibleObject], areas_px: Mapping
                 j = _modifiers_start(text, breaks, i)
                 if any(w not in own for w in text[j:i]):
                     continue  # a modifier says another object of the kind ("stairwell door", "palm tree")
+                of = _of_head(text, breaks, end)
+                if of is not None and of not in own:
+                    continue  # so does an "of" phrase ("the doorway of the bathroom", "the painting of a sailboat")
                 p = _phrase_start(text, breaks, j)
                 landmark = (p > 0 and text[p - 1] in _PAST_WORDS | _ROUTE_WORDS) or end <= opening or _is_place(text[j:end])
                 m = Match(iid, j, len(phrase) + (i - j), via, landmark, locates_head(text, breaks, p))
@@ -272,6 +275,24 @@ def _modifiers_start(text: list[str], breaks: list[bool], i: int) -> int:
     while j > 0 and not breaks[j - 1] and _is_premodifier(text[j - 1]):
         j -= 1
     return j
+
+
+def _of_head(text: list[str], breaks: list[bool], end: int) -> str | None:
+    """The head of an ``of`` phrase right after a mention that ends before word ``end`` (``the
+    doorway of the bathroom``: ``bathroom``; ``the painting of a sailboat``: ``sailboat``), or
+    None when none follows. Like a modifier before it, it says which object of the kind."""
+    if end >= len(text) or text[end] != "of" or breaks[end - 1]:
+        return None
+    head = None
+    for k in range(end + 1, len(text)):
+        w = text[k]
+        if w not in _DETERMINERS:
+            if _ends_phrase(w) and not _is_premodifier(w):
+                break
+            head = w
+        if breaks[k]:
+            break
+    return head
 
 
 def _is_premodifier(word: str) -> bool:
