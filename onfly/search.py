@@ -876,16 +876,33 @@ def seen_obstacle_near(field_map, points: np.ndarray, clearance_m: float) -> np.
 
 
 def open_heading(position: np.ndarray, yaw: float, field_map, *, clearance_m: float, min_free_m: float = 2.5) -> float:
-    """The heading a search should keep going in: ``yaw`` when some way ahead (straight on or
-    45 deg to either side) has no seen obstacle within ``min_free_m`` (the route goes on past
-    what is in front, unknown space included), else the opposite (a dead end: back out)."""
+    """The heading a search should keep going in: ``yaw`` when the way on is open, else the
+    opposite (a dead end: back out). Unknown space counts as open (the route goes on past what
+    is in front).
+
+    Open: within 45 deg of ``yaw``, a place ``min_free_m`` to ``min_free_m + 1`` m away that the
+    vehicle reaches keeping ``clearance_m``, by a path at most half again as long as the straight
+    line (breadth-first over the map's layer at its height, :func:`_reach_grid`). A doorway the
+    vehicle came up to obliquely is such a way on, though no straight ray through it keeps the
+    clearance (the hard set's ``apartment-l01``: 30 deg off the heading, the jamb straight
+    ahead). A map without a distance slice: straight on or 45 deg either side, a ray with no
+    seen obstacle within ``clearance_m`` for ``min_free_m``.
+    """
     p = np.asarray(position, dtype=float)
-    steps = np.arange(0.25, min_free_m + 1e-9, 0.25)
+    back = float(wrap_angle(yaw + np.pi))
+    if callable(getattr(field_map, "distance_slice", None)):
+        x, y, steps = _reach_grid(field_map, p, clearance_m)
+        X, Y = np.meshgrid(x - p[0], y - p[1], indexing="ij")
+        r = np.hypot(X, Y)
+        off = np.abs(wrap_angle(np.arctan2(Y, X) - yaw))
+        way_on = (r >= min_free_m) & (r <= min_free_m + 1.0) & (off <= np.pi / 4) & (steps <= 1.5 * r)
+        return float(yaw) if bool(np.any(way_on)) else back
+    steps_m = np.arange(0.25, min_free_m + 1e-9, 0.25)
     for off in (0.0, np.pi / 4, -np.pi / 4):
         d = np.array([np.cos(yaw + off), np.sin(yaw + off), 0.0])
-        if not bool(np.any(seen_obstacle_near(field_map, p + np.outer(steps, d), clearance_m))):
+        if not bool(np.any(seen_obstacle_near(field_map, p + np.outer(steps_m, d), clearance_m))):
             return float(yaw)
-    return float(wrap_angle(yaw + np.pi))
+    return back
 
 
 @dataclass

@@ -346,6 +346,43 @@ def test_a_dead_end_reverses_the_heading_to_keep_and_an_open_way_keeps_it():
     assert open_heading(np.zeros(3) + [0, 0, 1.5], 0.0, post, clearance_m=0.45) == pytest.approx(0.0)
 
 
+class SliceMap:
+    """An analytic field with the map's distance slice (what the pilot's ESDF gives the search)."""
+
+    def __init__(self, field, lo=(-2.0, -2.0), hi=(14.0, 12.0)):
+        self.field, self.lo, self.hi = field, lo, hi
+
+    def query(self, points):
+        return self.field.query(points)
+
+    def distance_slice(self, z_m):
+        from planning.esdf import DistanceSlice
+
+        x = np.arange(self.lo[0], self.hi[0], 0.1) + 0.05
+        y = np.arange(self.lo[1], self.hi[1], 0.1) + 0.05
+        X, Y = np.meshgrid(x, y, indexing="ij")
+        d = self.field.distance(np.stack([X.ravel(), Y.ravel(), np.full(X.size, z_m)], axis=-1)).reshape(X.shape)
+        return DistanceSlice(z_m, x, y, d)
+
+
+def test_a_doorway_reached_off_the_heading_is_the_way_on():
+    """The hard set's ``apartment-l01``: the vehicle came up to the living room's 1.8 m doorway 30
+    deg off its heading (the jamb straight ahead), and the next subtask's target was behind the
+    wall. No straight ray through the doorway keeps the 0.55 m clearance, so a search that read
+    rays turned back into the room it had just crossed; the guide search's reach goes through."""
+    floor = HalfSpace(point=[0, 0, 0], normal=[0, 0, 1])
+    wall = [Box(center=[1.95, 6.5, 1.3], half_extents=[1.95, 0.06, 1.3]), Box(center=[8.85, 6.5, 1.3], half_extents=[3.15, 0.06, 1.3])]
+    p, heading = np.array([3.3, 5.46, 1.47]), 1.07
+    doorway = AnalyticField(boxes=wall, half_spaces=[floor])
+    assert open_heading(p, heading, doorway, clearance_m=0.55) == pytest.approx(wrap_angle(heading + math.pi))  # rays: closed
+    assert open_heading(p, heading, SliceMap(doorway), clearance_m=0.55) == pytest.approx(heading)
+    # the doorway shut: the way ahead is a wall, back out
+    shut = AnalyticField(boxes=[Box(center=[6.0, 6.5, 1.3], half_extents=[6.0, 0.06, 1.3])], half_spaces=[floor])
+    assert open_heading(p, heading, SliceMap(shut), clearance_m=0.55) == pytest.approx(wrap_angle(heading + math.pi))
+    # a way round that is far longer than the straight line is no way on (the room's far end)
+    assert open_heading(np.array([3.3, 5.9, 1.47]), math.pi / 2, SliceMap(shut), clearance_m=0.55) == pytest.approx(-math.pi / 2)
+
+
 def test_after_a_leg_the_side_that_opens_on_unseen_space_is_looked_at():
     free = AnalyticField(half_spaces=[HalfSpace(point=[0, 0, 0], normal=[0, 0, 1])])
     cfg = SearchConfig()
