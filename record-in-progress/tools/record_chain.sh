@@ -1,6 +1,6 @@
 #!/bin/bash
 # The tables of record, table by table (resumable). Order: tables not yet drafted first.
-cd /work/main
+cd /work/wt/r10
 OUT=/work/record/r10
 for t in robustness table3_architecture table3_memory planner_study table3_backbone tracking table2 search_ablation hard_vs_150; do
   for attempt in 1 2 3; do
