@@ -1,0 +1,52 @@
+"""Put the drafted results section into the README and fill its tables from the records.
+
+    python assemble.py README.md DRAFTS_DIR RECORDS_DIR --sessions N [--out README.md]
+
+Replaces the README from the line "### Tables of record" up to (not including) the line
+"## Measured figures" with DRAFTS_DIR/*.md in name order, fills @@EPISODES@@, @@WALL@@, @@CPU@@,
+@@SIZE@@ and @@SESSIONS@@ from RECORDS_DIR (records.jsonl.gz, run_state.json), then rewrites every
+embedded table from the records. Stops on a placeholder left over.
+"""
+import argparse, gzip, json, re, sys
+from pathlib import Path
+
+ap = argparse.ArgumentParser()
+ap.add_argument("readme"); ap.add_argument("drafts"); ap.add_argument("records")
+ap.add_argument("--sessions", required=True); ap.add_argument("--out", default=None)
+a = ap.parse_args()
+repo = Path(a.readme).resolve().parent
+sys.path.insert(0, str(repo))
+from experiments.print_tables import build_tables, fill_embedded, read_records_file  # noqa: E402
+
+text = Path(a.readme).read_text()
+lines = text.splitlines(keepends=True)
+start = next(i for i, l in enumerate(lines) if l.rstrip() == "### Tables of record")
+end = next(i for i, l in enumerate(lines) if l.rstrip() == "## Measured figures")
+body = "\n".join(p.read_text().rstrip("\n") + "\n" for p in sorted(Path(a.drafts).glob("*.md")))
+rec = Path(a.records) / "records.jsonl.gz"
+state = json.loads((Path(a.records) / "run_state.json").read_text())
+with gzip.open(rec, "rt") as f:
+    f.readline()
+    eps = [json.loads(l) for l in f]
+
+
+def hours(s: float) -> str:
+    return f"{s / 3600:.1f} h"
+
+
+fills = {
+    "EPISODES": f"{len(eps):,}",
+    "WALL": hours(sum(t["wall_s"] for t in state["tables"].values())),
+    "CPU": hours(sum(r.get("cpu_s") or 0.0 for r in eps)),
+    "SIZE": f"{rec.stat().st_size / 2**20:.1f} MiB",
+    "SESSIONS": a.sessions,
+}
+body = re.sub(r"@@([A-Z]+)@@", lambda m: fills.get(m.group(1), m.group(0)), body)
+left = sorted(set(re.findall(r"@@[A-Z_]+@@", body)))
+if left:
+    sys.exit(f"placeholders left: {', '.join(left)}")
+new = "".join(lines[:start]) + body + "\n" + "".join(lines[end:])
+header, records = read_records_file(rec)
+new = fill_embedded(new, build_tables(header, records))
+Path(a.out or a.readme).write_text(new)
+print(f"assembled: {len(eps)} episodes; " + ", ".join(f"{k}={v}" for k, v in fills.items()))
