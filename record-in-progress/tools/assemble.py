@@ -3,7 +3,8 @@
     python assemble.py README.md DRAFTS_DIR RECORDS_DIR --sessions N [--out README.md]
 
 Replaces the README from the line "### Tables of record" up to (not including) the line
-"## Measured figures" with DRAFTS_DIR/*.md in name order, fills @@EPISODES@@, @@WALL@@, @@CPU@@,
+"## Measured figures" with DRAFTS_DIR/*.md in name order (the sections it replaces, each named
+by the commits it was measured on, go to docs/results_history.md after HISTORY_INTRO), fills @@EPISODES@@, @@WALL@@, @@CPU@@,
 @@SIZE@@ and @@SESSIONS@@ from RECORDS_DIR (records.jsonl.gz, run_state.json), then rewrites every
 embedded table from the records. Stops on a placeholder left over.
 """
@@ -13,6 +14,7 @@ from pathlib import Path
 ap = argparse.ArgumentParser()
 ap.add_argument("readme"); ap.add_argument("drafts"); ap.add_argument("records")
 ap.add_argument("--sessions", required=True); ap.add_argument("--out", default=None)
+ap.add_argument("--history", default=None, help="write the replaced sections here (docs/results_history.md)")
 a = ap.parse_args()
 repo = Path(a.readme).resolve().parent
 sys.path.insert(0, str(repo))
@@ -28,6 +30,16 @@ state = json.loads((Path(a.records) / "run_state.json").read_text())
 with gzip.open(rec, "rt") as f:
     f.readline()
     eps = [json.loads(l) for l in f]
+
+
+HISTORY_INTRO = """# Results before the tables of record
+
+The README's results sections as they stood before the tables of record were re-run on one
+code version (issue 23). Each names the commit it was measured on; every table in it is stale
+against the code of the tables of record, which the README shows. They stay here as the record
+of how the figures moved, session by session: what each change gained and lost, and why.
+
+"""
 
 
 def hours(s: float) -> str:
@@ -46,6 +58,13 @@ left = sorted(set(re.findall(r"@@[A-Z_]+@@", body)))
 if left:
     sys.exit(f"placeholders left: {', '.join(left)}")
 new = "".join(lines[:start]) + body + "\n" + "".join(lines[end:])
+if a.history:
+    old = lines[start:end]
+    first = next(i for i, l in enumerate(old) if l.startswith("### ") and i > 0)  # after "Tables of record"
+    kept = "".join(l for l in old[first:] if not l.lstrip().startswith("<!-- ")
+                   or not (l.strip().startswith("<!-- table of record") or l.strip() == "<!-- end of table of record -->"))
+    kept = ("\n" + kept).replace("\n### ", "\n## ").replace("\n#### ", "\n### ").lstrip("\n")
+    Path(a.history).write_text(HISTORY_INTRO + kept)
 header, records = read_records_file(rec)
 new = fill_embedded(new, build_tables(header, records))
 Path(a.out or a.readme).write_text(new)
