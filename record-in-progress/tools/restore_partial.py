@@ -15,4 +15,6 @@ for pdir in sorted((src / "pools").iterdir()):
         for c in sorted(pdir.glob("chunk-*.jsonl.gz")):
             f.write(gzip.decompress(c.read_bytes()))
 shutil.copy2(src / "run_state.json", run / "run_state.json")
+if (src / "machines.log").exists():
+    shutil.copy2(src / "machines.log", run / "machines.log")
 print("restored into", run)

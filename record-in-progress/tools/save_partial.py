@@ -29,5 +29,7 @@ for pool in sorted((run / "pools").iterdir()):
     if len(lines) > saved:
         (pdir / f"chunk-{len(chunks):03d}.jsonl.gz").write_bytes(gzip.compress(b"".join(lines[saved:]), mtime=0))
 shutil.copy2(run / "run_state.json", dest / "run_state.json")
+if (run / "machines.log").exists():
+    shutil.copy2(run / "machines.log", dest / "machines.log")
 (dest / "SAVED").write_text(f"{time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())} {total} episodes\n")
 print(f"saved {total} episodes")
