@@ -46,7 +46,15 @@ def hours(s: float) -> str:
     return f"{s / 3600:.1f} h"
 
 
+machines = []
+if (Path(a.records) / "machines.log").exists():
+    for line in (Path(a.records) / "machines.log").read_text().splitlines():
+        kv = dict(re.findall(r"(\w+)=(\S+)", line.split("session start:", 1)[1]))
+        desc = f"{kv.get('cpu', '?').replace('_', ' ')} (OpenBLAS {re.sub(r'[^A-Za-z0-9]', '', kv.get('blas', '?').split(',')[-1])})"
+        if desc not in machines:
+            machines.append(desc)
 fills = {
+    "MACHINES": " and ".join(machines) or "one machine",
     "EPISODES": f"{len(eps):,}",
     "WALL": hours(sum(t["wall_s"] for t in state["tables"].values())),
     "CPU": hours(sum(r.get("cpu_s") or 0.0 for r in eps)),
