@@ -7,6 +7,17 @@ Replaces the README from the line "### Tables of record" up to (not including) t
 by the commits it was measured on, go to docs/results_history.md after HISTORY_INTRO), fills @@EPISODES@@, @@WALL@@, @@CPU@@,
 @@SIZE@@ and @@SESSIONS@@ from RECORDS_DIR (records.jsonl.gz, run_state.json), then rewrites every
 embedded table from the records. Stops on a placeholder left over.
+
+With --replace FILE, also makes exact replacements in the rest of the README (stale figures that
+point at the replaced sections). FILE holds blocks
+
+    <<<<
+    old text (one or more whole lines)
+    ====
+    new text
+    >>>>
+
+and each old text must occur exactly once outside the replaced range, or nothing is written.
 """
 import argparse, gzip, json, re, sys
 from pathlib import Path
@@ -15,6 +26,7 @@ ap = argparse.ArgumentParser()
 ap.add_argument("readme"); ap.add_argument("drafts"); ap.add_argument("records")
 ap.add_argument("--sessions", required=True); ap.add_argument("--out", default=None)
 ap.add_argument("--history", default=None, help="write the replaced sections here (docs/results_history.md)")
+ap.add_argument("--replace", default=None, help="exact replacements outside the replaced range (see the docstring)")
 a = ap.parse_args()
 repo = Path(a.readme).resolve().parent
 sys.path.insert(0, str(repo))
@@ -65,7 +77,17 @@ body = re.sub(r"@@([A-Z]+)@@", lambda m: fills.get(m.group(1), m.group(0)), body
 left = sorted(set(re.findall(r"@@[A-Z_]+@@", body)))
 if left:
     sys.exit(f"placeholders left: {', '.join(left)}")
-new = "".join(lines[:start]) + body + "\n" + "".join(lines[end:])
+head, tail = "".join(lines[:start]), "".join(lines[end:])
+if a.replace:
+    blocks = re.findall(r"^<<<<\n(.*?)^====\n(.*?)^>>>>$", Path(a.replace).read_text(), flags=re.S | re.M)
+    if not blocks:
+        sys.exit(f"{a.replace}: no <<<< / ==== / >>>> blocks")
+    for old, rep in blocks:
+        n = head.count(old) + tail.count(old)
+        if n != 1:
+            sys.exit(f"{a.replace}: found {n} times (must be once):\n{old}")
+        head, tail = head.replace(old, rep), tail.replace(old, rep)
+new = head + body + "\n" + tail
 if a.history:
     old = lines[start:end]
     first = next(i for i, l in enumerate(old) if l.startswith("### ") and i > 0)  # after "Tables of record"
