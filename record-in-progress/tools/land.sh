@@ -25,5 +25,8 @@ git mv record-in-progress/drafts_tests/test_results_of_record.py tests/test_resu
 git rm -r -q record-in-progress
 .venv/bin/python experiments/print_tables.py results/records.jsonl.gz --embedded README.md
 .venv/bin/python -m pytest -q tests/test_results_of_record.py || [ "${ALLOW_INCOMPLETE:-0}" = 1 ]
+if grep -rln "record-in-progress" --include=*.md --include=*.py --include=*.sh --include=*.toml . | grep -v "^./.venv"; then
+  echo "the files above still name record-in-progress/" >&2
+fi
 git add results docs/results_history.md README.md tests/test_results_of_record.py
 echo "landed in the index (not committed); pending patches in /work/pending"
