@@ -368,8 +368,8 @@ class OnFlyPilot:
     runtime : where agent calls run (``ClockRuntime`` in simulation, ``ThreadRuntime`` onboard)
     planner : optional prebuilt Planner (building one costs CasADi set-up; benchmarks reuse it)
     volume : the operator flight volume (world ENU), or None. Every navigation goal, search
-        point and hold point is clamped into it, shrunk by the planner's safety distance
-        (``goal_clamped`` events), so no goal leads the vehicle out of it.
+        point and hold point is clamped into it, shrunk by the planner's safety distance and its
+        drift margin (``goal_clamped`` events), so no goal leads the vehicle out of it.
     """
 
     def __init__(
@@ -867,8 +867,9 @@ class OnFlyPilot:
     # -- search and the flight volume -----------------------------------------------------------
     @property
     def _volume_margin_m(self) -> float:
-        """Goals keep the planner's safety distance from the volume's faces."""
-        return float(self.config.planner.d_safe_m)
+        """Goals keep the planner's safety distance, plus its margin for odometry drift
+        (:attr:`Planner.drift_margin_m`), from the volume's faces."""
+        return float(self.config.planner.d_safe_m) + self.planner.drift_margin_m
 
     def _turn_first(self, t_s: float, state: VehicleState, goal: np.ndarray, yaw_ref: float | None):
         """(goal, yaw_ref) for this period: a goal whose bearing is more than half the camera's

@@ -27,7 +27,8 @@ iteration:
    ``d(pbar_k) + grad_k . (p_k - pbar_k) + s_k >= d_safe`` for knots 1..N (knot 0 is the
    measured state, pinned, never softened); the speed norm is cut by the half-space at the
    previous direction plus cutting planes kept from earlier solves, and so is the acceleration
-   norm (``accel_limit_mode = "norm"``); the flight volume bounds every knot's position; the
+   norm (``accel_limit_mode = "norm"``); the flight volume, shrunk by the body radius, the
+   tracking margin and the drift margin (``drift_margin_m``), bounds every knot's position; the
    QP data come from one call of the compiled (or NumPy) step data; OSQP is updated in place and
    warm-started from the shifted previous primal (its last dual iterate is kept). If the true
    speed (acceleration) norm of the result exceeds the limit by more than
@@ -68,7 +69,7 @@ from planning.field import DistanceField
 from planning.frames import unwrap_near, wrap_angle
 from planning.guide_path import carrot_on_path, guide_search, segment_clear, segment_points
 from planning.mpc_model import NU, NX, MpcFormulation, simulate
-from planning.planner_config import PlannerConfig
+from planning.planner_config import VOLUME_DRIFT_STEP_M, PlannerConfig
 from planning.trajectory import Trajectory, VehicleState
 from planning.volume import FlightVolume
 
@@ -445,6 +446,8 @@ class Planner:
         self._guide_status = ""
         self._prev_traj: Trajectory | None = None
         self._track: deque[tuple[float, float]] = deque()  # (t_s, measured tracking error m)
+        self._flown_m = 0.0  # distance flown since reset (estimate, counted in VOLUME_DRIFT_STEP_M moves)
+        self._flown_anchor: np.ndarray | None = None  # where the last counted move ended
 
     # ------------------------------------------------------------------ tracking
     def _reference(self, state: VehicleState) -> tuple[VehicleState, float, bool]:
@@ -478,6 +481,22 @@ class Planner:
         if peak < _TRACKING_NOISE_FLOOR_M:
             return 0.0
         return min(c.tracking_margin_max_m, peak)
+
+    @property
+    def drift_margin_m(self) -> float:
+        """The flight volume's margin for odometry drift (metres): ``volume_drift_fraction``
+        times the distance flown since :meth:`reset`. Goals chosen against the volume (the
+        pilot's, the baselines') add it to their own margin, so that they stay reachable."""
+        return self.config.volume_drift_fraction * self._flown_m
+
+    def _count_flown(self, p: np.ndarray) -> None:
+        if self._flown_anchor is None:
+            self._flown_anchor = p.copy()
+            return
+        move = float(np.linalg.norm(p - self._flown_anchor))
+        if move >= VOLUME_DRIFT_STEP_M:
+            self._flown_m += move
+            self._flown_anchor = p.copy()
 
     def _forget_old_errors(self, t_s: float) -> None:
         window = self.config.tracking_window_s
@@ -568,10 +587,11 @@ class Planner:
         measured = state
         state, track_err, from_ref = self._reference(measured)
         self._forget_old_errors(measured.t_s)
+        self._count_flown(measured.p)
         margin = self.tracking_margin_m
         if margin > 0:
             field = InflatedField(field, margin)
-        box = volume.shrunk(c.body_radius_m + margin) if volume is not None else None
+        box = volume.shrunk(c.body_radius_m + margin + self.drift_margin_m) if volume is not None else None
         clamped = False
         if box is not None:
             inside = box.clamp(goal)

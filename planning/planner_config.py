@@ -45,10 +45,13 @@ import tomllib
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
-__all__ = ["PlannerConfig", "PlannerConfigError", "ACCEL_LIMIT_MODES", "check_field_reach"]
+__all__ = ["PlannerConfig", "PlannerConfigError", "ACCEL_LIMIT_MODES", "VOLUME_DRIFT_STEP_M", "check_field_reach"]
 
 #: Values of :attr:`PlannerConfig.accel_limit_mode`.
 ACCEL_LIMIT_MODES = ("norm", "per_axis")
+#: The distance flown that the volume's drift margin counts grows in moves of at least this
+#: much (metres): the estimate's noise while hovering (about 2 cm a step) is not a path.
+VOLUME_DRIFT_STEP_M = 0.25
 
 
 class PlannerConfigError(ValueError):
@@ -160,6 +163,13 @@ class PlannerConfig:
         value, metres (0 = no margin). Errors under 5 cm (half a voxel of the map) give no
         margin, so under perfect tracking it is 0
     tracking_window_s : how long a measured tracking error keeps the margin up, seconds
+    volume_drift_fraction : the flight volume's margin for odometry drift, as a fraction of the
+        distance flown since ``Planner.reset()`` (by the estimate, counted in moves of at least
+        ``VOLUME_DRIFT_STEP_M`` so hover noise does not add up), added to the volume's shrink.
+        The tracking margin covers what the estimate shows; drift is what it cannot show, and a
+        LiDAR- or visual-inertial odometry drifts with the path (``docs/realism.md``: 1 % is a
+        conservative figure). 0 trusts the estimate, e.g. under a GNSS-aided EKF whose error
+        does not grow (then give the fence its own margin, as ArduPilot's ``FENCE_MARGIN`` does)
     """
 
     horizon_steps: int = 40
@@ -218,6 +228,7 @@ class PlannerConfig:
     reference_max_age_s: float = 0.5
     tracking_margin_max_m: float = 1.0
     tracking_window_s: float = 10.0
+    volume_drift_fraction: float = 0.01
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -255,10 +266,16 @@ class PlannerConfig:
             "safety_tolerance_m", "max_speed_refinements", "qp_adaptive_rho_interval", "qp_eps_rel",
             "guide_clearance_margin_m", "guide_preferred_clearance_m", "guide_replan_period_s",
             "body_radius_m", "guide_time_budget_ms", "step_time_budget_ms", "tracking_margin_max_m",
+            "volume_drift_fraction",
         )
         for name in non_negative:
             if getattr(self, name) < 0:
                 raise PlannerConfigError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.volume_drift_fraction >= 0.5:
+            raise PlannerConfigError(
+                f"volume_drift_fraction is a fraction of the distance flown (0.01 = 1 %), must be < 0.5, "
+                f"got {self.volume_drift_fraction}"
+            )
         if self.horizon_steps < 2:
             raise PlannerConfigError(f"horizon_steps must be >= 2, got {self.horizon_steps}")
         for name in (

@@ -223,3 +223,48 @@ def test_straight_line_plans_start_from_their_reference():
     for ref, t, off in ((None, 0.1, 0.4), (first, 0.1, 1.6), (first, 0.7, 0.4)):
         s = _state(t, first.sample(t)[0] + [0.0, off, 0.0])
         np.testing.assert_allclose(straight_line_plan(s, goal, reference=ref, **kw).p[0], s.p, atol=1e-12)
+
+
+def test_volume_drift_margin_grows_with_the_distance_flown_and_bounds_goal_and_plan():
+    """The volume shrinks by ``volume_drift_fraction`` of the distance flown: a goal past the
+    +x face is held that much farther inside after 6 m than at the start, and no knot enters
+    the band."""
+    cfg = PlannerConfig()
+    assert cfg.volume_drift_fraction == 0.01
+    volume = FlightVolume(np.array([-2.0, -5.0, 0.0]), np.array([8.0, 5.0, 4.0]))
+    goal = np.array([12.0, 0.0, 1.5])  # outside the +x face
+    planner = Planner(cfg)
+    r = planner.step(_state(0.0, [0.0, 0.0, 1.5]), goal, OPEN, volume=volume)
+    assert planner.drift_margin_m == 0.0
+    assert r.goal_used[0] == pytest.approx(8.0 - cfg.body_radius_m, abs=1e-9)
+    path = 0.0
+    prev = np.array([0.0, 0.0, 1.5])
+    for _ in range(150):  # perfect tracking: the vehicle is where the plan said
+        t = r.trajectory.t0_s + 0.1
+        p, v = r.trajectory.sample(t)[0:2]
+        path += float(np.linalg.norm(p - prev))
+        prev = p
+        r = planner.step(_state(t, p, v), goal, OPEN, volume=volume)
+    assert path > 6.0
+    # counted in moves of at least 0.25 m along a straight path: short of the path by < 0.25 m
+    assert 0.01 * (path - 0.25) - 1e-9 <= planner.drift_margin_m <= 0.01 * path + 1e-9
+    assert r.goal_used[0] == pytest.approx(8.0 - cfg.body_radius_m - planner.drift_margin_m, abs=1e-9)
+    assert r.trajectory.p[1:, 0].max() <= 8.0 - cfg.body_radius_m - planner.drift_margin_m + cfg.safety_tolerance_m
+    planner.reset()
+    assert planner.drift_margin_m == 0.0
+
+
+def test_volume_drift_margin_ignores_hover_noise_and_can_be_switched_off():
+    rng = np.random.default_rng(7)
+    goal = np.array([0.0, 0.0, 1.5])
+    planner = Planner(PlannerConfig())
+    for k in range(300):  # 30 s of hover with 2 cm estimate noise (docs/realism.md): no path
+        planner.step(_state(0.1 * k, goal + rng.normal(0.0, 0.02, 3)), goal, OPEN)
+    assert planner.drift_margin_m == 0.0
+    off = Planner(PlannerConfig(volume_drift_fraction=0.0))
+    for k in range(30):
+        off.step(_state(0.1 * k, [0.3 * k, 0.0, 1.5], [3.0, 0.0, 0.0]), np.array([20.0, 0.0, 1.5]), OPEN)
+    assert off.drift_margin_m == 0.0
+    for bad in (-0.01, 0.5, float("nan")):
+        with pytest.raises(PlannerConfigError, match="volume_drift_fraction"):
+            PlannerConfig(volume_drift_fraction=bad)

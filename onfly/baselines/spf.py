@@ -166,9 +166,10 @@ class SpfMethod:
         goal = self.goal if self.goal is not None else self.hold_p
         if self.planner is not None:
             volume = self.spec.flight_volume
-            if volume is not None and not bool(volume.contains(goal, margin_m=self.planner.config.d_safe_m)[0]):
+            margin = self.planner.config.d_safe_m + self.planner.drift_margin_m
+            if volume is not None and not bool(volume.contains(goal, margin_m=margin)[0]):
                 # the operator's flight volume: every method that flies our planner honours it
-                goal = volume.clamp(goal, margin_m=self.planner.config.d_safe_m)
+                goal = volume.clamp(goal, margin_m=margin)
                 self.stats["goals_clamped"] += 1
             plan = self.planner.step(state, goal, self.movers.field(self.esdf, t_s), volume=volume)
             if not plan.ok:
