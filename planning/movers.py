@@ -12,7 +12,14 @@ no labels (it works with any perception backend):
    grazing incidence scatter into the voxels just in front of it, which earlier, deeper
    readings carved free. Readings at a depth edge (a 4-neighbour more than ``edge_jump`` of the
    depth away: flying pixels, silhouettes) are left out, and so are readings beyond
-   ``max_range_m``, where depth noise is large.
+   ``max_range_m``, where depth noise is large. Within ``young_max_range_m`` the clearance is
+   not asked of a *young* obstacle: one whose voxel was seen free and then hit once (log-odds
+   between ``EsdfConfig.occupied_logodds`` and ``hit_logodds``), which is how a mover's own
+   trace enters the map. At 2 Hz a walker at 0.45 m/s moves 0.23 m between frames, less than
+   ``clear_m`` from where the map put it a frame before; without this rule such a walker is
+   seen once and never tracked (the tables of record's `duplex-l02`, run 1, flew into one). A
+   surface first seen from unknown space enters at ``hit_logodds`` and is never young; beyond
+   3 m the D435's noise would make young phantoms of static clutter.
 2. **Clusters**: those readings binned on a horizontal grid of ``cell_m`` cells and joined by
    8-connectivity; a cluster of at least ``min_points`` readings that stands at least
    ``min_height_m`` tall is one observation (its centroid, horizontal radius and height
@@ -83,6 +90,10 @@ class MoverConfig:
     keep_s : a track not observed for this long is dropped, seconds
     horizon_s : the capsule reaches this far ahead of the predicted position, seconds
     radius_min_m, radius_max_m : clamp of a cluster's horizontal radius, metres
+    young_max_range_m : within this range of the camera (metres) a reading beside an obstacle
+        that entered the map from seen-free space a frame ago is new however close it is (item
+        1 of the module docstring): there a D435's depth noise at 320 px (sigma = 1 cm x z^2,
+        ``docs/realism.md``) stays under a third of ``clear_m``; 0 = never
     """
 
     enabled: bool = True
@@ -102,6 +113,7 @@ class MoverConfig:
     moving_speed_mps: float = 0.3
     keep_s: float = 2.0
     horizon_s: float = 1.5
+    young_max_range_m: float = 3.0
     radius_min_m: float = 0.2
     radius_max_m: float = 1.0
 
@@ -113,7 +125,7 @@ class MoverConfig:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise MoverConfigError(f"MoverConfig.{name} must be positive, got {v}")
-        for name in ("horizon_s", "moving_speed_mps"):
+        for name in ("horizon_s", "moving_speed_mps", "young_max_range_m"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise MoverConfigError(f"MoverConfig.{name} must be >= 0, got {v}")
@@ -190,6 +202,25 @@ class _Track:
         return MoverTrack(self.track_id, self.p.copy(), self.v.copy(), self.radius, (self.z_lo, self.z_hi), self.t_s, self.hits)
 
 
+def _beside_young_obstacle(P: np.ndarray, dist: np.ndarray, grad: np.ndarray, esdf) -> np.ndarray:
+    """(n,) bool: the obstacle nearest each point is young (seen free, then hit once).
+
+    P : (n, 3) world points, metres; dist, grad : the map's distance (n,) and gradient (n, 3)
+    there. The obstacle is read at the foot of the gradient and half a voxel beyond it, and
+    both must be young; unknown space (no log-odds) and a flat field (no gradient) never are.
+    """
+    cfg = esdf.config
+    norm = np.linalg.norm(grad, axis=1)
+    unit = np.divide(grad, norm[:, None], out=np.zeros_like(grad), where=norm[:, None] > 1e-9)
+    foot = P - np.maximum(dist, 0.0)[:, None] * unit
+    young = np.ones(len(P), dtype=bool)
+    for q in (foot, foot - 0.5 * cfg.voxel_m * unit):
+        lo = esdf.logodds(q)
+        with np.errstate(invalid="ignore"):
+            young &= (lo > cfg.occupied_logodds) & (lo < cfg.hit_logodds - 1e-6)
+    return young & (norm > 1e-9)
+
+
 class MoverTracker:
     """Tracks of moving obstacles from depth frames and the map (module docstring).
 
@@ -213,7 +244,8 @@ class MoverTracker:
 
     # -- detection ------------------------------------------------------------------------------
     def _new_points(self, depth_m: np.ndarray, camera: PinholeCamera, T_world_cam: np.ndarray, esdf) -> np.ndarray:
-        """World points (n, 3) of readings in space the map has seen free."""
+        """World points (n, 3) of readings in space the map has seen free, ``clear_m`` from the
+        map's obstacles but for young ones near the camera (module docstring, item 1)."""
         cfg = self.config
         s = cfg.stride_px
         d = np.asarray(camera.check_image(depth_m, "depth"), dtype=np.float32)[::s, ::s]
@@ -241,8 +273,13 @@ class MoverTracker:
             new = lo <= np.float32(cfg.free_logodds_max)
         if new.any():
             P = P[new]
-            dist, _ = esdf.query(P)
-            return P[dist >= cfg.clear_m]
+            dist, grad = esdf.query(P)
+            ok = dist >= cfg.clear_m
+            rng = np.linalg.norm(P - T[:3, 3], axis=1)
+            close = np.flatnonzero(~ok & (rng <= cfg.young_max_range_m))
+            if len(close):
+                ok[close] = _beside_young_obstacle(P[close], dist[close], grad[close], esdf)
+            return P[ok]
         return P[new]
 
     def _clusters(self, P: np.ndarray) -> list[_Observation]:
