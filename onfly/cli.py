@@ -3,6 +3,8 @@
 Each subcommand lives in its own module under :mod:`onfly.commands` and exposes
 ``NAME`` (the subcommand), ``HELP`` (one line), ``add_arguments(parser)`` and
 ``run(args) -> int``. Modules are found at start-up, so adding a command never edits this file.
+Commands write their reports and status lines with :func:`echo`; errors leave as
+:class:`CliError` and become one line on stderr here.
 
 Start-up stays fast: the command list and its one-line helps are read from the modules'
 source (``NAME`` / ``HELP`` constants, no import), and only the module of the command asked
@@ -26,7 +28,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["main", "build_parser", "CliError", "task_by_id", "command_specs"]
+__all__ = ["main", "build_parser", "CliError", "task_by_id", "command_specs", "echo"]
 
 _COMMANDS_PACKAGE = "onfly.commands"
 _COMMANDS_DIR = Path(__file__).resolve().parent / "commands"
@@ -37,6 +39,13 @@ _NUMBERS = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?(,\s*[-+]?(\d+\.?\d*|\
 
 class CliError(Exception):
     """A user-facing error: printed as one line, exit status 2, no traceback."""
+
+
+def echo(line: str = "") -> None:
+    """Write one line of a command's output to stdout, flushed: the one writer of the commands'
+    reports and status lines. A command that is also called as a library function (``onfly
+    sim-vehicle``'s ``run``) takes its writer as an argument, with this one as the default."""
+    print(line, flush=True)
 
 
 def task_by_id(task_id: str, files=None):

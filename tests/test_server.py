@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import http.client
 import json
+import logging
 
 import numpy as np
 import pytest
@@ -174,10 +175,12 @@ def test_server_config_validation(kwargs, match):
         ServerConfig(**kwargs)
 
 
-def test_main_reports_a_bad_backend_on_stderr_and_keeps_stdout_for_the_listening_line(capsys):
+def test_main_logs_a_bad_backend_as_an_error_and_keeps_stdout_for_the_listening_line(capsys, caplog):
     from vlm.server import main
 
-    assert main(["--backend", "bogus:x", "--port", "0"]) == 2
-    out, err = capsys.readouterr()
-    assert out == ""  # the first stdout line is reserved for "listening on URL"
-    assert err.startswith("error: bad VLM backend spec 'bogus:x'")
+    heard = []
+    assert main(["--backend", "bogus:x", "--port", "0"], ready=heard.append) == 2
+    assert capsys.readouterr().out == ""  # the first stdout line is reserved for "listening on URL"
+    assert heard == []  # never announced: nothing was bound
+    errors = [r for r in caplog.records if r.name == "vlm.server" and r.levelno == logging.ERROR]
+    assert len(errors) == 1 and errors[0].getMessage().startswith("bad VLM backend spec 'bogus:x'")

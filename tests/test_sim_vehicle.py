@@ -287,6 +287,17 @@ def _cli(argv):
     return sim_vehicle_cmd.run(parser.parse_args(argv))
 
 
+def test_sim_vehicle_in_process_hands_its_status_lines_to_the_callers_writer(capsys):
+    parser = argparse.ArgumentParser(prog="onfly sim-vehicle")
+    sim_vehicle_cmd.add_arguments(parser)
+    lines = []
+    args = parser.parse_args(["--mavlink", "udpout:127.0.0.1:9", "--autopilot", "px4", "--duration-s", "0.3"])
+    assert sim_vehicle_cmd.run(args, emit=lines.append) == 0
+    assert capsys.readouterr().out == ""  # nothing printed behind the caller's back
+    assert lines[0].startswith("onfly sim-vehicle: px4 vehicle (indoor, system 1) on udpout:127.0.0.1:9")
+    assert any("armed=False" in line for line in lines[1:])  # the first state line: disarmed on the ground
+
+
 def test_cli_sim_vehicle_serves_heartbeats(capsys):
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.bind(("127.0.0.1", 0))

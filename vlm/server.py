@@ -40,9 +40,9 @@ import hashlib
 import io
 import json
 import logging
-import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
@@ -387,8 +387,10 @@ def _default_model_name(spec: str) -> str:
     return spec
 
 
-def main(argv: list[str] | None = None) -> int:
-    """``python -m vlm.server``: serve a backend spec until interrupted."""
+def main(argv: list[str] | None = None, ready: Callable[[str], None] | None = None) -> int:
+    """``python -m vlm.server``: serve a backend spec until interrupted. ``ready`` gets the
+    server's URL once it is bound (the script entry writes it to stdout); a bad option, backend
+    or port is logged as an error and returns 2."""
     from vlm.factory import VALID_SPECS, make_backend
 
     parser = argparse.ArgumentParser(prog="python -m vlm.server", description=__doc__.split("\n\n")[0])
@@ -410,10 +412,11 @@ def main(argv: list[str] | None = None) -> int:
                               default_max_tokens=args.max_tokens, allow_faults=args.allow_faults)
         server = VlmServer(backend, config)
     except (ValueError, OSError, VlmError) as exc:
-        print(f"error: {exc}", file=sys.stderr, flush=True)
+        log.error("%s", exc)
         return 2
-    # The first stdout line is the contract with scripts and tests that start the server.
-    print(f"listening on {server.url}", flush=True)
+    log.info("listening on %s", server.url)
+    if ready is not None:
+        ready(server.url)
     try:
         server.serve_forever()
     except KeyboardInterrupt:
@@ -425,4 +428,5 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    # The first stdout line is the contract with scripts and tests that start the server.
+    raise SystemExit(main(ready=lambda url: print(f"listening on {url}", flush=True)))

@@ -6,6 +6,8 @@ import argparse
 import json
 from datetime import datetime, timezone
 
+from onfly.cli import echo
+
 
 NAME = "bag-info"
 HELP = "list the topics, message types, counts and time span of a ROS 1 .bag or ROS 2 bag directory"
@@ -50,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
 
     s = bag_summary(args.path)
     if args.json:
-        print(
+        echo(
             json.dumps(
                 {
                     "path": str(s.path),
@@ -65,5 +67,5 @@ def run(args: argparse.Namespace) -> int:
             )
         )
     else:
-        print(format_summary(s))
+        echo(format_summary(s))
     return 0

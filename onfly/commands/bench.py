@@ -17,7 +17,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from onfly.cli import CliError
+from onfly.cli import CliError, echo
 
 #: Task kinds (as :data:`onfly.bench.tasks.KINDS`; kept here so ``--help`` imports nothing heavy).
 KINDS = ("object", "precise", "long_range", "track")
@@ -81,8 +81,8 @@ def run(args) -> int:
     t0 = time.perf_counter()
     with sigterm_exits():  # a TERM stops the workers too; finished episodes stay, a rerun resumes
         res = run_bench(cfg, out, ray_address=args.ray, progress=not args.no_progress, checked_tasks=tasks)
-    print(format_summary(res.summary))
-    print(
+    echo(format_summary(res.summary))
+    echo(
         f"\n{res.ran} episodes run, {res.skipped} already done (resumed), wall {time.perf_counter() - t0:.1f} s, "
         f"realtime factor {res.summary.get('realtime_factor') or float('nan'):.2f} "
         f"(per CPU second {res.summary.get('realtime_factor_cpu') or float('nan'):.2f}); results in {out}"

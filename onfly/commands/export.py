@@ -25,7 +25,7 @@ import argparse
 import json
 from pathlib import Path
 
-from onfly.cli import CliError
+from onfly.cli import CliError, echo
 
 NAME = "export"
 HELP = "export an OnFly log (a flight's or a run's) as a ROS 2 bag (MCAP or SQLite 3) through rosbags"
@@ -141,8 +141,8 @@ def run(args: argparse.Namespace) -> int:
         if not isinstance(summary, dict) or "trace_t_x_y_z" not in summary:
             raise CliError(f"--summary {args.summary} is not an `onfly fly --json` summary (no trace_t_x_y_z)")
     counts = export_log(args.log, args.out, args.storage, summary)
-    print(f"wrote {args.out} ({args.storage}):")
+    echo(f"wrote {args.out} ({args.storage}):")
     for topic, n in counts.items():
         if n:
-            print(f"  {topic:<28} {n:>6} msgs")
+            echo(f"  {topic:<28} {n:>6} msgs")
     return 0

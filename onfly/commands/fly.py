@@ -37,7 +37,7 @@ import logging
 import sys
 from pathlib import Path
 
-from onfly.cli import CliError, task_by_id
+from onfly.cli import CliError, echo, task_by_id
 
 NAME = "fly"
 HELP = "fly an instruction onboard through a MAVLink autopilot (PX4 offboard / ArduPilot guided)"
@@ -113,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
     clock = MonotonicClock()
     backend = make_backend(args.vlm, seed=args.seed)  # ValueError names the valid specs
     runtime = ThreadRuntime(clock.now_s, honour_modelled_latency=honour)
-    print(f"onfly fly: building the pilot (planner set-up) ...", flush=True)
+    echo(f"onfly fly: building the pilot (planner set-up) ...")
     pilot = OnFlyPilot(pilot_config, backend, runtime, volume=volume)
     try:
         bridge = MavlinkBridge.from_url(args.connect, bridge_config, clock=clock.now_s)
@@ -129,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
             except CameraError as exc:
                 raise CliError(str(exc)) from exc
         else:
-            print("onfly fly: no --camera: the pilot gets no frames and will hold", flush=True)
+            echo("onfly fly: no --camera: the pilot gets no frames and will hold")
         session = make_session(args.autopilot, bridge, offboard)
         if args.log is not None:
             from onfly.logs.writer import LogWriter
@@ -143,8 +143,8 @@ def run(args: argparse.Namespace) -> int:
             recorder = RerunRecorder(args.rrd)
         flight = OnboardFlight(bridge, session, pilot, camera, instruction, config, clock=clock, ground_truth=ground_truth,
                                writer=writer, recorder=recorder)
-        print(f"onfly fly: {args.autopilot} on {args.connect}; vlm {args.vlm} (modelled latency {'on' if honour else 'off'}); "
-              f"camera {args.camera or 'none'}; instruction: {instruction}", flush=True)
+        echo(f"onfly fly: {args.autopilot} on {args.connect}; vlm {args.vlm} (modelled latency {'on' if honour else 'off'}); "
+             f"camera {args.camera or 'none'}; instruction: {instruction}")
         try:
             summary = flight.run()
         except BridgeError as exc:
@@ -160,24 +160,24 @@ def run(args: argparse.Namespace) -> int:
         if recorder is not None:
             recorder.close()
 
-    print(f"end        {summary.end_reason}   pilot finished {summary.finished}   flight {summary.flight_time_s:.1f} s   take-off {summary.takeoff_s:.1f} s")
+    echo(f"end        {summary.end_reason}   pilot finished {summary.finished}   flight {summary.flight_time_s:.1f} s   take-off {summary.takeoff_s:.1f} s")
     if summary.metrics:
         m = summary.metrics
-        print(f"task       {m['task']}   success {m['success']}   NE {m['navigation_error_m']:.2f} m   path {m['path_length_m']:.1f} m   SPL {m['spl']:.2f}")
+        echo(f"task       {m['task']}   success {m['success']}   NE {m['navigation_error_m']:.2f} m   path {m['path_length_m']:.1f} m   SPL {m['spl']:.2f}")
     active = [f for f in summary.failsafes if not f["cleared"]]
-    print(f"failsafes  {len(active)} raised: " + (", ".join(f"{f['cause']}@{f['t_s']:.2f}s" for f in active[:8]) or "none"))
-    print(f"landing    {'landed and disarmed' if summary.landed else 'not landed'}   crashed {summary.crashed}")
-    print(f"loop       ticks {summary.loop['ticks']}  overruns {summary.loop['overruns']}  tick p95 {summary.loop['tick_ms_p95']:.0f} ms  "
-          f"camera frames {summary.camera.get('received', 0)}")
+    echo(f"failsafes  {len(active)} raised: " + (", ".join(f"{f['cause']}@{f['t_s']:.2f}s" for f in active[:8]) or "none"))
+    echo(f"landing    {'landed and disarmed' if summary.landed else 'not landed'}   crashed {summary.crashed}")
+    echo(f"loop       ticks {summary.loop['ticks']}  overruns {summary.loop['overruns']}  tick p95 {summary.loop['tick_ms_p95']:.0f} ms  "
+         f"camera frames {summary.camera.get('received', 0)}")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         out = {"connect": args.connect, "vlm": args.vlm, "seed": args.seed, "camera": args.camera, "honour_modelled_latency": honour,
                "onboard_config": dataclasses.asdict(config), **summary.to_dict()}
         args.json.write_text(json.dumps(out, indent=1, default=str))
     if args.log is not None:
-        print(f"log        {args.log}   (replay: onfly replay {args.log}; export: onfly export {args.log} --out BAG)")
+        echo(f"log        {args.log}   (replay: onfly replay {args.log}; export: onfly export {args.log} --out BAG)")
     if args.rrd is not None:
-        print(f"recording  {args.rrd}   (open with: rerun {args.rrd})")
+        echo(f"recording  {args.rrd}   (open with: rerun {args.rrd})")
     return 0 if summary.end_reason in ("finished", "time_limit") and not summary.crashed else 1
 
 

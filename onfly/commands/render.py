@@ -7,7 +7,7 @@ from pathlib import Path
 
 import math
 
-from onfly.cli import CliError
+from onfly.cli import CliError, echo
 
 NAME = "render"
 HELP = "render RGB, depth and instance ids of a scene from a pose (default: the start pose)"
@@ -81,8 +81,8 @@ def run(args: argparse.Namespace) -> int:
     cv2.imwrite(str(out / "ids_raw.png"), result.instance_ids.astype(np.uint16))
     ann = renderer.annotate(result)
     counts = np.bincount(result.instance_ids.ravel())
-    print(f"scene {scene.name}: pose ({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}) yaw {yaw:.3f} rad, t = {args.time:g} s -> {out}/")
-    print(f"{'id':>5}  {'pixels':>7}  {'label':<16} name")
+    echo(f"scene {scene.name}: pose ({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}) yaw {yaw:.3f} rad, t = {args.time:g} s -> {out}/")
+    echo(f"{'id':>5}  {'pixels':>7}  {'label':<16} name")
     for iid, vo in sorted(ann.objects.items(), key=lambda kv: -counts[kv[0]]):
-        print(f"{iid:>5}  {counts[iid]:>7}  {vo.label:<16} {vo.name}")
+        echo(f"{iid:>5}  {counts[iid]:>7}  {vo.label:<16} {vo.name}")
     return 0

@@ -10,7 +10,7 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
-from onfly.cli import CliError
+from onfly.cli import CliError, echo
 
 NAME = "replay"
 HELP = "replay a recording (OnFly log, TUM RGB-D folder, ROS 1/2 bag) open loop and report latency, clearance and verifier changes"
@@ -228,13 +228,13 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if recorder is not None:
             recorder.close()
-    print(format_report(report))
+    echo(format_report(report))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(report.to_dict(), indent=2))
-        print(f"json          {args.json}")
+        echo(f"json          {args.json}")
     if args.rrd:
-        print(f"recording     {args.rrd}   (open with: rerun {args.rrd})")
+        echo(f"recording     {args.rrd}   (open with: rerun {args.rrd})")
     return 0
 
 

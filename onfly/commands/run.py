@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 from onfly import defaults
-from onfly.cli import CliError
+from onfly.cli import CliError, echo
 
 NAME = "run"
 HELP = "fly one task in the embedded world (live status, metrics, JSON summary, rerun recording, log)"
@@ -356,21 +356,21 @@ def _fly(args, task, options, episode, world, rrd_path) -> int:
     def f(x, fmt):
         return "n/a" if x is None else format(x, fmt)
 
-    print(f"task       {task.task_id}")
-    print(f"instruction {task.instruction}")
-    print(f"vlm        {args.vlm}   method {args.method}   seed {args.seed}")
-    print(f"end        {result.end_reason}")
-    print(f"success    {m.success}   oracle success {m.oracle_success}   collided {m.collided}")
+    echo(f"task       {task.task_id}")
+    echo(f"instruction {task.instruction}")
+    echo(f"vlm        {args.vlm}   method {args.method}   seed {args.seed}")
+    echo(f"end        {result.end_reason}")
+    echo(f"success    {m.success}   oracle success {m.oracle_success}   collided {m.collided}")
     why = failure_line(result, extras, radius, state["mode"])
     if why:
-        print(f"failed     {why}")
-    print(f"flight     {m.flight_time_s:.1f} s   NE {m.navigation_error_m:.2f} m   path {m.path_length_m:.1f} m   SPL {m.spl:.2f}")
-    print(f"motion     rms accel {f(mo['rms_accel_mps2'], '.2f')} m/s^2   rms jerk {f(mo['rms_jerk_mps3'], '.2f')} m/s^3   "
-          f"min clearance {extras['min_clearance_m']:.2f} m   time to goal {f(mo['time_to_goal_s'], '.1f')} s   "
-          f"yaw error {f(mo['yaw_error_deg'], '.0f')} deg")
-    print(f"vlm calls  {result.vlm_calls}   wall {time.perf_counter() - t0:.1f} s   realtime x{result.realtime_factor:.1f}")
+        echo(f"failed     {why}")
+    echo(f"flight     {m.flight_time_s:.1f} s   NE {m.navigation_error_m:.2f} m   path {m.path_length_m:.1f} m   SPL {m.spl:.2f}")
+    echo(f"motion     rms accel {f(mo['rms_accel_mps2'], '.2f')} m/s^2   rms jerk {f(mo['rms_jerk_mps3'], '.2f')} m/s^3   "
+         f"min clearance {extras['min_clearance_m']:.2f} m   time to goal {f(mo['time_to_goal_s'], '.1f')} s   "
+         f"yaw error {f(mo['yaw_error_deg'], '.0f')} deg")
+    echo(f"vlm calls  {result.vlm_calls}   wall {time.perf_counter() - t0:.1f} s   realtime x{result.realtime_factor:.1f}")
     if rrd_path:
-        print(f"recording  {rrd_path}   (open with: rerun {rrd_path})")
+        echo(f"recording  {rrd_path}   (open with: rerun {rrd_path})")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         summary = {"task": task.task_id, "instruction": task.instruction, "vlm": args.vlm, "method": args.method,

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 
+from onfly.cli import echo
+
 
 NAME = "scenes"
 HELP = "list the committed scenes with their object counts and bounds"
@@ -39,13 +41,13 @@ def run(args: argparse.Namespace) -> int:
             }
         )
     if args.json:
-        print(json.dumps(rows, indent=2))
+        echo(json.dumps(rows, indent=2))
         return 0
-    print(f"{'scene':<18} {'objects':>7} {'targets':>7} {'actors':>6} {'triangles':>9}  bounds (min .. max, m)")
+    echo(f"{'scene':<18} {'objects':>7} {'targets':>7} {'actors':>6} {'triangles':>9}  bounds (min .. max, m)")
     for r in rows:
         lo = ", ".join(f"{v:g}" for v in r["bounds_min_m"])
         hi = ", ".join(f"{v:g}" for v in r["bounds_max_m"])
-        print(f"{r['name']:<18} {r['objects']:>7} {r['targets']:>7} {r['actors']:>6} {r['triangles']:>9}  ({lo}) .. ({hi})")
+        echo(f"{r['name']:<18} {r['objects']:>7} {r['targets']:>7} {r['actors']:>6} {r['triangles']:>9}  ({lo}) .. ({hi})")
         if args.objects:
-            print("    " + "; ".join(r["target_names"]))
+            echo("    " + "; ".join(r["target_names"]))
     return 0

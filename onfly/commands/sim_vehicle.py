@@ -31,11 +31,12 @@ import argparse
 import json
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
-from onfly.cli import CliError, task_by_id
+from onfly.cli import CliError, echo, task_by_id
 from onfly.mavlink.link import LinkError, MavlinkLink
 from onfly.mavlink.sim_vehicle import SimMavlinkVehicle, SimVehicleConfig
 
@@ -101,8 +102,10 @@ def build_world_model(args: argparse.Namespace):
     return model, task
 
 
-def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
-    """Serve until ``--duration-s``, ``--until-landed``, Ctrl-C, or ``stop`` (for in-process use)."""
+def run(args: argparse.Namespace, stop: threading.Event | None = None, emit: Callable[[str], None] = echo) -> int:
+    """Serve until ``--duration-s``, ``--until-landed``, Ctrl-C, or ``stop`` (for in-process use).
+    Status lines (the start, each mode or arming change, the exit, a collision) go to ``emit``: the
+    CLI's stdout writer by default; an in-process caller passes its own (``list.append``, a log)."""
     params = []
     for item in args.param:
         name, sep, value = item.partition("=")
@@ -141,7 +144,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             raise CliError(f"cannot serve the camera on {args.camera}: {exc}") from exc
     where = "point mass, no camera" if model is None else f"scene {model.world.scene.name}" + (f", task {task.task_id}" if task else "")
     cam = f"; camera {server.url} at {args.camera_rate_hz:g} Hz" if server is not None else ""
-    print(f"onfly sim-vehicle: {args.autopilot} vehicle ({args.profile}, system {config.system_id}) on {args.mavlink}; {where}{cam}", flush=True)
+    emit(f"onfly sim-vehicle: {args.autopilot} vehicle ({args.profile}, system {config.system_id}) on {args.mavlink}; {where}{cam}")
     t0 = vehicle.clock()
     last_mode = None
     flown = False
@@ -160,24 +163,24 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
                     t = vehicle.clock() - t0
                     trace.append([round(t, 3), *(round(float(x), 4) for x in p)])
                     if mode != last_mode:
-                        print(f"t={t:7.2f} s  mode {mode[0]:<14} armed={mode[1]!s:<5} p_enu=({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}) m", flush=True)
+                        emit(f"t={t:7.2f} s  mode {mode[0]:<14} armed={mode[1]!s:<5} p_enu=({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f}) m")
                         last_mode = mode
                     flown = flown or (vehicle.armed and not vehicle.model.on_ground)
                     if args.until_landed and flown and not vehicle.armed:
                         if landed_at is None:
                             landed_at = t
                         elif t - landed_at >= 2.0 * config.heartbeat_period_s:  # let the companion see it disarmed
-                            print(f"t={t:7.2f} s  landed and disarmed: exiting", flush=True)
+                            emit(f"t={t:7.2f} s  landed and disarmed: exiting")
                             break
                     time.sleep(0.1)
             except KeyboardInterrupt:
-                print("onfly sim-vehicle: stopped")
+                emit("onfly sim-vehicle: stopped")
     finally:
         if server is not None:
             server.stop()
     if model is not None and model.collision is not None:
         c = model.collision
-        print(f"COLLISION with {c.object_name!r} at t={c.t_s:.2f} s (vehicle time since boot)")
+        emit(f"COLLISION with {c.object_name!r} at t={c.t_s:.2f} s (vehicle time since boot)")
     if args.json:
         summary = {
             "autopilot": args.autopilot,

@@ -9,7 +9,7 @@ import json
 import sys
 from pathlib import Path
 
-from onfly.cli import CliError
+from onfly.cli import CliError, echo
 
 NAME = "sweep"
 HELP = "tune weights: grid or sampled (Optuna) search; SR / CR / FT beside jerk, clearance, path, yaw error; HTML plots"
@@ -61,15 +61,15 @@ def run(args) -> int:
         sweep = replace(sweep, search=replace(sweep.search, seed=args.sampler_seed))
     out = Path(args.out) if args.out else Path("runs") / "sweep" / sweep.name
     if sweep.search is None:
-        print(f"sweep {sweep.name}: {len(combinations(sweep))} combinations of {', '.join(sweep.keys)}", flush=True)
+        echo(f"sweep {sweep.name}: {len(combinations(sweep))} combinations of {', '.join(sweep.keys)}")
     else:
         s = sweep.search
-        print(f"search {sweep.name}: {s.sampler} sampler (seed {s.seed}) over {', '.join(sweep.keys)}; "
-              f"objectives {', '.join(f'{k}:{d}' for k, d in s.objectives)} of {s.method}", flush=True)
+        echo(f"search {sweep.name}: {s.sampler} sampler (seed {s.seed}) over {', '.join(sweep.keys)}; "
+             f"objectives {', '.join(f'{k}:{d}' for k, d in s.objectives)} of {s.method}")
     rows = run_sweep(sweep, out, workers=args.workers, ray_address=args.ray, progress=not args.no_progress, trials=args.trials)
-    print(format_sweep(rows, sweep.keys))
+    echo(format_sweep(rows, sweep.keys))
     pics = "sweep.html" + (", study.html" if (out / "study.html").exists() else "")
-    print(f"results in {out} (table sweep.md, pictures {pics})")
+    echo(f"results in {out} (table sweep.md, pictures {pics})")
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(rows, indent=1))

@@ -14,7 +14,7 @@ import json
 from collections import defaultdict
 from pathlib import Path
 
-from onfly.cli import CliError
+from onfly.cli import CliError, echo
 
 #: Task kinds (as :data:`onfly.bench.tasks.KINDS`; kept here so ``--help`` imports nothing heavy).
 KINDS = ("object", "precise", "long_range", "track")
@@ -72,8 +72,8 @@ def run(args) -> int:
     if args.action == "list":
         for t in tasks:
             ref = f"{t.reference.path_length_m:5.1f} m" if t.reference else "unchecked"
-            print(f"{t.task_id:22s} {t.kind:10s} {ref:>9s}  {t.instruction}")
-        print(f"{len(tasks)} tasks")
+            echo(f"{t.task_id:22s} {t.kind:10s} {ref:>9s}  {t.instruction}")
+        echo(f"{len(tasks)} tasks")
         return 0
     import numpy as np
     from tqdm import tqdm
@@ -92,7 +92,7 @@ def run(args) -> int:
         elif t.reference is None or abs(t.reference.path_length_m - r.reference.path_length_m) > STALE_LENGTH_M:
             status, stale = "stale", stale + 1
         length = r.reference.path_length_m if r.reference else float("nan")
-        print(f"{t.task_id:22s} {status:5s} path {length:5.1f} m  straight {r.straight_distance_m:5.1f} m  {'; '.join(r.problems)}")
+        echo(f"{t.task_id:22s} {status:5s} path {length:5.1f} m  straight {r.straight_distance_m:5.1f} m  {'; '.join(r.problems)}")
         rows.append({"task": t.task_id, "status": status, "problems": list(r.problems), "path_length_m": None if np.isnan(length) else length})
     if args.write:
         by_file: dict[Path, dict] = defaultdict(dict)
@@ -103,8 +103,8 @@ def run(args) -> int:
             every = load_task_file(path)
             write_task_file(path, every[0].scene, [t.with_reference(refs.get(t.task_id, t.reference)) for t in every], HEADER,
                             scene_ref=_scene_ref(path))
-        print(f"wrote references of {sum(len(v) for v in by_file.values())} tasks to {len(by_file)} files")
+        echo(f"wrote references of {sum(len(v) for v in by_file.values())} tasks to {len(by_file)} files")
     if args.json:
         Path(args.json).write_text(json.dumps({"tasks": rows, "failed": failed, "stale": stale}, indent=1))
-    print(f"{len(tasks)} tasks: {len(tasks) - failed - stale} ok, {stale} stale or unchecked, {failed} failed")
+    echo(f"{len(tasks)} tasks: {len(tasks) - failed - stale} ok, {stale} stale or unchecked, {failed} failed")
     return 1 if failed or (stale and not args.write) else 0
