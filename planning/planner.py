@@ -485,9 +485,11 @@ class Planner:
     @property
     def drift_margin_m(self) -> float:
         """The flight volume's margin for odometry drift (metres): ``volume_drift_fraction``
-        times the distance flown since :meth:`reset`. Goals chosen against the volume (the
-        pilot's, the baselines') add it to their own margin, so that they stay reachable."""
-        return self.config.volume_drift_fraction * self._flown_m
+        times the distance flown since :meth:`reset`, at most ``volume_drift_max_m``. Goals
+        chosen against the volume (the pilot's, the baselines') add it to their own margin, so
+        that they stay reachable."""
+        c = self.config
+        return min(c.volume_drift_fraction * self._flown_m, c.volume_drift_max_m)
 
     def _count_flown(self, p: np.ndarray) -> None:
         if self._flown_anchor is None:

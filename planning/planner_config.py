@@ -170,6 +170,10 @@ class PlannerConfig:
         LiDAR- or visual-inertial odometry drifts with the path (``docs/realism.md``: 1 % is a
         conservative figure). 0 trusts the estimate, e.g. under a GNSS-aided EKF whose error
         does not grow (then give the fence its own margin, as ArduPilot's ``FENCE_MARGIN`` does)
+    volume_drift_max_m : cap of that margin, metres. Without it a long flight would squeeze a
+        room-sized volume to its middle (after 130 m at 1 %, a 3 m tall room has no height
+        left); past the cap the estimate needs an outside fix (a loop closure, GNSS), not a
+        smaller volume
     """
 
     horizon_steps: int = 40
@@ -229,6 +233,7 @@ class PlannerConfig:
     tracking_margin_max_m: float = 1.0
     tracking_window_s: float = 10.0
     volume_drift_fraction: float = 0.01
+    volume_drift_max_m: float = 1.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -266,7 +271,7 @@ class PlannerConfig:
             "safety_tolerance_m", "max_speed_refinements", "qp_adaptive_rho_interval", "qp_eps_rel",
             "guide_clearance_margin_m", "guide_preferred_clearance_m", "guide_replan_period_s",
             "body_radius_m", "guide_time_budget_ms", "step_time_budget_ms", "tracking_margin_max_m",
-            "volume_drift_fraction",
+            "volume_drift_fraction", "volume_drift_max_m",
         )
         for name in non_negative:
             if getattr(self, name) < 0:

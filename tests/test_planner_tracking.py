@@ -265,6 +265,12 @@ def test_volume_drift_margin_ignores_hover_noise_and_can_be_switched_off():
     for k in range(30):
         off.step(_state(0.1 * k, [0.3 * k, 0.0, 1.5], [3.0, 0.0, 0.0]), np.array([20.0, 0.0, 1.5]), OPEN)
     assert off.drift_margin_m == 0.0
+    capped = Planner(PlannerConfig(volume_drift_max_m=0.05))  # 8.7 m flown: 1 % would be 0.087 m
+    for k in range(30):
+        capped.step(_state(0.1 * k, [0.3 * k, 0.0, 1.5], [3.0, 0.0, 0.0]), np.array([20.0, 0.0, 1.5]), OPEN)
+    assert capped.drift_margin_m == 0.05
+    with pytest.raises(PlannerConfigError, match="volume_drift_max_m"):
+        PlannerConfig(volume_drift_max_m=-1.0)
     for bad in (-0.01, 0.5, float("nan")):
         with pytest.raises(PlannerConfigError, match="volume_drift_fraction"):
             PlannerConfig(volume_drift_fraction=bad)
