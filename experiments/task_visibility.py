@@ -4,8 +4,9 @@ A task *starts in view* when its goal object (:func:`onfly.bench.checker.goal_ta
 goal object, else the last named target) has at least one pixel in the first rendered frame at
 the start pose, at the benchmark's camera (``[world]`` of the config). Where it does not, a
 method has to search: the simulated VLM then points by its documented exploration rule
-(``vlm/sim/error_model.py``), TypeFly has its ``find`` skill (turn in place), and OnFly, as in
-the paper, has no search action.
+(``vlm/sim/error_model.py``), TypeFly has its ``find`` skill (turn in place), and OnFly has
+its pilot's search (``onfly/search.py``, our addition; the paper's pilot, ablation
+``onfly_no_search``, has none).
 
 With ``--runs DIR`` (a benchmark or paper-tables run folder: every ``episodes.jsonl`` below it)
 it prints, per method and error model, SR / CR over all episodes and SR on each side, with the

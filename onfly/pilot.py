@@ -772,7 +772,12 @@ class OnFlyPilot:
         follow = None
         if cfg.search.enabled and self.mode is not PilotMode.FINISHED:
             self.search.remember(t_s, state.p)
-            stall_watch = self.mode in (PilotMode.NAVIGATING, PilotMode.HOLDING) or (
+            # STARTING counts once the decomposition is in: a start whose every decision is
+            # rejected (the model names its target, the verifier finds no feasible goal) is a
+            # dead end like any hover, not a wait for the tenth rejection (``reject_streak``,
+            # about 26 s with the monitor's calls between the decisions)
+            started = self.mode is PilotMode.STARTING and (self.tasks is not None or self._one_step)
+            stall_watch = started or self.mode in (PilotMode.NAVIGATING, PilotMode.HOLDING) or (
                 self.mode is PilotMode.SEARCHING and self.search.phase is SearchPhase.EXPLORE
             )
             # a stall counts only while the model answers: with a dead model the vehicle holds

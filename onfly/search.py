@@ -14,7 +14,8 @@ Policy (parameters in :class:`SearchConfig`):
    gave no goal for another reason than a verifier rejection (unparseable answers), or
    ``reject_streak`` without a goal, rejections included (a call that failed outright counts
    for nothing: with a dead model the pilot holds, the companion failsafes act); a LOST with nothing to turn back to; no progress (less than ``stall_distance_m`` of
-   travel in ``stall_window_s``) while the task is not finished (a dead end).
+   travel in ``stall_window_s``) while the task is not finished (a dead end), from the start
+   on once the decomposition is in (a start whose every decision the verifier rejects).
 2. **Scan**: turn in place through the field of regard, ``scan_step_rad`` at a time, so each new
    frame shows the decision agent a new sector; first toward where the target was last seen
    when that is known. Three quarter turns cover the rest of the horizon with a 90 deg camera;

@@ -523,3 +523,40 @@ def test_a_lost_that_names_the_first_frame_turns_the_search_back_to_it(planner):
     off = PilotConfig(search=replace(PilotConfig().search, seen_place=False))
     m2, _ = fly_scripted(ScriptedVlm("perfect", decision=decision, monitor=monitor), planner, lambda s: None, config=off)
     assert not [e for e in m2.pilot.events if e.kind == "lost" and e.data.get("recovery") == "seen_place"]
+
+
+@pytest.mark.parametrize("decomposed", [True, False])
+def test_a_start_whose_decisions_give_no_goal_is_a_stall_once_the_decomposition_is_in(planner, decomposed):
+    """Before the first goal the pilot is STARTING. A start where every decision is rejected
+    (the model names its target, the verifier finds no feasible goal) hovered until the tenth
+    rejection (``reject_streak``: 26 s in the hard set's ``apartment-l05``, decisions 2.6 s
+    apart between the monitor's calls); it is a dead end after the stall window like any hover.
+    While the decomposition is still out, the start waits for it (no stall)."""
+    from onfly.task_manager import TaskManager
+    from planning.trajectory import VehicleState
+
+    pilot = OnFlyPilot(PilotConfig(), ScriptedVlm("perfect"), ClockRuntime(), planner=planner)
+    instruction = "Go out to the hallway and through the living room past the dining table, then into the kitchen, and stop by the stove."
+    pilot.begin(instruction, 0.0)
+    assert pilot.mode is PilotMode.STARTING and not pilot._one_step
+    if decomposed:
+        pilot.tasks = TaskManager(["go out to the hallway and through the living room past the dining table", "into the kitchen, and stop by the stove"])
+    here = np.array([2.6, 9.3, 1.4])
+    window = pilot.config.search.stall_window_s
+    t = 0.0
+    while t < window - 0.05:  # hovering, the model answering (without a goal) all along
+        pilot.search.remember(t, here)
+        pilot._answered_s = t
+        t = round(t + 0.1, 6)
+    assert not any(e.kind == "stalled" for e in pilot.events)
+    for _ in range(3):
+        pilot._answered_s = t
+        pilot._control(t, VehicleState(t, here, np.zeros(3), -1.0))
+        t = round(t + 0.1, 6)
+    stalled = [e for e in pilot.events if e.kind == "stalled"]
+    if decomposed:
+        assert len(stalled) == 1 and stalled[0].t_s >= window
+        assert pilot.mode is PilotMode.SEARCHING and pilot.search.trigger.value == "stall"
+        assert pilot._at_dead_spot(here + np.array([0.5, 0.0, 0.0]))  # the start is no goal now
+    else:
+        assert stalled == [] and pilot.mode is PilotMode.STARTING
