@@ -67,6 +67,7 @@ from typing import Any, Callable
 
 from onfly.bench.motion import MOTION_KEYS
 from onfly.bench.runner import SHARED_TABLES, BenchConfig, BenchConfigError, check_bench, run_bench
+from onfly.console import live_line
 from onfly.serialize import ConfigFileError, read_toml
 
 __all__ = [
@@ -365,7 +366,6 @@ class _Progress:
         self.total = total
         self.enabled = enabled
         self.stream = stream or sys.stderr
-        self.tty = self.stream.isatty()
         self.t0 = time.perf_counter()
         self.index = 0
         self.label = ""
@@ -384,13 +384,8 @@ class _Progress:
         self._emit(f"[{self.index}/{self.total or '?'}] {self.label}: done, {'; '.join(parts)}", final=True)
 
     def _emit(self, line: str, final: bool = False) -> None:
-        if not self.enabled:
-            return
-        if self.tty:
-            end = "\n" if final else ""
-            print("\r" + line[:150].ljust(150), end=end, file=self.stream, flush=True)
-        else:
-            print(line, file=self.stream, flush=True)
+        if self.enabled:
+            live_line(line, width=150, final=final, stream=self.stream)
 
 
 def run_sweep(

@@ -12,12 +12,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from dataclasses import replace
 from pathlib import Path
 
 from onfly.cli import CliError, echo
+from onfly.console import status
 
 #: Task kinds (as :data:`onfly.bench.tasks.KINDS`; kept here so ``--help`` imports nothing heavy).
 KINDS = ("object", "precise", "long_range", "track")
@@ -91,8 +91,8 @@ def run(args) -> int:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(res.summary, indent=1))
     if res.errored:
-        print(f"\n{len(res.errored)} episode(s) ended with a method error (see {out}/episodes.jsonl):", file=sys.stderr)
+        status(f"\n{len(res.errored)} episode(s) ended with a method error (see {out}/episodes.jsonl):")
         for line in res.errored[:10]:
-            print(f"  {line}", file=sys.stderr)
+            status(f"  {line}")
         return 1
     return 0

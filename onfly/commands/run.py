@@ -12,6 +12,7 @@ from pathlib import Path
 
 from onfly import defaults
 from onfly.cli import CliError, echo
+from onfly.console import live_line, status
 
 NAME = "run"
 HELP = "fly one task in the embedded world (live status, metrics, JSON summary, rerun recording, log)"
@@ -331,8 +332,7 @@ def _fly(args, task, options, episode, world, rrd_path) -> int:
             n_events = len(events)
         if live and (tty or step.t_s - state["last_print"] >= 5.0):
             state["last_print"] = step.t_s
-            line = f"t {step.t_s:5.1f} s  goal {dist:5.1f} m  {mode or '':<10}  {state['subtask']}"[:110]
-            print(("\r" + line.ljust(110)) if tty else line, end="" if tty else "\n", file=sys.stderr, flush=True)
+            live_line(f"t {step.t_s:5.1f} s  goal {dist:5.1f} m  {mode or '':<10}  {state['subtask']}", width=110)
 
     t0 = time.perf_counter()
     try:
@@ -342,7 +342,7 @@ def _fly(args, task, options, episode, world, rrd_path) -> int:
         )
     finally:
         if live and tty:
-            print(file=sys.stderr)
+            status()  # end the line redrawn in place
         if recorder:
             recorder.close()
         if writer:

@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 from onfly.cli import CliError, echo
+from onfly.console import status
 
 NAME = "sweep"
 HELP = "tune weights: grid or sampled (Optuna) search; SR / CR / FT beside jerk, clearance, path, yaw error; HTML plots"
@@ -75,6 +75,6 @@ def run(args) -> int:
         Path(args.json).write_text(json.dumps(rows, indent=1))
     errors = [r for r in rows if r.get("method_errors")]
     if errors:
-        print(f"{len(errors)} row(s) hold episodes that ended with a method error; see the folders' episodes.jsonl", file=sys.stderr)
+        status(f"{len(errors)} row(s) hold episodes that ended with a method error; see the folders' episodes.jsonl")
         return 1
     return 0
