@@ -872,9 +872,8 @@ class OnFlyPilot:
     # -- search and the flight volume -----------------------------------------------------------
     @property
     def _volume_margin_m(self) -> float:
-        """Goals keep the planner's safety distance, plus its margin for odometry drift
-        (:attr:`Planner.drift_margin_m`), from the volume's faces."""
-        return float(self.config.planner.d_safe_m) + self.planner.drift_margin_m
+        """Goals keep the planner's :attr:`Planner.volume_goal_margin_m` from the volume's faces."""
+        return self.planner.volume_goal_margin_m
 
     def _turn_first(self, t_s: float, state: VehicleState, goal: np.ndarray, yaw_ref: float | None):
         """(goal, yaw_ref) for this period: a goal whose bearing is more than half the camera's

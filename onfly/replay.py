@@ -149,7 +149,8 @@ class ReplayConfig:
         (default 0.95: range cut by more than 5 %)
     volume : the operator flight volume ``(xmin, ymin, zmin, xmax, ymax, zmax)``, metres in the
         log's world frame, or None; goals are clamped into it (shrunk by the planner's safety
-        distance) before the planner sees them, as in flight
+        distance and drift margin, ``Planner.volume_goal_margin_m``) before the planner sees
+        them, as in flight
     planner, esdf, verifier, memory : the nested configs
     movers : moving obstacles tracked from the logged depth, which the planner avoids besides
         the map (:mod:`planning.movers`), as in flight
@@ -790,7 +791,7 @@ def _process(
     else:
         goal = agents.goal_world if agents is not None and agents.goal_world is not None else state.p
     if config.volume is not None:
-        goal = config.flight_volume.clamp(goal, margin_m=config.planner.d_safe_m)
+        goal = config.flight_volume.clamp(goal, margin_m=planner.volume_goal_margin_m)
     plan = planner.step(state, goal, movers.field(esdf, float(obs.t_s)), volume=config.flight_volume)
     samples["planner"].append(plan.solve_time_ms)
     if recorder is not None:

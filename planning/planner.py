@@ -491,6 +491,14 @@ class Planner:
         c = self.config
         return min(c.volume_drift_fraction * self._flown_m, c.volume_drift_max_m)
 
+    @property
+    def volume_goal_margin_m(self) -> float:
+        """How far a goal chosen against the flight volume keeps from its faces, metres:
+        ``d_safe_m`` plus :attr:`drift_margin_m`. The pilot, the baselines that fly this planner
+        and the replay clamp their goals with it, so that the planner's own box (shrunk by the
+        body radius, the tracking margin and the drift margin) does not move them again."""
+        return float(self.config.d_safe_m) + self.drift_margin_m
+
     def _count_flown(self, p: np.ndarray) -> None:
         if self._flown_anchor is None:
             self._flown_anchor = p.copy()

@@ -269,6 +269,8 @@ def test_volume_drift_margin_ignores_hover_noise_and_can_be_switched_off():
     for k in range(30):
         capped.step(_state(0.1 * k, [0.3 * k, 0.0, 1.5], [3.0, 0.0, 0.0]), np.array([20.0, 0.0, 1.5]), OPEN)
     assert capped.drift_margin_m == 0.05
+    # goals chosen against the volume keep the safety distance and the drift margin
+    assert capped.volume_goal_margin_m == pytest.approx(capped.config.d_safe_m + 0.05)
     with pytest.raises(PlannerConfigError, match="volume_drift_max_m"):
         PlannerConfig(volume_drift_max_m=-1.0)
     for bad in (-0.01, 0.5, float("nan")):

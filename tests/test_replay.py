@@ -354,10 +354,12 @@ def test_replay_volume_is_validated_and_clamps_the_goal_the_planner_sees():
     cfg = ReplayConfig(goal_mode="fixed", goal_world=(30.0, 0.0, 9.0), volume=(-5, -5, 0, 5, 5, 3))
     assert cfg.flight_volume.to_list() == [-5.0, -5.0, 0.0, 5.0, 5.0, 3.0]
     report = replay(_track(), cfg, progress=False)
-    m = cfg.planner.d_safe_m
     assert len(report.per_frame) == 5
-    for f in report.per_frame:
-        np.testing.assert_allclose(f.goal_m, [5 - m, 0.0, 3 - m])
+    # the goal keeps the planner's safety distance plus its drift margin (1 % of the track flown
+    # before the frame: 0, 0, 1, 3 and 4 m) from the faces it was clamped onto
+    for f, flown in zip(report.per_frame, [0.0, 0.0, 1.0, 3.0, 4.0]):
+        m = cfg.planner.d_safe_m + cfg.planner.volume_drift_fraction * flown
+        np.testing.assert_allclose(f.goal_m, [5 - m, 0.0, 3 - m], atol=1e-12)
     with pytest.raises(ReplayConfigError, match="volume"):
         ReplayConfig(volume=(0, 0, 0, 1, 1))
     with pytest.raises(ReplayConfigError, match="volume"):

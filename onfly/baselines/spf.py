@@ -166,7 +166,7 @@ class SpfMethod:
         goal = self.goal if self.goal is not None else self.hold_p
         if self.planner is not None:
             volume = self.spec.flight_volume
-            margin = self.planner.config.d_safe_m + self.planner.drift_margin_m
+            margin = self.planner.volume_goal_margin_m
             if volume is not None and not bool(volume.contains(goal, margin_m=margin)[0]):
                 # the operator's flight volume: every method that flies our planner honours it
                 goal = volume.clamp(goal, margin_m=margin)
