@@ -1048,7 +1048,12 @@ class OnFlyPilot:
             return
         if self.mode is PilotMode.NAVIGATING and self.goal_world is not None:
             # a target seen moments ago and missed now (far, small, occluded for a frame): keep
-            # flying its goal; when that goal times out the streak starts the search
+            # flying its goal; when that goal times out the streak starts the search. At the
+            # goal there is nothing left to fly: the streak starts the search at once, a turn
+            # round from where the target was last seen (it was here moments ago), instead of
+            # a hover to the timeout
+            if self._not_visible_streak >= scfg.not_visible_streak and self._at_goal(state):
+                self._start_search(t_s, state, SearchTrigger.NOT_VISIBLE)
             return
         # an answer about the whole instruction before the decomposition is about its last
         # target, which is the first subtask's only when the instruction has one step
@@ -1066,6 +1071,18 @@ class OnFlyPilot:
             # a target the verifier keeps rejecting is usually in view and near (no feasible
             # goal in front of it): the monitor's STOP gets longer to arrive before we turn away
             self._start_search(t_s, state, SearchTrigger.NO_GOAL)
+
+    def _at_goal(self, state: VehicleState) -> bool:
+        """True when the vehicle is at rest (under ``2 * _AT_REST_MPS``) within
+        ``explore_arrive_m`` of the goal the last plan flew to (the decision's goal after the
+        pilot's and the planner's adjustments: the end of the flight, not the pointed pixel;
+        without the planner, the decision's goal)."""
+        end = self.goal_world if self._last_plan is None else self._last_plan.goal_used
+        return (
+            end is not None
+            and float(np.linalg.norm(state.v)) < 2.0 * _AT_REST_MPS
+            and float(np.linalg.norm(end - state.p)) <= self.config.search.explore_arrive_m
+        )
 
     def _at_dead_spot(self, goal: np.ndarray) -> bool:
         """True when ``goal`` lies within ``dead_end_radius_m`` (horizontally) of a place where

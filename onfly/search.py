@@ -10,7 +10,9 @@ the same with a real VLM as with the simulated one.
 Policy (parameters in :class:`SearchConfig`):
 
 1. **Triggers** (the pilot decides, :class:`SearchTrigger`): ``not_visible_streak`` decision
-   answers in a row that say the target is not visible; ``fail_streak`` decisions in a row that
+   answers in a row that say the target is not visible (while a goal seen moments ago is still
+   being flown, only once the vehicle is at rest on it; before, the goal is flown on, and its
+   timeout ends it); ``fail_streak`` decisions in a row that
    gave no goal for another reason than a verifier rejection (unparseable answers), or
    ``reject_streak`` without a goal, rejections included (a call that failed outright counts
    for nothing: with a dead model the pilot holds, the companion failsafes act); a LOST with nothing to turn back to; no progress (less than ``stall_distance_m`` of

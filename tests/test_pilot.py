@@ -11,6 +11,7 @@ from onfly.bench.episode import EpisodeConfig, run_episode
 from onfly.bench.metrics import GoalRegion
 from onfly.bench.onfly_method import OnFlyMethod, ablation_config
 from onfly.pilot import OnFlyPilot, PilotConfig, PilotConfigError, PilotMode
+from onfly.search import SearchPhase
 from onfly.runtime import ClockRuntime
 from onfly.world.clock import LatencyModel
 from onfly.world.world import World
@@ -560,3 +561,44 @@ def test_a_start_whose_decisions_give_no_goal_is_a_stall_once_the_decomposition_
         assert pilot._at_dead_spot(here + np.array([0.5, 0.0, 0.0]))  # the start is no goal now
     else:
         assert stalled == [] and pilot.mode is PilotMode.STARTING
+
+
+@pytest.mark.parametrize("where", ["at_goal", "en_route", "drifting"])
+def test_a_target_gone_at_the_goal_starts_the_search_without_waiting_for_the_goal_timeout(planner, where):
+    """A goal seen moments ago is flown on through "not visible" answers (a miss for a frame
+    or two); once the vehicle is at rest on the goal there is nothing left to fly, and the
+    streak starts the search at once. Before, the vehicle hovered there until the goal timed
+    out (8 s after its last refresh: 5 s of the hard set's ``office_floor-o05`` at seed
+    1924147123, which the search then solved)."""
+    from types import SimpleNamespace
+
+    from onfly.agents import DecisionOutcome
+    from onfly.task_manager import TaskManager
+    from planning.trajectory import VehicleState
+    from vlm.parsing import PointParse
+
+    pilot = OnFlyPilot(PilotConfig(), ScriptedVlm("perfect"), ClockRuntime(), planner=planner)
+    pilot.begin("Take me to the reception desk.", 0.0)
+    pilot.tasks = TaskManager(["go to the reception desk"])
+    goal = np.array([10.2, 7.4, 1.3])
+    pilot.mode, pilot.goal_world, pilot.goal_t_s = PilotMode.NAVIGATING, goal.copy(), 25.0
+    pilot._last_plan = SimpleNamespace(goal_used=goal + np.array([0.0, 0.3, 0.0]))  # the planner's end
+    p, v = {
+        "at_goal": (goal + np.array([0.0, 0.35, 0.0]), np.zeros(3)),
+        "en_route": (goal + np.array([3.0, 0.0, 0.0]), np.array([-0.6, 0.0, 0.0])),
+        "drifting": (goal + np.array([0.0, 0.35, 0.0]), np.array([0.0, 0.3, 0.0])),  # not at rest yet
+    }[where]
+    parse = PointParse(ok=True, uv=(148.0, 106.0), candidates=((148.0, 106.0),), raw="", reason="", source="json:point_2d")
+    for k, t in enumerate((27.0, 29.0)):
+        out = DecisionOutcome(f"f{k}", "go to the reception desk", text(""), None, parse, None, None, reason="not visible", not_visible=True)
+        pilot._count_decision(t, out, VehicleState(t, p, v, -2.0))
+        if k == 0:  # one miss is no streak: keep flying the goal
+            assert pilot.mode is PilotMode.NAVIGATING and not pilot.search.active
+    if where == "at_goal":
+        assert pilot.mode is PilotMode.SEARCHING and pilot.search.trigger.value == "not_visible"
+        assert [e.t_s for e in pilot.events if e.kind == "search_start"] == [29.0]
+        # a turn in place, not a leg away: the target was here moments ago
+        assert pilot.search.phase is SearchPhase.SCAN and not any(e.kind == "search_explore" for e in pilot.events)
+    else:
+        assert pilot.mode is PilotMode.NAVIGATING and not pilot.search.active
+        assert not any(e.kind == "search_start" for e in pilot.events)
