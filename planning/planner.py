@@ -435,6 +435,10 @@ class Planner:
         """Forget the previous plan (the next step cold-starts)."""
         L = self.layout
         self._prev_u: np.ndarray | None = None
+        # the last solution the check refused: the next step linearizes around it, not around
+        # the fallback flown meanwhile (real-time iteration: the linearization point is the
+        # last QP iterate, applied or not)
+        self._lin_u: np.ndarray | None = None
         self._prev_s = np.zeros(L.N)
         self._cuts: np.ndarray | None = None  # (N, K, 3)
         self._acuts: np.ndarray | None = None  # (N, Ka, 3)
@@ -616,12 +620,14 @@ class Planner:
 
         # linearization point first: one field query serves it, the goal check and the attractor
         cold = self._prev_u is None
+        last = self._prev_u if self._lin_u is None else self._lin_u
+        self._lin_u = None
         if cold:
             u_bar = np.zeros((N, NU))
         else:
             u_bar = np.empty((N, NU))
-            u_bar[:-1] = self._prev_u[1:]
-            u_bar[-1] = self._prev_u[-1]
+            u_bar[:-1] = last[1:]
+            u_bar[-1] = last[-1]
         X_bar = simulate(x0, u_bar, dt)
         extra = self._attractor_points(origin, goal)
         pts = np.concatenate([goal[None, :], origin[None, :], X_bar[1:, 0:3] + origin, extra])
@@ -720,7 +726,13 @@ class Planner:
                 slack_max = float(np.max(z[self._idx_s], initial=0.0))
                 self._prev_s = np.maximum(z[self._idx_s], 0.0)
             else:
+                # a plan that swings into an obstacle between the linearization's knots:
+                # linearized around the fallback again (at rest: the hold) the next step would
+                # pose the same problem and be refused the same way, and the vehicle would hold
+                # for good (park-l02: 17 s at a picnic table); around this plan, the cuts sit
+                # where it went wrong
                 status = SolveStatus.UNSAFE
+                self._lin_u = U
         fallback = Fallback.NONE
         if plan is None and not cold:
             U = np.empty((N, NU))
