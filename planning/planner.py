@@ -726,13 +726,14 @@ class Planner:
                 slack_max = float(np.max(z[self._idx_s], initial=0.0))
                 self._prev_s = np.maximum(z[self._idx_s], 0.0)
             else:
-                # a plan that swings into an obstacle between the linearization's knots:
+                # a plan that swings into an obstacle the linearization's cuts do not hold:
                 # linearized around the fallback again (at rest: the hold) the next step would
                 # pose the same problem and be refused the same way, and the vehicle would hold
                 # for good (park-l02: 17 s at a picnic table); around this plan, the cuts sit
                 # where it went wrong
                 status = SolveStatus.UNSAFE
-                self._lin_u = U
+                if not self._clearance_ok(d_knots, d0):
+                    self._lin_u = U
         fallback = Fallback.NONE
         if plan is None and not cold:
             U = np.empty((N, NU))
@@ -1104,9 +1105,14 @@ class Planner:
             tol = c.safety_tolerance_m
             if (P < pos_lo - tol).any() or (P > pos_hi + tol).any():
                 return False, float(d_knots.min()), d_knots
+        return self._clearance_ok(d_knots, d0), float(d_knots.min()), d_knots
+
+    def _clearance_ok(self, d_knots: np.ndarray, d0: float) -> bool:
+        """The check's clearance rule: over the braking horizon, every knot keeps ``d_safe``
+        (or the start's clearance ``d0`` when that is less) within ``safety_tolerance_m``."""
+        c = self.config
         floor = min(c.d_safe_m, d0) - c.safety_tolerance_m
-        ok = bool((d_knots[: self._check_steps] >= floor).all())
-        return ok, float(d_knots.min()), d_knots
+        return bool((d_knots[: self._check_steps] >= floor).all())
 
     def _braking_inputs(self, v0: np.ndarray) -> np.ndarray:
         """Inputs (N, 4): decelerate at a_max along -v until at rest, zero yaw rate."""
