@@ -435,9 +435,9 @@ class Planner:
         """Forget the previous plan (the next step cold-starts)."""
         L = self.layout
         self._prev_u: np.ndarray | None = None
-        # the last solution the check refused: the next step linearizes around it, not around
-        # the fallback flown meanwhile (real-time iteration: the linearization point is the
-        # last QP iterate, applied or not)
+        # the last solution the check refused on clearance: the next step linearizes around
+        # it, not around the fallback flown meanwhile (real-time iteration: the linearization
+        # point is the last QP iterate, applied or not)
         self._lin_u: np.ndarray | None = None
         self._prev_s = np.zeros(L.N)
         self._cuts: np.ndarray | None = None  # (N, K, 3)
