@@ -91,7 +91,8 @@ _TURN_FIRST_MIN_M = 1.0
 # a routed goal keeps this much more than the planner's safety distance from every obstacle and
 # from the target: the guide search needs a cell of slack around the goal to end on
 _ROUTE_MARGIN_M = 0.15
-#: a vehicle slower than this is at rest, m/s (a leg the planner cannot plan on ends)
+#: a vehicle slower than this is at rest, m/s (a leg the planner cannot plan on ends; a goal
+#: whose target is gone is reached)
 _AT_REST_MPS = 0.1
 
 #: how often a leg's sides are checked for an opening to glance into, seconds (a frame's period)
@@ -861,7 +862,7 @@ class OnFlyPilot:
                 and float(np.linalg.norm(search_goal[:2] - state.p[:2])) > arrive + 0.5
             )
             # no safe plan toward the leg's end, the vehicle at rest on the last one flown
-            unplanned = not plan.ok and float(np.linalg.norm(state.v)) < _AT_REST_MPS
+            unplanned = not plan.ok and _at_rest(state)
             if self.search.leg_blocked(t_s, held or unplanned):
                 self._event(t_s, "search_leg_blocked", {"target": search_goal, "position": state.p, "held_at": plan.goal_used})
         if plan is not None and not plan.ok:
@@ -1073,14 +1074,14 @@ class OnFlyPilot:
             self._start_search(t_s, state, SearchTrigger.NO_GOAL)
 
     def _at_goal(self, state: VehicleState) -> bool:
-        """True when the vehicle is at rest (under ``2 * _AT_REST_MPS``) within
-        ``explore_arrive_m`` of the goal the last plan flew to (the decision's goal after the
-        pilot's and the planner's adjustments: the end of the flight, not the pointed pixel;
-        without the planner, the decision's goal)."""
+        """True when the vehicle is at rest (:func:`_at_rest`) within ``explore_arrive_m`` of
+        the goal the last plan flew to (the decision's goal after the pilot's and the planner's
+        adjustments: the end of the flight, not the pointed pixel; without the planner, the
+        decision's goal)."""
         end = self.goal_world if self._last_plan is None else self._last_plan.goal_used
         return (
             end is not None
-            and float(np.linalg.norm(state.v)) < 2.0 * _AT_REST_MPS
+            and _at_rest(state)
             and float(np.linalg.norm(end - state.p)) <= self.config.search.explore_arrive_m
         )
 
@@ -1238,3 +1239,8 @@ class _SingleStream:
     @property
     def latency_s(self) -> float:
         return self.decision.latency_s + self.monitor.latency_s
+
+
+def _at_rest(state: VehicleState) -> bool:
+    """True when the vehicle's speed is under ``_AT_REST_MPS`` (0.1 m/s)."""
+    return float(np.linalg.norm(state.v)) < _AT_REST_MPS

@@ -586,7 +586,7 @@ def test_a_target_gone_at_the_goal_starts_the_search_without_waiting_for_the_goa
     p, v = {
         "at_goal": (goal + np.array([0.0, 0.35, 0.0]), np.zeros(3)),
         "en_route": (goal + np.array([3.0, 0.0, 0.0]), np.array([-0.6, 0.0, 0.0])),
-        "drifting": (goal + np.array([0.0, 0.35, 0.0]), np.array([0.0, 0.3, 0.0])),  # not at rest yet
+        "drifting": (goal + np.array([0.0, 0.35, 0.0]), np.array([0.0, 0.15, 0.0])),  # not at rest yet (0.1 m/s)
     }[where]
     parse = PointParse(ok=True, uv=(148.0, 106.0), candidates=((148.0, 106.0),), raw="", reason="", source="json:point_2d")
     for k, t in enumerate((27.0, 29.0)):
