@@ -310,8 +310,14 @@ class OnboardFlight:
         self.bridge.wait_for_state(cfg.connect_timeout_s)
         self.bridge.request_message_intervals()
         if hasattr(self.bridge, "anchor_world"):
-            T_local_world = self.bridge.anchor_world()
-            self._event("world_anchored", {"T_local_world": np.asarray(T_local_world).round(6).tolist()})
+            T_local_world = np.asarray(self.bridge.anchor_world(), dtype=float)
+            # the estimator's local frame is north-aligned (MAV_FRAME_LOCAL_NED: x north, y
+            # east), so east is its ENU x axis; the world frame is turned to the take-off heading
+            east = T_local_world[:3, :3].T @ np.array([1.0, 0.0, 0.0])
+            east_yaw = float(np.arctan2(east[1], east[0]))
+            if hasattr(self.pilot, "set_east_yaw"):
+                self.pilot.set_east_yaw(east_yaw)
+            self._event("world_anchored", {"T_local_world": T_local_world.round(6).tolist(), "east_yaw_rad": round(east_yaw, 6)})
         self._event("engage", {"autopilot": self.autopilot})
         t_engage = self.clock.now_s()
         self.session.engage()  # ArduPilot: includes its NAV_TAKEOFF

@@ -75,6 +75,7 @@ from planning.straight_line import straight_line_plan
 from planning.trajectory import Trajectory, VehicleState
 from planning.verifier import Verifier, VerifierConfig
 from planning.volume import FlightVolume
+from vlm.compass import compass_heading
 from vlm.decompose import DecompositionError, count_steps, decompose_detailed
 from vlm.following import follow_intent
 from vlm.feature_cache import FeatureCache
@@ -95,6 +96,8 @@ _ROUTE_MARGIN_M = 0.15
 #: whose target is gone is reached)
 _AT_REST_MPS = 0.1
 
+#: half-width of the sector a compass heading names, radians (a quarter of the horizon)
+_ROUTE_SECTOR_RAD = np.pi / 4
 #: how often a leg's sides are checked for an opening to glance into, seconds (a frame's period)
 _GLANCE_CHECK_PERIOD_S = 0.5
 
@@ -441,8 +444,17 @@ class OnFlyPilot:
         self._start_z: float | None = None  # altitude at the first tick (the search's cruise default)
         self._pending_decomposition = None  # the decomposition call, until it is submitted
         self._one_step = False  # the instruction has one step: an answer about it is about the first subtask
+        self.east_yaw_rad: float | None = 0.0  # where east lies in the world frame (set_east_yaw)
 
     # -- lifecycle ------------------------------------------------------------------------------
+    def set_east_yaw(self, yaw_rad: float | None) -> None:
+        """Where east lies in the pilot's world frame: its yaw, radians (0, the default, for an
+        ENU world frame such as the embedded world's), or None when the frame's heading is not
+        known (then no compass heading in a subtask is used). An onboard flight whose world
+        frame is anchored at the take-off heading sets it from the anchor
+        (:class:`onfly.onboard.OnboardFlight`)."""
+        self.east_yaw_rad = None if yaw_rad is None else float(wrap_angle(float(yaw_rad)))
+
     def begin(self, instruction: str, t_s: float) -> None:
         """Start the task: one decomposition call (deterministic fallback on failure).
 
@@ -1096,10 +1108,31 @@ class OnFlyPilot:
         scfg = self.config.search
         if self._look is None or not scfg.look_hints or t_s - self._look[0] > scfg.look_max_age_s:
             return None
+        if not self._along_route(self._look[1]):
+            return None
         return look_target(
             state.p, self._look[1], self.esdf, config=scfg, volume=self.volume, volume_margin_m=self._volume_margin_m,
             visited=self.search.visited, z_m=self._cruise_z(state), dead_ends=self.search.dead_ends,
         )  # fmt: skip
+
+    def _route_yaw(self) -> float | None:
+        """The compass heading the current subtask names (:func:`vlm.compass.compass_heading`)
+        as a yaw in the world frame (radians, east at :attr:`east_yaw_rad`), or None (none
+        named, ``compass`` off, east unknown, or no subtask yet: before the decomposition only
+        a one-step instruction is its first subtask)."""
+        if not self.config.search.compass or self.east_yaw_rad is None:
+            return None
+        if self.tasks is not None:
+            heading = compass_heading(self.tasks.current)
+        else:
+            heading = compass_heading(self.instruction) if self._one_step else None
+        return None if heading is None else float(wrap_angle(heading + self.east_yaw_rad))
+
+    def _along_route(self, yaw: float) -> bool:
+        """False for a heading outside the compass sector the subtask names (within
+        ``_ROUTE_SECTOR_RAD`` of its heading: "west" is the quarter of the horizon about west)."""
+        route = self._route_yaw()
+        return route is None or abs(wrap_angle(yaw - route)) <= _ROUTE_SECTOR_RAD
 
     def _last_seen_yaw(self, state: VehicleState) -> float | None:
         """Heading from the vehicle to where the target was last seen: the decision agent's
@@ -1144,6 +1177,9 @@ class OnFlyPilot:
             self.search.heading0 = (
                 None if ahead is None else open_heading(state.p, ahead, self.esdf, clearance_m=self.config.search.explore_clearance_m)
             )
+            route = self._route_yaw()
+            if route is not None:  # the words say which way the route runs (search.py 3e)
+                self.search.heading0 = route
         self.search.reset_stall()
         self._no_goal_streak = self._not_visible_streak = self._rejected_streak = 0
         self.goal_world = None
@@ -1161,7 +1197,9 @@ class OnFlyPilot:
     def _best_scan_look(self, state: VehicleState) -> np.ndarray | None:
         """After a scan: the best leg toward where the model would look from each heading
         (:func:`onfly.search.best_look_target`), or None; the scan's look points are used once."""
-        looks, self._scan_looks = self._scan_looks, []
+        looks, self._scan_looks = [y for y in self._scan_looks if self._along_route(y)], []
+        if not looks:
+            return None
         keep = self.search.heading0 if self.search.heading0 is not None else self.search.yaw0
         return best_look_target(
             state.p, looks, self.esdf, config=self.config.search, volume=self.volume, volume_margin_m=self._volume_margin_m,
@@ -1187,7 +1225,7 @@ class OnFlyPilot:
         if target is None:
             target = explore_target(state.p, self.search.heading0, self.esdf, prefer_yaw=self._last_seen_yaw(state), **common)
             how = "ring"
-        if target is not None and (self.search.heading0 is None or how == "look"):
+        if target is not None and self._route_yaw() is None and (self.search.heading0 is None or how == "look"):
             # the first leg of a search with no way to keep sets it: later legs go on from there
             # rather than zig-zag between frontiers on either side; the model's look sets it too
             self.search.heading0 = float(np.arctan2(target[1] - state.p[1], target[0] - state.p[0]))

@@ -71,6 +71,12 @@ Policy (parameters in :class:`SearchConfig`):
    instead of a hover until the stall window ends. Its end is a dead end (as is the end of a
    leg the vehicle stalled on): no later leg ends within ``dead_end_radius_m`` of one
    (:attr:`Search.dead_ends`), so the next choice from the same place is another way.
+3e. **A heading in the words** (``compass``): a subtask that names a compass heading (``fly
+   east along the row of parked cars``, ``follow the hallway west``) says which way its route
+   runs, which neither the map nor a frame does. While it is the current subtask, that heading
+   is the way every search keeps (legs are valued by their direction against it, as against a
+   way kept), a look leg outside its quarter of the horizon (45 deg either side) is not taken, and no look re-sets it.
+   A compass word before a noun (``the north aisle``) names a thing, not a heading.
 4. **Hand back**: any decision that yields a verified goal for the current subtask ends the
    search (the pilot flies that goal), except in a search that a stall started, until the
    vehicle is ``backout_m`` from where it stalled or its first leg is over
@@ -205,6 +211,10 @@ class SearchConfig:
     open_ray_max_m : the longest leg down a line of sight, metres
     look_hints : follow the point where the model would look for a target it cannot see (step
         3b of the module docstring); False = only the map chooses legs
+    compass : read a compass heading in the current subtask (``fly east along the parked
+        cars``, ``follow the hallway west``; :func:`vlm.compass.compass_heading`) as the way the
+        search keeps (step 3e). Needs a world frame whose +y is north (ENU: the embedded world,
+        onboard flight with a compass); False where the frame is arbitrary (a SLAM frame)
     look_cone_rad : half-width of the cone of headings around the look point's heading in which
         :func:`look_target` seeks the longest free run, radians (a doorway 1 m wide 4 m away
         spans 14 deg; the model's point carries a few pixels of noise)
@@ -302,6 +312,7 @@ class SearchConfig:
     explore_policy: str = "frontier"
     open_ray_max_m: float = 6.0
     look_hints: bool = True
+    compass: bool = True
     look_cone_rad: float = math.radians(20.0)
     look_clearance_m: float = 0.3
     look_min_leg_m: float = 1.5

@@ -4,6 +4,7 @@ simulated PX4 in the embedded world, where the VLM dies mid-flight and then the 
 over."""
 
 import dataclasses
+import math
 import threading
 import time
 from types import SimpleNamespace
@@ -564,3 +565,31 @@ def test_a_pilot_tick_that_raises_brakes_and_the_loop_goes_on():
     assert ev == [(FailsafeCause.PLANNER_FAILED, False), (FailsafeCause.PLANNER_FAILED, True)]  # braked one tick
     assert [e["data"]["error"] for e in summary.events if e["kind"] == "pilot_error"] == ["ZeroDivisionError('bug')"]
     assert summary.end_reason == "finished"
+
+
+def test_an_anchored_flight_tells_the_pilot_where_east_lies_in_its_world_frame():
+    """The world frame is anchored at the take-off heading (x along it); compass headings in an
+    instruction are about the estimator's north-aligned local frame. A vehicle that takes off
+    facing 75 deg (ENU yaw, north of east) has east at -75 deg in its world frame."""
+
+    class AnchoredBridge(FakeBridge):
+        def anchor_world(self):
+            c, s = math.cos(math.radians(75.0)), math.sin(math.radians(75.0))
+            self.T_local_world = np.array([[c, -s, 0, 1.0], [s, c, 0, 2.0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+            return self.T_local_world
+
+    class CompassPilot(FakePilot):
+        east = "unset"
+
+        def set_east_yaw(self, yaw):
+            self.east = yaw
+
+    clock = FakeClock()
+    pilot = CompassPilot(finish_after_s=0.5)
+    f = OnboardFlight(AnchoredBridge(clock, (0.0, 0.0, 1.5)), FakeSession(), pilot, None, "fly east along the road",
+                      OnboardConfig(takeoff_alt_m=0.0, hold_after_finish_s=0.5), clock=clock)  # fmt: skip
+    summary = f.run()
+    assert pilot.east == pytest.approx(math.radians(-75.0))
+    anchored = next(e for e in summary.events if e["kind"] == "world_anchored")
+    assert anchored["data"]["east_yaw_rad"] == pytest.approx(math.radians(-75.0), abs=1e-6)
+

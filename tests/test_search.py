@@ -15,6 +15,7 @@ from onfly.bench.episode import EpisodeConfig, run_episode
 from onfly.bench.metrics import GoalRegion
 from onfly.bench.onfly_method import OnFlyMethod, ablation_config
 from onfly.pilot import OnFlyPilot, PilotConfig, PilotMode
+from onfly.runtime import ClockRuntime
 from onfly.search import (
     Search,
     SearchConfig,
@@ -1085,3 +1086,64 @@ def test_scan_first_search_turns_all_round_then_takes_the_best_look_of_the_scan(
     end = np.asarray(leg.data["target"])
     assert end[0] <= 3.0 - SearchConfig().look_min_leg_m and abs(end[1]) < 1.0  # out of the pocket
     assert not r.metrics.collided
+
+
+def two_way_corridor_scene():
+    """A corridor 2.4 m wide along x from -9 to 9, closed at both ends, with an alcove off its
+    north side near each end; the red crate stands in the west alcove, hidden by the north
+    wall from anywhere in the corridor's middle. East and west are alike to the map."""
+    walls = [
+        _box([-7.75 - 0.75 - 0.5, 1.3, 1.5], [1.0, 0.2, 3.0]),  # north wall, west of the west alcove
+        _box([0.0, 1.3, 1.5], [13.0, 0.2, 3.0]),  # north wall between the alcoves
+        _box([7.75 + 0.75 + 0.5, 1.3, 1.5], [1.0, 0.2, 3.0]),
+        _box([0.0, -1.3, 1.5], [18.4, 0.2, 3.0]),  # south wall
+        _box([-9.1, 0.0, 1.5], [0.2, 2.8, 3.0]), _box([9.1, 0.0, 1.5], [0.2, 2.8, 3.0]),  # ends
+        _box([-7.25, 3.6, 1.5], [2.3, 0.2, 3.0]), _box([7.25, 3.6, 1.5], [2.3, 0.2, 3.0]),  # alcove backs
+        _box([-8.5, 2.45, 1.5], [0.2, 2.1, 3.0]), _box([-6.0, 2.45, 1.5], [0.2, 2.1, 3.0]),  # alcove sides
+        _box([8.5, 2.45, 1.5], [0.2, 2.1, 3.0]), _box([6.0, 2.45, 1.5], [0.2, 2.1, 3.0]),
+    ]  # fmt: skip
+    crate = _box([-7.25, 2.8, 0.6], [0.8, 0.8, 1.2])
+    return _crate_scene("two_way_corridor", walls, crate, ([-9.5, -2, 0], [9.5, 4, 4]), [0.0, 0.0, 1.5])
+
+
+@pytest.mark.parametrize("heading", ["west", "east"])
+def test_a_compass_heading_in_the_subtask_is_the_way_the_search_goes(planner, heading):
+    """The corridor is alike both ways; the words say which way the route runs. The search's
+    legs (its look legs included, which the model would point either way) keep the heading the
+    subtask names: west, the vehicle finds the crate in the west alcove; east, it flies east."""
+    scene = two_way_corridor_scene()
+    start = VehicleState(0.0, np.array([0.0, 0.0, 1.5]), np.zeros(3), math.pi / 2)  # facing the north wall
+    world = World(scene, camera=CAM, initial_state=start)
+    m = PilotMethod(LookingVlm(3), planner=planner)
+    region = GoalRegion([-7.25, 2.8, 0.6], [0.4, 0.4, 0.6])
+    instruction = f"Fly {heading} along the corridor and stop next to the red crate."
+    r, plans = fly(world, m, instruction, region, limit_s=60.0 if heading == "west" else 30.0)
+    legs = [np.asarray(e.data["target"]) for e in m.pilot.events if e.kind == "search_explore" and e.data["target"] is not None]
+    assert legs, "the search flew no leg"
+    sign = -1.0 if heading == "west" else 1.0
+    assert all(sign * leg[0] > 1.0 for leg in legs), legs
+    starts = [e for e in m.pilot.events if e.kind == "search_start"]
+    assert starts and starts[0].data["heading"] == pytest.approx(math.pi if heading == "west" else 0.0)
+    if heading == "west":
+        assert r.end_reason == "stopped" and r.metrics.success and not r.metrics.collided
+    assert_plans_inside(world, plans)
+
+
+def test_the_pilot_reads_a_compass_heading_as_a_yaw_of_its_world_frame(planner):
+    """East is yaw 0 of an ENU world frame (the default); an onboard flight anchored at its
+    take-off heading says where east lies instead (``set_east_yaw``); with east unknown, or
+    the switch off, no heading is read."""
+    def route(instruction, east=0.0, **search):
+        pilot = OnFlyPilot(PilotConfig(search=SearchConfig(**search)), LookingVlm(3), ClockRuntime(), planner=planner)
+        pilot.begin(instruction, 0.0)
+        pilot.set_east_yaw(east)
+        return pilot._route_yaw()
+
+    assert route("Fly north along the road.") == pytest.approx(math.pi / 2)
+    assert route("Fly east along the road.", east=math.radians(-75.0)) == pytest.approx(math.radians(-75.0))
+    assert route("Fly west along the road.", east=math.radians(-75.0)) == pytest.approx(math.radians(105.0))
+    assert route("Fly east along the road.", east=None) is None
+    assert route("Fly east along the road.", compass=False) is None
+    assert route("Fly along the north aisle.") is None
+    # before the decomposition a two-step instruction's heading is not the first step's
+    assert route("Fly to the gate, then head west along the road.") is None
