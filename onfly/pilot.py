@@ -1108,7 +1108,7 @@ class OnFlyPilot:
         scfg = self.config.search
         if self._look is None or not scfg.look_hints or t_s - self._look[0] > scfg.look_max_age_s:
             return None
-        if not self._along_route(self._look[1]):
+        if not self._along_route(self._look[1], self._route_yaw()):
             return None
         return look_target(
             state.p, self._look[1], self.esdf, config=scfg, volume=self.volume, volume_margin_m=self._volume_margin_m,
@@ -1128,10 +1128,10 @@ class OnFlyPilot:
             heading = compass_heading(self.instruction) if self._one_step else None
         return None if heading is None else float(wrap_angle(heading + self.east_yaw_rad))
 
-    def _along_route(self, yaw: float) -> bool:
-        """False for a heading outside the compass sector the subtask names (within
-        ``_ROUTE_SECTOR_RAD`` of its heading: "west" is the quarter of the horizon about west)."""
-        route = self._route_yaw()
+    @staticmethod
+    def _along_route(yaw: float, route: float | None) -> bool:
+        """False for a heading outside the compass sector of ``route`` (:meth:`_route_yaw`;
+        within ``_ROUTE_SECTOR_RAD`` of it: "west" is the quarter of the horizon about west)."""
         return route is None or abs(wrap_angle(yaw - route)) <= _ROUTE_SECTOR_RAD
 
     def _last_seen_yaw(self, state: VehicleState) -> float | None:
@@ -1174,12 +1174,13 @@ class OnFlyPilot:
             # its heading when it stalled); a vehicle that was not under way (the start, a
             # hover) has no way to keep: a heading chosen at take-off says nothing of the route
             ahead = travel if travel is not None else (state.yaw if trigger is SearchTrigger.STALL else None)
-            self.search.heading0 = (
-                None if ahead is None else open_heading(state.p, ahead, self.esdf, clearance_m=self.config.search.explore_clearance_m)
-            )
             route = self._route_yaw()
             if route is not None:  # the words say which way the route runs (search.py 3e)
                 self.search.heading0 = route
+            else:
+                self.search.heading0 = (
+                    None if ahead is None else open_heading(state.p, ahead, self.esdf, clearance_m=self.config.search.explore_clearance_m)
+                )
         self.search.reset_stall()
         self._no_goal_streak = self._not_visible_streak = self._rejected_streak = 0
         self.goal_world = None
@@ -1197,7 +1198,8 @@ class OnFlyPilot:
     def _best_scan_look(self, state: VehicleState) -> np.ndarray | None:
         """After a scan: the best leg toward where the model would look from each heading
         (:func:`onfly.search.best_look_target`), or None; the scan's look points are used once."""
-        looks, self._scan_looks = [y for y in self._scan_looks if self._along_route(y)], []
+        route = self._route_yaw()
+        looks, self._scan_looks = [y for y in self._scan_looks if self._along_route(y, route)], []
         if not looks:
             return None
         keep = self.search.heading0 if self.search.heading0 is not None else self.search.yaw0

@@ -19,6 +19,7 @@ heading is its way).
 
 from __future__ import annotations
 
+import functools
 import math
 import re
 
@@ -69,6 +70,7 @@ def compass_headings(text: str) -> list[float]:
     return out
 
 
+@functools.lru_cache(maxsize=256)  # the pilot asks about the same subtask text again and again
 def compass_heading(text: str) -> float | None:
     """The heading ``text`` tells the vehicle to travel, as an ENU yaw (radians, in (-pi, pi]),
     or None: no heading named, or headings a right angle or more apart."""
