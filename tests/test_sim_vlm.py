@@ -20,7 +20,7 @@ from vlm.prompts import (
     status_schema,
 )
 from vlm.sim import PRESETS, ErrorModel, ErrorModelError, LatencyModel, SimulatedVlm, get_preset
-from vlm.sim.grounding import exploration_point, ground, names_target, words
+from vlm.sim.grounding import entrance_places, exploration_point, ground, names_target, place_entrance, words
 from vlm.types import CallStatus, ChatMessage, FrameAnnotation, VisibleObject, VlmBackend, VlmImage
 
 W, H = 160, 120
@@ -327,6 +327,62 @@ def test_with_only_the_landmark_in_view_the_model_looks_there_and_never_stops_at
     near_car = frame("lc3", [dataclasses.replace(car, depth_m=1.5)])
     assert parse_status(monitor(sim, subtask, [near_car, near_car]).text).status is MonitorStatus.CONTINUE
     assert _spf(sim, subtask, near_car)["depth"] > 0  # the baselines' stop interface: not reached either
+
+
+def test_an_entrance_leads_to_the_places_its_name_says():
+    """``doorway to the storage room``, ``kitchen doorway``, ``double doors of the large meeting
+    room``: a place follows ``to`` / ``of`` / ``into the``, or ends the words before the label
+    with a place word; a colour or a material names none, and only entrances lead anywhere."""
+    places = lambda name, label, aliases=(): entrance_places(VisibleObject(1, name, label, aliases))  # noqa: E731
+    assert places("storage room doorway", "doorway", ("doorway to the storage room",)) == (("storage", "room"),)
+    assert places("kitchen doorway", "doorway") == (("kitchen",),)
+    assert places("double doors of the large meeting room", "door") == (("large", "meeting", "room"),)
+    assert places("bike cage gate", "gate", ("entrance to the bike cage",)) == (("bike", "cage"),)
+    assert places("living room doorway", "doorway", ("doorway to the hallway",)) == (("living", "room"), ("hallway",))
+    assert places("red door", "door") == places("storage door", "door") == ()
+    assert places("door to the kitchen", "cabinet") == ()  # not an entrance
+
+
+def test_a_place_the_words_name_is_found_by_its_entrance():
+    """The entrance to the place the subtask names, as the head of a noun phrase, with no
+    modifier the entrance does not carry; never a place being left or flown past."""
+    objs = {
+        1: VisibleObject(1, "storage room doorway", "doorway", ("doorway to the storage room",)),
+        2: VisibleObject(2, "kitchen doorway", "doorway", ("doorway to the kitchen",)),
+        3: VisibleObject(3, "main bedroom doorway", "doorway", ("bedroom doorway",)),
+    }
+    every = {k: 100 for k in objs}
+    find = lambda s, areas=every: place_entrance(s, objs, areas)  # noqa: E731
+    assert find("There is a vacuum cleaner in the storage room. Fly to it.") == 1
+    assert find("Fly into the kitchen and stop by the stove") == 2
+    assert find("fly to the fridge in the kitchen, not the storage room") == 2  # the earliest mention
+    assert find("Fly into the kitchen", {1: 100}) is None  # its entrance is not in view
+    assert find("go to the kitchen sink") is None  # a modifier of the sink, not a place
+    assert find("go into the small bedroom") is None  # another bedroom than the main one
+    assert find("go into the bedroom") == 3
+    for left in ("Leave the kitchen and find the stove", "fly out of the kitchen", "come from the kitchen to the sofa",
+                 "fly past the kitchen to the sofa"):  # fmt: skip
+        assert find(left) is None, left
+
+
+def test_with_the_entrance_to_the_named_place_in_view_the_model_looks_there():
+    sim = SimulatedVlm("perfect", seed=0)
+    storage = Obj(7, "storage room doorway", "doorway", 6.0, rect=(20, 30, 50, 100), aliases=("doorway to the storage room",))
+    copy_room = Obj(8, "copy room doorway", "doorway", 6.0, rect=(80, 30, 110, 100), aliases=("doorway to the copy room",))
+    doors = frame("pe1", [storage, copy_room], open_cols=(140, 160))
+    answer = json.loads(decide(sim, "Fly to the vacuum cleaner in the storage room.", doors).text)
+    assert answer["target_visible"] is False
+    assert 20 <= answer["point_2d"][0] < 50  # the storage room's doorway, not the open columns 140-160
+    answer = json.loads(decide(sim, "Fly to the vacuum cleaner in the server room.", doors).text)
+    assert answer["target_visible"] is False and answer["point_2d"][0] >= 140  # no entrance to it: the open way
+    # a place to go, no target named: its entrance is the way, whatever the history point
+    answer = json.loads(decide(sim, "fly into the copy room", doors, history=(150, 60)).text)
+    assert answer["target_visible"] is True and 80 <= answer["point_2d"][0] < 110
+    assert 80 <= _spf(sim, "fly into the copy room", doors)["point_2d"][0] < 110  # every prompt alike
+    # the look-alike rule holds for the entrance too: at confusion_prob 1 the other doorway
+    confused = SimulatedVlm(dataclasses.replace(PRESETS["perfect"], confusion_prob=1.0), seed=0)
+    answer = json.loads(decide(confused, "Fly to the vacuum cleaner in the storage room.", doors).text)
+    assert 80 <= answer["point_2d"][0] < 110
 
 
 def test_non_target_objects_are_never_the_goal():

@@ -42,6 +42,7 @@ from vlm.sim.grounding import (
     anchor_pixel,
     exploration_point,
     ground,
+    place_entrance,
     names_target,
     region_of,
     visible_regions,
@@ -241,7 +242,9 @@ class SimulatedVlm:
         matches = ground(subtask, ann.objects, areas)
         targets = [mt for mt in matches if not mt.locates]  # a landmark of the target is never it
         if not targets:
-            return Perception(None, None, False, hint=region_of(ann, matches[0].instance_id) if matches else None)
+            # where to look: a landmark that locates the target, else the entrance to a place named
+            hint = matches[0].instance_id if matches else place_entrance(subtask, ann.objects, areas)
+            return Perception(None, None, False, hint=None if hint is None else region_of(ann, hint))
         iid = (max(targets, key=_mention_end) if last_mention else targets[0]).instance_id
         region = region_of(ann, iid)
         w, h = image.size
@@ -266,16 +269,17 @@ class SimulatedVlm:
         leg = min(tgt.leg, len(legs) - 1)
         per = tgt.perception
         label_name = ""
+        hint = None if per is None or per.hint is None else self._pointed(legs[leg], ann, per.hint, rng, u_confuse)
         if per is not None and per.perceived:
-            region = per.region
-            lookalikes = self._lookalikes(legs[leg], ann, per.named_id)
-            if lookalikes and u_confuse < m.confusion_prob:
-                region = region_of(ann, lookalikes[int(rng.integers(len(lookalikes)))])
+            region = self._pointed(legs[leg], ann, per.region, rng, u_confuse)
             label_name = ann.objects[region.instance_id].name
             u0, v0 = anchor_pixel(region.mask)
             sigma = m.pixel_sigma_px(w, region.median_depth_m)
         elif _leg_names_target(legs, leg):
-            return self._not_visible(rng, u_malformed, u_variety, structured, ann.depth_m, None if per is None else per.hint)
+            return self._not_visible(rng, u_malformed, u_variety, structured, ann.depth_m, hint)
+        elif hint is not None:  # a place to go ("fly into the kitchen"): its entrance in view
+            u0, v0 = anchor_pixel(hint.mask)
+            sigma = m.pixel_sigma_px(w, 0.0)
         elif prompt.history_uv is not None:
             u0, v0 = prompt.history_uv
             sigma = m.pixel_sigma_px(w, 0.0)
@@ -321,6 +325,15 @@ class SimulatedVlm:
             return plain
         variants = (f"```json\n{plain}\n```", "NOT_VISIBLE", f"The target is not visible in this image. {plain}")
         return variants[int(rng.integers(len(variants)))]
+
+    def _pointed(self, leg_text: str, ann: FrameAnnotation, region: Region, rng: np.random.Generator, u_confuse: float) -> Region:
+        """The region an answer points at: ``region`` (the perceived target, or the landmark or
+        entrance where the model looks for an unseen one), or with ``confusion_prob`` a
+        uniformly chosen visible look-alike of it (rule 2; ``u_confuse`` is the call's draw)."""
+        lookalikes = self._lookalikes(leg_text, ann, region.instance_id)
+        if lookalikes and u_confuse < self.model.confusion_prob:
+            return region_of(ann, lookalikes[int(rng.integers(len(lookalikes)))])
+        return region
 
     @staticmethod
     def _lookalikes(subtask: str, ann: FrameAnnotation, target_id: int) -> list[int]:
@@ -474,15 +487,12 @@ class SimulatedVlm:
         ann: FrameAnnotation = image.annotation
         w, _ = image.size
         if per is not None and per.perceived:
-            region = per.region
-            lookalikes = self._lookalikes(leg_text, ann, per.named_id)
-            if lookalikes and u_confuse < m.confusion_prob:
-                region = region_of(ann, lookalikes[int(rng.integers(len(lookalikes)))])
+            region = self._pointed(leg_text, ann, per.region, rng, u_confuse)
             u0, v0 = anchor_pixel(region.mask)
             sigma = m.pixel_sigma_px(w, region.median_depth_m)
         else:
             region = None
-            hint = None if per is None else per.hint
+            hint = None if per is None or per.hint is None else self._pointed(leg_text, ann, per.hint, rng, u_confuse)
             u0, v0 = exploration_point(ann.depth_m) if hint is None else anchor_pixel(hint.mask)
             sigma = m.pixel_sigma_px(w, 0.0)
         du, dv = rng.normal(0.0, sigma, 2) if sigma > 0 else (0.0, 0.0)

@@ -48,6 +48,27 @@ grounding models are trained on (RefCOCO's relational expressions: L. Yu et al.,
 Context in Referring Expressions", ECCV 2016), and a target that is not there is answered as
 absent (gRefCOCO, rule 4).
 
+*Places, found by their entrances*: a room is where, not what
+(:data:`vlm.sim.grounding.NON_OBJECT_WORDS`), so ``the vacuum cleaner in the storage room``
+names one object to reach, and the room is what locates it. What a camera shows of a room it is
+not in is the room's entrance: a visible object whose label is an entrance
+(:data:`vlm.sim.grounding.ENTRANCE_LABELS`) leads to the places its name or an alias says
+(``doorway to the storage room``, ``kitchen doorway``, ``double doors of the large meeting
+room``; :func:`vlm.sim.grounding.entrance_places`). When a subtask's target is not perceived, no
+landmark that locates it is in view, and the entrance to a place the subtask names is (the place
+is the head of a noun phrase with only the entrance's own modifiers, not one being left or flown
+past: ``leave the study``, ``past the kitchen``; :func:`vlm.sim.grounding.place_entrance`), the
+model looks at that entrance (rule 4); a subtask that names a place and no target (``fly into
+the kitchen``) points at it as the way (rule 5). Like any pointed object it is confused with a
+visible look-alike (another doorway) at ``confusion_prob``. A model asked for the fridge in the
+kitchen looks toward a kitchen it sees through a doorway: telling the kind of room a view shows
+is a standard recognition task for current models (Places365: B. Zhou et al., "Places: A 10
+Million Image Database for Scene Recognition", TPAMI 2018), and instruction-following navigation
+agents are trained to go through the doorway a room name in the instruction points at (R2R: P.
+Anderson et al., "Vision-and-Language Navigation", CVPR 2018). Only a place the words name is
+found this way: where a target usually is (a bathtub in a bathroom) is still no prior of the
+simulated model.
+
 A route is no target: the object of ``along`` (``continue along the wall``) is flown along,
 not reached; a text whose only mentions are routes names nothing to reach
 (:func:`vlm.sim.grounding.names_target`), and a named object along which the vehicle flies
@@ -113,15 +134,19 @@ Decision (``decision/v3``: ``{"target_visible": true, "point_2d": [x, y]}`` or `
        noise ``sigma_px`` at ``d = 0``, the point every baseline prompt aims at when its target
        is not perceived (no semantic prior: the deepest open direction, whatever the target),
        or, when a landmark that locates the target is in view (Grounding), that landmark's
-       anchor pixel with the same noise;
+       anchor pixel with the same noise, else, when the entrance to a place the subtask names
+       is in view (Grounding, *Places*), the entrance's; the landmark or entrance is confused
+       with a visible look-alike as in rule 2;
        no target point is invented, whatever the history point. Abstaining on a referring
        expression with no referent is a trained behaviour of grounding models (gRefCOCO's
        no-target expressions: C. Liu, H. Ding, X. Jiang, "GRES: Generalized Referring
        Expression Segmentation", CVPR 2023); the miss rule decides when the model fails to
        see a present target.
     5. *No target named* (``fly forward``, ``continue through the intersection``): pointing
-       into open space is the answer, since nothing is to be found: the history point from the
-       prompt plus noise ``sigma_px`` at ``d = 0``; without one, an *exploration point*: the
+       into open space is the answer, since nothing is to be found: the anchor pixel of the
+       entrance to a place the subtask names when one is in view (``fly into the kitchen``;
+       Grounding, *Places*; confused as in rule 2), else the history point from the prompt,
+       plus noise ``sigma_px`` at ``d = 0``; without one, an *exploration point*: the
        deepest open column block on the horizon band (rows 35-65 % of the height; no depth
        reading counts as open), at the middle row, plus the same noise. Ties go to the block
        nearest the centre.
@@ -183,7 +208,8 @@ Baseline prompts (``spf``, ``pivot``, ``typefly`` templates; the paper's Table I
       ``status_error_prob`` (a monitoring forced-choice error) does not apply.
     - *Aim*: the decision rule's point (anchor pixel, confusion with ``confusion_prob``, noise
       ``sigma_px``); exploring: the exploration point plus noise at ``d = 0`` (the anchor pixel
-      of a landmark that locates the leg's target, when one is in view).
+      of a landmark that locates the leg's target, or of the entrance to a place the leg names,
+      when one is in view, confused as in rule 2).
 
     ``spf``: ``{"point_2d": [x, y], "depth": k}`` with ``k`` the pointed object's median depth
     rounded to whole metres in ``[1, 10]`` (exploring: the median depth in a 9 x 9 px window

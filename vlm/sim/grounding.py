@@ -23,6 +23,9 @@ __all__ = [
     "Region",
     "words",
     "ground",
+    "ENTRANCE_LABELS",
+    "entrance_places",
+    "place_entrance",
     "region_of",
     "visible_regions",
     "anchor_pixel",
@@ -81,6 +84,12 @@ _PAST_WORDS = frozenset("past passed beyond".split())
 #: a mention after one of these is a route flown along ("continue along the wall"): a landmark,
 #: and a text whose only mentions are routes names nothing to reach
 _ROUTE_WORDS = frozenset(["along"])
+#: labels of the objects through which one enters a place (``kitchen doorway``, ``entrance to
+#: the bike cage``): what a camera shows of a room it is not in
+ENTRANCE_LABELS = frozenset("doorway door gate entrance archway opening".split())
+#: a place named after one of these is one being left, not one to look for ("leave the
+#: study", "out of the kitchen", "from the lobby")
+_LEAVING_WORDS = frozenset("leave leaving left exit exiting exited out from".split())
 #: prepositions by which a noun phrase says where its head is ("the charger *by* the blue car"):
 #: the object named after one, when a noun comes right before it, is a landmark of that noun
 _LOCATING_PREPOSITIONS = (("in", "front", "of"), ("next", "to"), ("across", "from"), ("by",), ("near",), ("beside",),
@@ -263,6 +272,72 @@ def ground(subtask: str, objects: Mapping[int, VisibleObject], areas_px: Mapping
         best.values(),
         key=lambda m: (m.passed, m.locates, m.start, -m.n_words, -overlap[m.instance_id], -areas_px[m.instance_id], m.instance_id),
     )
+
+
+def entrance_places(obj: VisibleObject) -> tuple[tuple[str, ...], ...]:
+    """The places an entrance leads to, as word tuples (:func:`words`), read off its name and
+    aliases; none if its label is not one of :data:`ENTRANCE_LABELS`.
+
+    A place is what follows ``to the``, ``into the`` or ``of the`` in a name or alias
+    (``doorway to the storage room``, ``double doors of the large meeting room``,
+    ``entrance to the bike cage``), or the words before the label when the last of them is a
+    place word of :data:`NON_OBJECT_WORDS` (``kitchen doorway``, ``kid's room doorway``,
+    ``elevator lobby doorway``). ``red door`` and ``storage door`` lead nowhere the words could
+    name: a colour or a material is no place."""
+    label = words(obj.label)
+    if not label or label[-1] not in ENTRANCE_LABELS:
+        return ()
+    found: list[tuple[str, ...]] = []
+    for phrase in (obj.name, *obj.aliases):
+        toks = words(phrase)
+        for k in range(len(toks) - 2):
+            if toks[k] in ("to", "into", "of") and toks[k + 1] in _DETERMINERS:
+                found.append(tuple(toks[k + 2 :]))
+                break
+        else:
+            if len(toks) > 1 and toks[-1] == label[-1] and toks[-2] in NON_OBJECT_WORDS and toks[-2] not in PHRASE_END_WORDS:
+                found.append(tuple(toks[:-1]))
+    return tuple(dict.fromkeys(p for p in found if p))
+
+
+def place_entrance(subtask: str, objects: Mapping[int, VisibleObject], areas_px: Mapping[int, int]) -> int | None:
+    """The visible entrance to a place ``subtask`` names to look in, or None.
+
+    A place is named when its words (:func:`entrance_places`) are the head of a noun phrase of
+    the subtask (``the vacuum cleaner in the storage room``, ``fly into the kitchen``; not
+    ``the kitchen sink``) whose modifiers are the entrance's own words (``the small bedroom``
+    is not the ``main bedroom doorway``'s), and the place is not one being left (``leave the
+    study``: :data:`_LEAVING_WORDS` before its phrase) or flown past (``past the kitchen``).
+    The earliest mention wins; then the larger visible area, the lower instance id. Rule in
+    :mod:`vlm.sim.error_model` (*Places*).
+    """
+    text, breaks = _tokens(subtask)
+    best: tuple[tuple[int, int, int], int] | None = None
+    for iid, obj in objects.items():
+        if areas_px.get(iid, 0) <= 0:
+            continue
+        places = entrance_places(obj)
+        if not places:
+            continue
+        own = {w for p in (obj.name, *obj.aliases) for w in words(p)}
+        for place in places:
+            for i in _occurrences(list(place), text):
+                end = i + len(place)
+                if end < len(text) and not breaks[end - 1] and not _ends_phrase(text[end]):
+                    continue  # a modifier of a longer noun phrase ("the kitchen sink")
+                j = _modifiers_start(text, breaks, i)
+                if any(w not in own for w in text[j:i]):
+                    continue  # another place of the kind ("the small bedroom")
+                p = _phrase_start(text, breaks, j)
+                before = text[p - 1] if p > 0 else ""
+                if before == "of" and p > 1 and text[p - 2] == "out":
+                    before = "out"
+                if before in _LEAVING_WORDS or before in _PAST_WORDS:
+                    continue
+                key = (j, -areas_px[iid], iid)
+                if best is None or key < best[0]:
+                    best = (key, iid)
+    return None if best is None else best[1]
 
 
 def _modifiers_start(text: list[str], breaks: list[bool], i: int) -> int:
