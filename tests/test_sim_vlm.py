@@ -345,7 +345,8 @@ def test_an_entrance_leads_to_the_places_its_name_says():
 
 def test_a_place_the_words_name_is_found_by_its_entrance():
     """The entrance to the place the subtask names, as the head of a noun phrase, with no
-    modifier the entrance does not carry; never a place being left or flown past."""
+    modifier the entrance does not carry, where the target is or where to go (``in``,
+    ``into``, ``to``, ``enter``); never a place left, crossed, followed or flown past."""
     objs = {
         1: VisibleObject(1, "storage room doorway", "doorway", ("doorway to the storage room",)),
         2: VisibleObject(2, "kitchen doorway", "doorway", ("doorway to the kitchen",)),
@@ -360,9 +361,11 @@ def test_a_place_the_words_name_is_found_by_its_entrance():
     assert find("go to the kitchen sink") is None  # a modifier of the sink, not a place
     assert find("go into the small bedroom") is None  # another bedroom than the main one
     assert find("go into the bedroom") == 3
-    for left in ("Leave the kitchen and find the stove", "fly out of the kitchen", "come from the kitchen to the sofa",
-                 "fly past the kitchen to the sofa"):  # fmt: skip
-        assert find(left) is None, left
+    assert find("enter the storage room") == 1
+    for route in ("Leave the kitchen and find the stove", "fly out of the kitchen", "come from the kitchen to the sofa",
+                  "fly past the kitchen to the sofa", "follow the kitchen to the sofa", "fly through the kitchen",
+                  "the kitchen, then the sofa"):  # fmt: skip
+        assert find(route) is None, route  # a place left, flown past or along, or named with no way in
 
 
 def test_with_the_entrance_to_the_named_place_in_view_the_model_looks_there():

@@ -56,18 +56,19 @@ not in is the room's entrance: a visible object whose label is an entrance
 (``doorway to the storage room``, ``kitchen doorway``, ``double doors of the large meeting
 room``; :func:`vlm.sim.grounding.entrance_places`). When a subtask's target is not perceived, no
 landmark that locates it is in view, and the entrance to a place the subtask names is (the place
-is the head of a noun phrase with only the entrance's own modifiers, not one being left or flown
-past: ``leave the study``, ``past the kitchen``; :func:`vlm.sim.grounding.place_entrance`), the
-model looks at that entrance (rule 4); a subtask that names a place and no target (``fly into
-the kitchen``) points at it as the way (rule 5). Like any pointed object it is confused with a
-visible look-alike (another doorway) at ``confusion_prob``. A model asked for the fridge in the
-kitchen looks toward a kitchen it sees through a doorway: telling the kind of room a view shows
-is a standard recognition task for current models (Places365: B. Zhou et al., "Places: A 10
-Million Image Database for Scene Recognition", TPAMI 2018), and instruction-following navigation
-agents are trained to go through the doorway a room name in the instruction points at (R2R: P.
-Anderson et al., "Vision-and-Language Navigation", CVPR 2018). Only a place the words name is
-found this way: where a target usually is (a bathtub in a bathroom) is still no prior of the
-simulated model.
+is the head of a noun phrase with only the entrance's own modifiers, right after ``in``,
+``into``, ``to``, ``enter`` or ``reach``; a place followed, crossed, left or flown past is none:
+``follow the hallway``, ``through the living room``, ``leave the study``, ``past the kitchen``;
+:func:`vlm.sim.grounding.place_entrance`), the model looks at that entrance (rule 4); a subtask
+that names a place and no target (``fly into the kitchen``) points at it as the way (rule 5).
+Like any pointed object it is confused with a visible look-alike (another doorway) at
+``confusion_prob``. A model asked for the fridge in the kitchen looks toward a kitchen it sees
+through a doorway: telling the kind of room a view shows is a standard recognition task for
+current models (Places365: B. Zhou et al., "Places: A 10 Million Image Database for Scene
+Recognition", TPAMI 2018), and instruction-following navigation agents are trained to go through
+the doorway a room name in the instruction points at (R2R: P. Anderson et al.,
+"Vision-and-Language Navigation", CVPR 2018). Only a place the words name is found this way:
+where a target usually is (a bathtub in a bathroom) is still no prior of the simulated model.
 
 A route is no target: the object of ``along`` (``continue along the wall``) is flown along,
 not reached; a text whose only mentions are routes names nothing to reach

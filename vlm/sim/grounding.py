@@ -87,9 +87,12 @@ _ROUTE_WORDS = frozenset(["along"])
 #: labels of the objects through which one enters a place (``kitchen doorway``, ``entrance to
 #: the bike cage``): what a camera shows of a room it is not in
 ENTRANCE_LABELS = frozenset("doorway door gate entrance archway opening".split())
-#: a place named after one of these is one being left, not one to look for ("leave the
-#: study", "out of the kitchen", "from the lobby")
-_LEAVING_WORDS = frozenset("leave leaving left exit exiting exited out from".split())
+#: a place named right after one of these is where the target is or where to go ("the fridge
+#: *in* the kitchen", "fly *into* the kitchen", "go *to* the storage room", "*enter* the study");
+#: after any other word it is a route or a place being left ("follow the hallway", "through the
+#: living room", "leave the study", "out of the kitchen", "past the kitchen"). From inside a
+#: route the entrance to it is behind the camera's side of the doorway, not the way on
+_INTO_WORDS = frozenset("in inside into to enter enters entering reach reaches reaching".split())
 #: prepositions by which a noun phrase says where its head is ("the charger *by* the blue car"):
 #: the object named after one, when a noun comes right before it, is a landmark of that noun
 _LOCATING_PREPOSITIONS = (("in", "front", "of"), ("next", "to"), ("across", "from"), ("by",), ("near",), ("beside",),
@@ -306,9 +309,11 @@ def place_entrance(subtask: str, objects: Mapping[int, VisibleObject], areas_px:
     A place is named when its words (:func:`entrance_places`) are the head of a noun phrase of
     the subtask (``the vacuum cleaner in the storage room``, ``fly into the kitchen``; not
     ``the kitchen sink``) whose modifiers are the entrance's own words (``the small bedroom``
-    is not the ``main bedroom doorway``'s), and the place is not one being left (``leave the
-    study``: :data:`_LEAVING_WORDS` before its phrase) or flown past (``past the kitchen``).
-    The earliest mention wins; then the larger visible area, the lower instance id. Rule in
+    is not the ``main bedroom doorway``'s), right after a word that makes it where the target
+    is or where to go (:data:`_INTO_WORDS`: ``in``, ``into``, ``to``, ``enter`` ...). A place
+    followed, crossed, left or flown past (``follow the hallway``, ``through the living room``,
+    ``leave the study``, ``out of the kitchen``, ``past the kitchen``) is not looked for. The
+    earliest mention wins; then the larger visible area, the lower instance id. Rule in
     :mod:`vlm.sim.error_model` (*Places*).
     """
     text, breaks = _tokens(subtask)
@@ -329,11 +334,8 @@ def place_entrance(subtask: str, objects: Mapping[int, VisibleObject], areas_px:
                 if any(w not in own for w in text[j:i]):
                     continue  # another place of the kind ("the small bedroom")
                 p = _phrase_start(text, breaks, j)
-                before = text[p - 1] if p > 0 else ""
-                if before == "of" and p > 1 and text[p - 2] == "out":
-                    before = "out"
-                if before in _LEAVING_WORDS or before in _PAST_WORDS:
-                    continue
+                if p == 0 or breaks[p - 1] or text[p - 1] not in _INTO_WORDS:
+                    continue  # a route, or a place being left or flown past
                 key = (j, -areas_px[iid], iid)
                 if best is None or key < best[0]:
                     best = (key, iid)
