@@ -197,6 +197,27 @@ def test_grounding_on_the_head_of_the_noun_phrase():
     assert best("fly to the red sedan past door 103") == [5, 6]
 
 
+def test_past_and_along_govern_the_of_phrase_after_their_noun():
+    """``along the row of parked cars``: the cars are the route, not a car to reach. A second
+    noun joined by ``and`` keeps its own governor: ``past the red car and the blue car`` ends
+    the route at the blue car."""
+    objs = {
+        1: VisibleObject(1, "red car", "car"),
+        2: VisibleObject(2, "blue car", "car"),
+        3: VisibleObject(3, "rack D", "rack"),
+        4: VisibleObject(4, "oak tree", "tree"),
+        5: VisibleObject(5, "bench", "bench"),
+    }
+    every = {k: 100 for k in objs}
+    flags = lambda s: [(m.instance_id, m.passed) for m in ground(s, objs, every)]  # noqa: E731
+    assert flags("fly east along the row of parked cars past the red car and the blue car") == [(2, False), (1, True)]
+    assert flags("fly along the back of rack D") == [(3, True)]
+    assert not names_target("fly along the back of rack D")  # a route names nothing to reach
+    assert names_target("fly to the back of rack D")
+    assert flags("fly past the bench and stop at the oak tree") == [(4, False), (5, True)]
+    assert flags("fly to the end of the row of cars") == [(1, False), (2, False)]
+
+
 def test_a_landmark_flown_past_is_one_whatever_modifies_its_name():
     """``go past the kitchen table``: the bare label ``table`` sits inside the name's phrase, so
     it is flown past as the name is (it once ranked as the goal, ahead of the fridge)."""

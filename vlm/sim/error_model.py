@@ -73,7 +73,9 @@ where a target usually is (a bathtub in a bathroom) is still no prior of the sim
 A route is no target: the object of ``along`` (``continue along the wall``) is flown along,
 not reached; a text whose only mentions are routes names nothing to reach
 (:func:`vlm.sim.grounding.names_target`), and a named object along which the vehicle flies
-ranks as a landmark flown past.
+ranks as a landmark flown past. ``past`` and ``along`` govern the ``of`` phrase after their noun
+as well: in ``fly along the row of parked cars`` the cars are the route, not a car to reach
+(``fly along the back of rack D`` names nothing to reach).
 
 Among named objects: mentions after ``past`` / ``passed`` / ``beyond`` (a landmark flown past;
 the preposition is read before the whole noun phrase, so ``past the kitchen table`` flies past

@@ -165,7 +165,7 @@ def names_target(text: str) -> bool:
         if not (breaks[i] or i + 1 == len(toks) or _ends_phrase(toks[i + 1])):
             continue
         p = _phrase_start(toks, breaks, _modifiers_start(toks, breaks, i))
-        if p > 0 and toks[p - 1] in _ROUTE_WORDS:
+        if _governing_word(toks, breaks, p) in _ROUTE_WORDS:
             continue  # a route to fly along ("continue along the wall"), not a place to reach
         return True
     return False
@@ -257,7 +257,7 @@ def ground(subtask: str, objects: Mapping[int, VisibleObject], areas_px: Mapping
                 if of is not None and of not in own:
                     continue  # so does an "of" phrase ("the doorway of the bathroom", "the painting of a sailboat")
                 p = _phrase_start(text, breaks, j)
-                landmark = (p > 0 and text[p - 1] in _PAST_WORDS | _ROUTE_WORDS) or end <= opening or _is_place(text[j:end])
+                landmark = _governing_word(text, breaks, p) in _PAST_WORDS | _ROUTE_WORDS or end <= opening or _is_place(text[j:end])
                 m = Match(iid, j, len(phrase) + (i - j), via, landmark, locates_head(text, breaks, p))
                 cur = best.get(iid)
                 if cur is None or (m.passed, m.locates, m.start, -m.n_words) < (cur.passed, cur.locates, cur.start, -cur.n_words):
@@ -398,6 +398,18 @@ def _phrase_start(text: list[str], breaks: list[bool], j: int) -> int:
             break
         p -= 1
     return p
+
+
+def _governing_word(text: list[str], breaks: list[bool], p: int) -> str:
+    """The word that governs the noun phrase starting at word ``p``: the one before it, or,
+    for the complement of an ``of`` phrase, the one before the noun it complements (``along
+    the row of parked cars``: ``along`` governs ``cars`` too, so the cars are a route; ``past
+    the end of the pier``: ``past``). Empty at the start of the text or after punctuation. A
+    second noun joined by ``and`` keeps its own (``past the red car and the blue car``: the blue
+    car is the leg's target, reached as the last landmark of the route)."""
+    while p > 1 and text[p - 1] == "of" and not breaks[p - 2] and not breaks[p - 1]:
+        p = _phrase_start(text, breaks, _modifiers_start(text, breaks, p - 2))
+    return text[p - 1] if p > 0 and not breaks[p - 1] else ""
 
 
 def _is_place(mention: list[str]) -> bool:
