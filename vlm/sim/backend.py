@@ -82,7 +82,9 @@ class Perception:
     small, far : bool, the miss conditions that applied
     moving : bool, the perceived object is moving in this frame (a walking person)
     hint : Region or None, with no target in view: a visible object the subtask locates its
-        target by (``the charging station by the blue car``: the car), where the model looks
+        target by (``the charging station by the blue car``: the car), else the entrance to a
+        place it names (``the vacuum cleaner in the storage room``: the storage room's
+        doorway), where the model looks
     """
 
     named_id: int | None
