@@ -42,8 +42,8 @@ from vlm.sim.grounding import (
     anchor_pixel,
     exploration_point,
     ground,
-    place_entrance,
     names_target,
+    place_entrance,
     region_of,
     visible_regions,
     words,
@@ -271,7 +271,7 @@ class SimulatedVlm:
         leg = min(tgt.leg, len(legs) - 1)
         per = tgt.perception
         label_name = ""
-        hint = None if per is None or per.hint is None else self._pointed(legs[leg], ann, per.hint, rng, u_confuse)
+        hint = self._pointed(legs[leg], ann, None if per is None else per.hint, rng, u_confuse)
         if per is not None and per.perceived:
             region = self._pointed(legs[leg], ann, per.region, rng, u_confuse)
             label_name = ann.objects[region.instance_id].name
@@ -328,10 +328,15 @@ class SimulatedVlm:
         variants = (f"```json\n{plain}\n```", "NOT_VISIBLE", f"The target is not visible in this image. {plain}")
         return variants[int(rng.integers(len(variants)))]
 
-    def _pointed(self, leg_text: str, ann: FrameAnnotation, region: Region, rng: np.random.Generator, u_confuse: float) -> Region:
+    def _pointed(
+        self, leg_text: str, ann: FrameAnnotation, region: Region | None, rng: np.random.Generator, u_confuse: float
+    ) -> Region | None:
         """The region an answer points at: ``region`` (the perceived target, or the landmark or
         entrance where the model looks for an unseen one), or with ``confusion_prob`` a
-        uniformly chosen visible look-alike of it (rule 2; ``u_confuse`` is the call's draw)."""
+        uniformly chosen visible look-alike of it (rule 2; ``u_confuse`` is the call's draw).
+        None for None (nothing to point at)."""
+        if region is None:
+            return None
         lookalikes = self._lookalikes(leg_text, ann, region.instance_id)
         if lookalikes and u_confuse < self.model.confusion_prob:
             return region_of(ann, lookalikes[int(rng.integers(len(lookalikes)))])
@@ -494,7 +499,7 @@ class SimulatedVlm:
             sigma = m.pixel_sigma_px(w, region.median_depth_m)
         else:
             region = None
-            hint = None if per is None or per.hint is None else self._pointed(leg_text, ann, per.hint, rng, u_confuse)
+            hint = self._pointed(leg_text, ann, None if per is None else per.hint, rng, u_confuse)
             u0, v0 = exploration_point(ann.depth_m) if hint is None else anchor_pixel(hint.mask)
             sigma = m.pixel_sigma_px(w, 0.0)
         du, dv = rng.normal(0.0, sigma, 2) if sigma > 0 else (0.0, 0.0)
