@@ -366,8 +366,9 @@ def test_an_entrance_leads_to_the_places_its_name_says():
 
 def test_a_place_the_words_name_is_found_by_its_entrance():
     """The entrance to the place the subtask names, as the head of a noun phrase, with no
-    modifier the entrance does not carry, where the target is or where to go (``in``,
-    ``into``, ``to``, ``enter``); never a place left, crossed, followed or flown past."""
+    modifier the entrance does not carry, where the target is, where to go (``in``, ``into``,
+    ``to``, ``enter``) or the place to leave (``leave``, ``exit``, ``out of``); never a place
+    crossed, followed or flown past."""
     objs = {
         1: VisibleObject(1, "storage room doorway", "doorway", ("doorway to the storage room",)),
         2: VisibleObject(2, "kitchen doorway", "doorway", ("doorway to the kitchen",)),
@@ -383,10 +384,15 @@ def test_a_place_the_words_name_is_found_by_its_entrance():
     assert find("go into the small bedroom") is None  # another bedroom than the main one
     assert find("go into the bedroom") == 3
     assert find("enter the storage room") == 1
-    for route in ("Leave the kitchen and find the stove", "fly out of the kitchen", "come from the kitchen to the sofa",
-                  "fly past the kitchen to the sofa", "follow the kitchen to the sofa", "fly through the kitchen",
-                  "the kitchen, then the sofa"):  # fmt: skip
-        assert find(route) is None, route  # a place left, flown past or along, or named with no way in
+    # the place the vehicle is in and is to leave: its entrance is the way out
+    assert find("Leave the kitchen and find the stove") == 2
+    assert find("fly out of the kitchen") == 2
+    assert find("exit the main bedroom, then go to the sofa") == 3
+    assert find("leave the small bedroom") is None  # another bedroom than the main one
+    assert find("stop in front of the kitchen") is None  # "of" without "out": no way in or out
+    for route in ("come from the kitchen to the sofa", "fly past the kitchen to the sofa", "follow the kitchen to the sofa",
+                  "fly through the kitchen", "the kitchen, then the sofa", "leave, then the kitchen"):  # fmt: skip
+        assert find(route) is None, route  # a place flown past or along, or named with no way in
 
 
 def test_with_the_entrance_to_the_named_place_in_view_the_model_looks_there():
@@ -403,6 +409,10 @@ def test_with_the_entrance_to_the_named_place_in_view_the_model_looks_there():
     answer = json.loads(decide(sim, "fly into the copy room", doors, history=(150, 60)).text)
     assert answer["target_visible"] is True and 80 <= answer["point_2d"][0] < 110
     assert 80 <= _spf(sim, "fly into the copy room", doors)["point_2d"][0] < 110  # every prompt alike
+    # a place to leave: its entrance is the way out, in every prompt
+    answer = json.loads(decide(sim, "Leave the storage room, then turn left", doors, history=(150, 60)).text)
+    assert answer["target_visible"] is True and 20 <= answer["point_2d"][0] < 50
+    assert 20 <= _spf(sim, "exit the storage room", doors)["point_2d"][0] < 50
     # the look-alike rule holds for the entrance too: at confusion_prob 1 the other doorway
     confused = SimulatedVlm(dataclasses.replace(PRESETS["perfect"], confusion_prob=1.0), seed=0)
     answer = json.loads(decide(confused, "Fly to the vacuum cleaner in the storage room.", doors).text)

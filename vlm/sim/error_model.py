@@ -57,10 +57,14 @@ not in is the room's entrance: a visible object whose label is an entrance
 room``; :func:`vlm.sim.grounding.entrance_places`). When a subtask's target is not perceived, no
 landmark that locates it is in view, and the entrance to a place the subtask names is (the place
 is the head of a noun phrase with only the entrance's own modifiers, right after ``in``,
-``into``, ``to``, ``enter`` or ``reach``; a place followed, crossed, left or flown past is none:
-``follow the hallway``, ``through the living room``, ``leave the study``, ``past the kitchen``;
+``into``, ``to``, ``enter`` or ``reach``, or the place to leave, right after ``leave``,
+``exit`` or ``out of``; a place followed, crossed or flown past is none: ``follow the
+hallway``, ``through the living room``, ``past the kitchen``;
 :func:`vlm.sim.grounding.place_entrance`), the model looks at that entrance (rule 4); a subtask
-that names a place and no target (``fly into the kitchen``) points at it as the way (rule 5).
+that names a place and no target (``fly into the kitchen``, ``leave the study``) points at it
+as the way (rule 5). The way out of a place is its entrance seen from inside: the model cannot
+tell from the annotation which side of the entrance the camera is on, so once out it still
+points back at the entrance while the leg lasts, which a model that sees it has left would not.
 Like any pointed object it is confused with a visible look-alike (another doorway) at
 ``confusion_prob``. A model asked for the fridge in the kitchen looks toward a kitchen it sees
 through a doorway: telling the kind of room a view shows is a standard recognition task for

@@ -89,10 +89,14 @@ _ROUTE_WORDS = frozenset(["along"])
 ENTRANCE_LABELS = frozenset("doorway door gate entrance archway opening".split())
 #: a place named right after one of these is where the target is or where to go ("the fridge
 #: *in* the kitchen", "fly *into* the kitchen", "go *to* the storage room", "*enter* the study");
-#: after any other word it is a route or a place being left ("follow the hallway", "through the
-#: living room", "leave the study", "out of the kitchen", "past the kitchen"). From inside a
-#: route the entrance to it is behind the camera's side of the doorway, not the way on
+#: after any other word but those of :data:`_LEAVE_WORDS` it is a route or a place flown past
+#: ("follow the hallway", "through the living room", "past the kitchen"). From inside a route
+#: the entrance to it is behind the camera's side of the doorway, not the way on
 _INTO_WORDS = frozenset("in inside into to enter enters entering reach reaches reaching".split())
+#: a place named right after one of these (or after ``out of``) is the one the vehicle is in and
+#: is to leave ("*leave* the study", "*exit* the small meeting room", "fly *out of* the
+#: kitchen"): its entrance is the way out
+_LEAVE_WORDS = frozenset("leave leaves leaving exit exits exiting".split())
 #: prepositions by which a noun phrase says where its head is ("the charger *by* the blue car"):
 #: the object named after one, when a noun comes right before it, is a landmark of that noun
 _LOCATING_PREPOSITIONS = (("in", "front", "of"), ("next", "to"), ("across", "from"), ("by",), ("near",), ("beside",),
@@ -310,11 +314,14 @@ def place_entrance(subtask: str, objects: Mapping[int, VisibleObject], areas_px:
     the subtask (``the vacuum cleaner in the storage room``, ``fly into the kitchen``; not
     ``the kitchen sink``) whose modifiers are the entrance's own words (``the small bedroom``
     is not the ``main bedroom doorway``'s), right after a word that makes it where the target
-    is or where to go (:data:`_INTO_WORDS`: ``in``, ``into``, ``to``, ``enter`` ...). A place
-    followed, crossed, left or flown past (``follow the hallway``, ``through the living room``,
-    ``leave the study``, ``out of the kitchen``, ``past the kitchen``) is not looked for. The
-    earliest mention wins; then the larger visible area, the lower instance id. Rule in
-    :mod:`vlm.sim.error_model` (*Places*).
+    is or where to go (:data:`_INTO_WORDS`: ``in``, ``into``, ``to``, ``enter`` ...), or the
+    place to leave (:data:`_LEAVE_WORDS` or ``out of``: ``leave the study``, ``exit the meeting
+    room``, ``out of the kitchen``), whose entrance is the way out. The simulated model cannot
+    tell from a frame on which side of the entrance the camera is: once out, it still points at
+    the entrance while the leg is current, harsher than a model that sees it has left. A place
+    followed, crossed or flown past (``follow the hallway``, ``through the living room``,
+    ``past the kitchen``) is not looked for. The earliest mention wins; then the larger visible
+    area, the lower instance id. Rule in :mod:`vlm.sim.error_model` (*Places*).
     """
     text, breaks = _tokens(subtask)
     best: tuple[tuple[int, int, int], int] | None = None
@@ -334,12 +341,19 @@ def place_entrance(subtask: str, objects: Mapping[int, VisibleObject], areas_px:
                 if any(w not in own for w in text[j:i]):
                     continue  # another place of the kind ("the small bedroom")
                 p = _phrase_start(text, breaks, j)
-                if p == 0 or breaks[p - 1] or text[p - 1] not in _INTO_WORDS:
-                    continue  # a route, or a place being left or flown past
+                if p == 0 or breaks[p - 1] or not _looked_for(text, p):
+                    continue  # a route, or a place flown past
                 key = (j, -areas_px[iid], iid)
                 if best is None or key < best[0]:
                     best = (key, iid)
     return None if best is None else best[1]
+
+
+def _looked_for(text: list[str], p: int) -> bool:
+    """Whether the words before the place phrase starting at word ``p`` (> 0) make it one to
+    go into or to leave (:data:`_INTO_WORDS`, :data:`_LEAVE_WORDS`, ``out of``)."""
+    before = text[p - 1]
+    return before in _INTO_WORDS or before in _LEAVE_WORDS or (before == "of" and p >= 2 and text[p - 2] == "out")
 
 
 def _modifiers_start(text: list[str], breaks: list[bool], i: int) -> int:
