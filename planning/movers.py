@@ -30,8 +30,19 @@ no labels (it works with any perception backend):
    velocity is the displacement over the first two observations, then an alpha-beta filter
    (``alpha``, ``beta``). A track is dropped ``keep_s`` after its last observation, or at once
    when the camera sees through its predicted position.
-4. **Prediction** (:class:`MoverField`): a confirmed track (``confirm_hits`` observations)
-   moving faster than ``moving_speed_mps`` occupies a vertical capsule from its predicted
+   **A mover leaves where it was**: once a track's centre is more than its radius plus
+   ``left_m`` from where it was first observed, a frame that reads a surface *at* that first
+   place (the depth there within ``still_tol_m`` plus the D435's 3-sigma noise of the range,
+   ``docs/realism.md``) shows that something is still there, and the track is static for good.
+   This is how a surface the camera sweeps past close by looks: a wall 0.9 m to the side of a
+   vehicle turning at 0.4 rad/s comes into view 0.36 m further along every second, in voxels
+   that rays grazing along it carved free, and the young rule above takes each new stretch
+   for something that moved there (a static school corridor made 12 "movers" in 24 episodes).
+   A walker's first place is seen empty behind it, or hidden by the walker when it comes
+   straight at the camera, and neither makes it static.
+4. **Prediction** (:class:`MoverField`): a confirmed track (``confirm_hits`` observations,
+   moved beyond its radius plus ``left_m`` from its first place, not static) moving faster
+   than ``moving_speed_mps`` occupies a vertical capsule from its predicted
    position now to where it will be ``horizon_s`` later, widened by its radius. The planner
    reads the minimum of the map and the capsules' signed distances, so it keeps its clearance
    from where a walker is going, not only from where the map last saw them. Slower tracks are
@@ -53,6 +64,10 @@ from planning.field import DistanceField
 from planning.frames import check_transform, invert_transform
 
 __all__ = ["MoverConfig", "MoverConfigError", "MoverTrack", "MoverTracker", "MoverField"]
+
+#: the D435's depth noise at 320 px, sigma = this times z^2 (metres, z in metres; the figure
+#: ``young_max_range_m`` uses, docs/realism.md)
+_D435_SIGMA_PER_M2 = 0.01
 
 
 class MoverConfigError(ValueError):
@@ -90,6 +105,11 @@ class MoverConfig:
     keep_s : a track not observed for this long is dropped, seconds
     horizon_s : the capsule reaches this far ahead of the predicted position, seconds
     radius_min_m, radius_max_m : clamp of a cluster's horizontal radius, metres
+    left_m : a track is predicted only once its centre is this far (metres) beyond its radius
+        from where it was first observed, and its first place is checked from then on
+        (module docstring, "a mover leaves where it was")
+    still_tol_m : a reading within this (metres, plus 3 sigma of the D435's range noise) of the
+        first place's depth means something is still there: the track is static
     young_max_range_m : within this range of the camera (metres) a reading beside an obstacle
         that entered the map from seen-free space a frame ago is new however close it is (item
         1 of the module docstring): there a D435's depth noise at 320 px (sigma = 1 cm x z^2,
@@ -116,6 +136,8 @@ class MoverConfig:
     young_max_range_m: float = 3.0
     radius_min_m: float = 0.2
     radius_max_m: float = 1.0
+    left_m: float = 0.1
+    still_tol_m: float = 0.15
 
     def __post_init__(self) -> None:
         positive = ("max_range_m", "edge_jump", "clear_m", "cell_m", "gate_m", "speed_max_mps", "keep_s", "radius_min_m")
@@ -125,7 +147,7 @@ class MoverConfig:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise MoverConfigError(f"MoverConfig.{name} must be positive, got {v}")
-        for name in ("horizon_s", "moving_speed_mps", "young_max_range_m"):
+        for name in ("horizon_s", "moving_speed_mps", "young_max_range_m", "left_m", "still_tol_m"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise MoverConfigError(f"MoverConfig.{name} must be >= 0, got {v}")
@@ -197,6 +219,12 @@ class _Track:
     t_s: float
     hits: int = 1
     first_p: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    first_z: float = 0.0  # mid-height of the first observation, world metres
+    static: bool = False  # its first place was seen still occupied: never predicted
+
+    def left_first(self, left_m: float) -> bool:
+        """The centre is beyond the track's radius plus ``left_m`` from its first place."""
+        return float(np.hypot(*(self.p - self.first_p))) > self.radius + left_m
 
     def frozen(self) -> MoverTrack:
         return MoverTrack(self.track_id, self.p.copy(), self.v.copy(), self.radius, (self.z_lo, self.z_hi), self.t_s, self.hits)
@@ -344,8 +372,10 @@ class MoverTracker:
             self._update(self._tracks[i], obs[j], t_s)
         for j, o in enumerate(obs):
             if j not in used_o:
-                self._tracks.append(_Track(self._next_id, o.centre.copy(), np.zeros(2), o.radius, o.z_lo, o.z_hi, t_s, 1, o.centre.copy()))
+                self._tracks.append(_Track(self._next_id, o.centre.copy(), np.zeros(2), o.radius, o.z_lo, o.z_hi, t_s, 1,
+                                           o.centre.copy(), 0.5 * (o.z_lo + cfg.clear_m + o.z_hi)))
                 self._next_id += 1
+        self._mark_static(depth_m, camera, T_world_cam)
         unseen = [i for i in range(len(self._tracks)) if i not in used_t and self._tracks[i].t_s < t_s]
         if unseen:
             gone = self._seen_through([self._tracks[i] for i in unseen], t_s, depth_m, camera, T_world_cam)
@@ -375,6 +405,32 @@ class MoverTracker:
         tr.radius = max(o.radius, 0.5 * (tr.radius + o.radius))
         tr.z_lo, tr.z_hi = min(tr.z_lo, o.z_lo), max(tr.z_hi, o.z_hi)
 
+    def _mark_static(self, depth_m, camera: PinholeCamera, T_world_cam) -> None:
+        """Mark static every track that has left its first place by its radius plus ``left_m``
+        while this frame reads a surface at that place (module docstring, item 3)."""
+        cfg = self.config
+        todo = [tr for tr in self._tracks if not tr.static and tr.left_first(cfg.left_m)]
+        if not todo:
+            return
+        T_cam_world = invert_transform(check_transform(T_world_cam, "T_world_cam"))
+        P = np.array([[tr.first_p[0], tr.first_p[1], tr.first_z] for tr in todo])
+        Pc = P @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+        uv, _ = camera.project(Pc)
+        inside = camera.in_image(uv) & (Pc[:, 2] > 0) & (Pc[:, 2] <= cfg.max_range_m)
+        depth = np.asarray(depth_m, dtype=np.float32)
+        h, w = depth.shape
+        for k in np.flatnonzero(inside):
+            c, r = int(uv[k, 0]), int(uv[k, 1])
+            patch = depth[max(r - 1, 0) : min(r + 2, h), max(c - 1, 0) : min(c + 2, w)]
+            with np.errstate(invalid="ignore"):
+                ok = patch[np.isfinite(patch) & (patch > 0)]
+            if ok.size == 0:
+                continue  # a hole: nothing to tell
+            z = float(Pc[k, 2])
+            tol = cfg.still_tol_m + 3.0 * _D435_SIGMA_PER_M2 * z * z
+            if abs(float(np.median(ok)) - z) <= tol:
+                todo[k].static = True
+
     def _seen_through(self, tracks: list[_Track], t_s: float, depth_m, camera: PinholeCamera, T_world_cam) -> np.ndarray:
         """True per track whose predicted centre is in the image with a reading beyond it."""
         T_cam_world = invert_transform(check_transform(T_world_cam, "T_world_cam"))
@@ -396,12 +452,17 @@ class MoverTracker:
         return out
 
     def active(self, t_s: float) -> list[MoverTrack]:
-        """Confirmed tracks moving faster than ``moving_speed_mps``, seen within ``keep_s``."""
+        """Confirmed tracks that have left their first place and are not static, moving faster
+        than ``moving_speed_mps``, seen within ``keep_s``."""
         cfg = self.config
         return [
             t.frozen()
             for t in self._tracks
-            if t.hits >= cfg.confirm_hits and float(np.hypot(*t.v)) >= cfg.moving_speed_mps and t_s - t.t_s <= cfg.keep_s
+            if t.hits >= cfg.confirm_hits
+            and not t.static
+            and t.left_first(cfg.left_m)
+            and float(np.hypot(*t.v)) >= cfg.moving_speed_mps
+            and t_s - t.t_s <= cfg.keep_s
         ]
 
     def summary(self) -> dict[str, int]:
