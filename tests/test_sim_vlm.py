@@ -352,7 +352,7 @@ def test_with_only_the_landmark_in_view_the_model_looks_there_and_never_stops_at
 
 def test_an_entrance_leads_to_the_places_its_name_says():
     """``doorway to the storage room``, ``kitchen doorway``, ``double doors of the large meeting
-    room``: a place follows ``to`` / ``of`` / ``into the``, or ends the words before the label
+    room``: a place follows ``to`` / ``of`` / ``into``, with or without its article, or ends the words before the label
     with a place word; a colour or a material names none, and only entrances lead anywhere."""
     places = lambda name, label, aliases=(): entrance_places(VisibleObject(1, name, label, aliases))  # noqa: E731
     assert places("storage room doorway", "doorway", ("doorway to the storage room",)) == (("storage", "room"),)
@@ -362,6 +362,10 @@ def test_an_entrance_leads_to_the_places_its_name_says():
     assert places("living room doorway", "doorway", ("doorway to the hallway",)) == (("living", "room"), ("hallway",))
     assert places("red door", "door") == places("storage door", "door") == ()
     assert places("door to the kitchen", "cabinet") == ()  # not an entrance
+    # a place named without an article ("classroom A", "room 204")
+    assert places("classroom A door", "door", ("doorway to classroom A",)) == (("classroom", "a"),)
+    assert places("door into room 204", "door") == (("room", "204"),)
+    assert places("door to the", "door") == ()  # nothing after the article
 
 
 def test_a_place_the_words_name_is_found_by_its_entrance():

@@ -285,10 +285,10 @@ def entrance_places(obj: VisibleObject) -> tuple[tuple[str, ...], ...]:
     """The places an entrance leads to, as word tuples (:func:`words`), read off its name and
     aliases; none if its label is not one of :data:`ENTRANCE_LABELS`.
 
-    A place is what follows ``to the``, ``into the`` or ``of the`` in a name or alias
-    (``doorway to the storage room``, ``double doors of the large meeting room``,
-    ``entrance to the bike cage``), or the words before the label when the last of them is a
-    place word of :data:`NON_OBJECT_WORDS` (``kitchen doorway``, ``kid's room doorway``,
+    A place is what follows ``to``, ``into`` or ``of`` in a name or alias, with or without
+    its article (``doorway to the storage room``, ``double doors of the large meeting room``,
+    ``entrance to the bike cage``, ``doorway to classroom A``), or the words before the label
+    when the last of them is a place word of :data:`NON_OBJECT_WORDS` (``kitchen doorway``, ``kid's room doorway``,
     ``elevator lobby doorway``). ``red door`` and ``storage door`` lead nowhere the words could
     name: a colour or a material is no place."""
     label = words(obj.label)
@@ -297,9 +297,9 @@ def entrance_places(obj: VisibleObject) -> tuple[tuple[str, ...], ...]:
     found: list[tuple[str, ...]] = []
     for phrase in (obj.name, *obj.aliases):
         toks = words(phrase)
-        for k in range(len(toks) - 2):
-            if toks[k] in ("to", "into", "of") and toks[k + 1] in _DETERMINERS:
-                found.append(tuple(toks[k + 2 :]))
+        for k in range(len(toks) - 1):
+            if toks[k] in ("to", "into", "of"):  # the place, with or without its article
+                found.append(tuple(toks[k + 2 :] if toks[k + 1] in _DETERMINERS else toks[k + 1 :]))
                 break
         else:
             if len(toks) > 1 and toks[-1] == label[-1] and toks[-2] in NON_OBJECT_WORDS and toks[-2] not in PHRASE_END_WORDS:
