@@ -48,7 +48,6 @@ import hashlib
 import json
 import os
 import re
-import subprocess
 import sys
 import time
 import tomllib
@@ -56,6 +55,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
+from onfly.bench.code_version import CODE_PATHS, CodeVersion, code_digest, code_version
 from onfly.bench.episode import EpisodeConfig
 from onfly.bench.runner import (
     EPISODES_FILE,
@@ -105,8 +105,6 @@ __all__ = [
 ]
 
 REPO = Path(__file__).resolve().parents[1]
-#: Folders (relative to the repository) whose tracked files make the code digest.
-CODE_PATHS = ("onfly", "planning", "vlm", "experiments/configs")
 RECORDS_FILE = "records.jsonl.gz"
 STATE_FILE = "run_state.json"
 POOLS_DIR = "pools"
@@ -366,65 +364,6 @@ class Subset:
     def as_dict(self) -> dict | None:
         d = {k: v for k, v in (("count", self.count), ("runs", self.runs)) if v is not None}
         return d or None
-
-
-# -- code version ----------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class CodeVersion:
-    """The code that flies episodes: a content digest (16 hex digits) and the commit
-    (``git rev-parse HEAD``, ``-dirty`` when a tracked file under :data:`CODE_PATHS` differs
-    from it; ``unknown`` outside a git work tree)."""
-
-    digest: str
-    commit: str
-
-    def as_dict(self) -> dict:
-        return {"digest": self.digest, "commit": self.commit}
-
-
-def _git(root: Path, *args: str) -> str | None:
-    try:
-        out = subprocess.run(["git", *args], cwd=root, capture_output=True, check=True, timeout=60)
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return out.stdout.decode("utf-8", "surrogateescape")
-
-
-def _code_files(root: Path, paths: Sequence[str]) -> list[str]:
-    """Tracked files under ``paths`` (every file there outside a git work tree), sorted."""
-    listed = _git(root, "ls-files", "-z", "--", *paths)
-    if listed is not None:
-        return sorted(f for f in listed.split("\0") if f)
-    files = []
-    for p in paths:
-        for f in (root / p).rglob("*"):
-            if f.is_file() and "__pycache__" not in f.parts:
-                files.append(f.relative_to(root).as_posix())
-    return sorted(files)
-
-
-def code_digest(root: str | Path = REPO, paths: Sequence[str] = CODE_PATHS) -> str:
-    """SHA-256 (first 16 hex digits) over the path and on-disk content of every tracked file
-    under ``paths`` (a deleted tracked file counts as deleted)."""
-    root = Path(root)
-    h = hashlib.sha256()
-    for rel in _code_files(root, paths):
-        f = root / rel
-        h.update(rel.encode("utf-8", "surrogateescape") + b"\0")
-        h.update(hashlib.sha256(f.read_bytes()).digest() if f.is_file() else b"<deleted>")
-    return h.hexdigest()[:16]
-
-
-def code_version(root: str | Path = REPO, paths: Sequence[str] = CODE_PATHS) -> CodeVersion:
-    """The code's digest and commit (see :class:`CodeVersion`)."""
-    root = Path(root)
-    head = _git(root, "rev-parse", "HEAD")
-    if head is None:
-        return CodeVersion(code_digest(root, paths), "unknown")
-    status = _git(root, "status", "--porcelain", "--untracked-files=no", "--", *paths) or ""
-    return CodeVersion(code_digest(root, paths), head.strip() + ("-dirty" if status.strip() else ""))
 
 
 # -- planning --------------------------------------------------------------------------------------
@@ -697,7 +636,7 @@ def run_tables(
                 prior = recorded_means(out) if episode_lines else {}
                 progress = _episode_reporter(name, have, report if episode_lines else None, pending, workers, checkpoint, prior)
                 res = run_bench(p.bench, out / POOLS_DIR / p.pool, workers=workers, ray_address=ray_address, progress=progress,
-                                checked_tasks=p.tasks)  # fmt: skip
+                                checked_tasks=p.tasks, allow_mixed_code=True)  # fmt: skip  (its own code check: STATE_FILE)
                 for e in res.errored:
                     report(f"[{name}] method error: {e}")
         finally:

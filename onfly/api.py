@@ -145,13 +145,15 @@ def fly(
 
 
 def benchmark(config, out: str | Path | None = None, *, workers: int | None = None, ray_address: str | None = None,
-          progress: bool = False, **changes):
+          progress: bool = False, allow_mixed_code: bool = False, **changes):
     """Run (or resume) a benchmark as ``onfly bench`` does and return its
     :class:`onfly.bench.runner.BenchResult` (``.summary``, ``.records``, ``.errored``).
 
     ``config`` is a :class:`onfly.BenchConfig` or the path of a benchmark TOML; ``changes``
     replace its fields (``methods=("oracle",)``, ``task_ids=(...)``, ``runs=1`` ...);
     ``out`` defaults to ``runs/bench/<name>``. Everything is checked before the first episode.
+    A folder with episodes other code flew raises :class:`onfly.bench.runner.MixedCodeError`
+    unless ``allow_mixed_code``.
     """
     from onfly.bench.runner import BenchConfig, run_bench
 
@@ -161,7 +163,7 @@ def benchmark(config, out: str | Path | None = None, *, workers: int | None = No
     if changes:
         cfg = replace(cfg, **changes)
     folder = Path(out) if out is not None else Path("runs") / "bench" / cfg.name
-    return run_bench(cfg, folder, workers=workers, ray_address=ray_address, progress=progress)
+    return run_bench(cfg, folder, workers=workers, ray_address=ray_address, progress=progress, allow_mixed_code=allow_mixed_code)
 
 
 def replay_recording(

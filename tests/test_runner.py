@@ -64,6 +64,47 @@ def test_interrupted_run_resumes_only_the_rest(serial_run):
     assert _comparable(third.records) == _comparable(second.records)
 
 
+def test_a_folder_other_code_flew_is_not_resumed_unless_asked(serial_run, tmp_path, monkeypatch, capsys):
+    """Every record names the code that flew it; resuming a folder of another code version
+    would put two versions in one table, so it is refused before anything flies."""
+    import shutil
+
+    import onfly.bench.runner as runner
+    from onfly.bench.code_version import CodeVersion
+
+    src, _, second = serial_run
+    here = {r["code"]["digest"] for r in second.records}
+    assert len(here) == 1 and second.summary["code"] == [second.records[0]["code"]]
+    out = tmp_path / "mixed"
+    shutil.copytree(src, out)
+    lines = (out / EPISODES_FILE).read_text().splitlines()
+    (out / EPISODES_FILE).write_text("\n".join(lines[:2]) + "\n")  # 2 of 4 episodes, by this code
+    monkeypatch.setattr(runner, "code_version", lambda: CodeVersion("ffffffff00000000", "5678ef01"))
+    with pytest.raises(runner.MixedCodeError, match="digest ffffffff00000000.*--allow-mixed-code") as info:
+        run_bench(_config(), out, workers=1)
+    assert str(out / EPISODES_FILE) in str(info.value) and next(iter(here)) in str(info.value)
+    assert len(read_records(out / EPISODES_FILE)) == 2  # nothing flown, nothing lost
+    # the command line reports it as a usage error
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(
+        '[bench]\nname = "t"\nmethods = ["oracle"]\nruns = 2\nseed = 7\nvlm = "sim:nominal"\n'
+        '[bench.tasks]\nids = ["villa-o01", "corridor-p05"]\n[episode]\ntime_limit_s = 2.0\n[world]\nwidth_px = 64\nheight_px = 43\n'
+    )
+    assert main(["bench", "--config", str(cfg), "--out", str(out), "--no-progress"]) == 2
+    assert "--allow-mixed-code" in capsys.readouterr().err
+    res = run_bench(_config(), out, workers=1, allow_mixed_code=True)
+    assert (res.ran, res.skipped) == (2, 2)
+    assert sorted(c["digest"] for c in res.summary["code"]) == sorted({"ffffffff00000000", *here})
+    # records from before the runner named the code pass (nothing to compare)
+    old = tmp_path / "old"
+    shutil.copytree(src, old)
+    bare = [json.loads(line) for line in (old / EPISODES_FILE).read_text().splitlines()[:2]]
+    for r in bare:
+        r.pop("code")
+    (old / EPISODES_FILE).write_text("".join(json.dumps(r) + "\n" for r in bare))
+    assert run_bench(_config(), old, workers=1).ran == 2
+
+
 def test_two_workers_give_the_same_records(serial_run, tmp_path):
     _, _, serial = serial_run
     parallel = run_bench(_config(), tmp_path, workers=2)

@@ -45,6 +45,7 @@ import numpy as np
 
 from onfly import defaults
 from onfly.serialize import to_jsonable
+from onfly.bench.code_version import CodeVersion, code_version
 from onfly.bench.episode import EpisodeConfig, EpisodeResult, run_episode
 from onfly.bench.metrics import EpisodeMetrics, TrackMetrics, as_track_episode, summarize, summarize_track, track_metrics
 from onfly.bench.motion import MOTION_KEYS, motion_metrics
@@ -60,6 +61,7 @@ from planning.trajectory import VehicleState
 __all__ = [
     "BenchConfig",
     "BenchConfigError",
+    "MixedCodeError",
     "EpisodeJob",
     "episode_seed",
     "error_model_name",
@@ -837,6 +839,7 @@ def run_bench(
     max_episodes: int | None = None,
     progress: bool | Callable[[dict, int, int], None] = False,
     checked_tasks: Sequence[Task] | None = None,
+    allow_mixed_code: bool = False,
 ) -> BenchResult:
     """Run (or resume) a benchmark and write episodes.jsonl, summary.json, summary.md, config.json.
 
@@ -849,6 +852,9 @@ def run_bench(
     ray_address : None (local processes), ``"local"`` (start a local Ray instance) or a Ray
         cluster address
     max_episodes : stop after this many new episodes (for tests of resumption)
+    allow_mixed_code : resume a folder whose episodes other code flew (each record carries
+        its :class:`onfly.bench.code_version.CodeVersion`); without it that is a
+        :class:`MixedCodeError` before any episode, since one table would hold two versions
     progress : True shows a tqdm bar with an ETA; a callable gets ``(record, done, total)``
         after every episode (a caller's own progress line)
     checked_tasks : the tasks :func:`check_bench` returned for this config (skips the checks
@@ -860,12 +866,15 @@ def run_bench(
     wall0 = time.perf_counter()
     out = Path(out_dir)
     tasks = check_bench(config) if checked_tasks is None else list(checked_tasks)
-    out.mkdir(parents=True, exist_ok=True)
     jobs = plan_jobs(config, tasks)
+    code = code_version()
+    path = out / EPISODES_FILE
+    if not allow_mixed_code:
+        _check_one_code(path, {j.key for j in jobs}, code)
+    out.mkdir(parents=True, exist_ok=True)
     (out / "config.json").write_text(
         json.dumps({"config": config.to_dict(), "method_hashes": {m: config.method_hash(m) for m in config.methods}}, indent=1)
     )
-    path = out / EPISODES_FILE
     done = {r["key"] for r in read_records(path)}
     todo = [j for j in jobs if j.key not in done]
     skipped = len(jobs) - len(todo)
@@ -883,6 +892,7 @@ def run_bench(
 
         def on_record(rec: dict) -> None:
             nonlocal ran
+            rec["code"] = code.as_dict()
             f.write(json.dumps(rec, sort_keys=True) + "\n")
             f.flush()
             ran += 1
@@ -913,11 +923,35 @@ def run_bench(
         "name": config.name, "error_model": error_model_name(config.vlm), "episodes": 0, "realtime_factor": None, "methods": {}}
     summary["run_wall_s"] = time.perf_counter() - wall0
     summary["complete"] = len(records) == len(jobs)
+    summary["code"] = [json.loads(c) for c in sorted({json.dumps(r["code"], sort_keys=True) for r in records if "code" in r})]
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     if records:
         (out / "summary.md").write_text(format_summary(summary) + "\n")
     errored = tuple(f"{r['method']}/{r['task']}/run{r['run']}: {r.get('error') or 'method_error'}" for r in records if r["end_reason"] == "method_error")
     return BenchResult(summary, records, ran, skipped, out, time.perf_counter() - wall0, errored)
+
+
+class MixedCodeError(ValueError):
+    """A benchmark folder holds episodes that other code flew (a ValueError: the command line
+    reports it as a usage error, before any episode flies)."""
+
+
+def _check_one_code(path: Path, keys: set[str], code: CodeVersion) -> None:
+    """Raise :class:`MixedCodeError` when a record of ``keys`` in ``path`` names another code
+    digest than ``code``'s (records written before the runner recorded the code name none and
+    pass)."""
+    other: dict[str, str] = {}
+    for r in read_records(path):
+        c = r.get("code")
+        if r.get("key") in keys and isinstance(c, dict) and c.get("digest") != code.digest:
+            other.setdefault(str(c.get("digest")), str(c.get("commit")))
+    if other:
+        versions = ", ".join(f"digest {d} (commit {c})" for d, c in sorted(other.items()))
+        raise MixedCodeError(
+            f"{path} holds episodes flown by other code: {versions}; this code is digest {code.digest} (commit "
+            f"{code.commit}). Resuming would put two code versions in one table: choose a new --out, remove the "
+            f"folder, or pass --allow-mixed-code to resume anyway"
+        )
 
 
 def with_overrides(config: BenchConfig, **changes) -> BenchConfig:

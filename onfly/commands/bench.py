@@ -42,6 +42,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ray", default=None, metavar="ADDRESS", help="run episodes as Ray tasks: a cluster address or 'local'")
     parser.add_argument("--vlm", default=None, help="VLM spec for every method, e.g. sim:nominal")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--allow-mixed-code", action="store_true",
+                        help="resume an --out folder whose episodes other code flew (refused by default: one table, one code version)")
 
 
 def build_config(args):
@@ -80,7 +82,8 @@ def run(args) -> int:
     out = Path(args.out) if args.out else Path("runs") / "bench" / cfg.name
     t0 = time.perf_counter()
     with sigterm_exits():  # a TERM stops the workers too; finished episodes stay, a rerun resumes
-        res = run_bench(cfg, out, ray_address=args.ray, progress=not args.no_progress, checked_tasks=tasks)
+        res = run_bench(cfg, out, ray_address=args.ray, progress=not args.no_progress, checked_tasks=tasks,
+                        allow_mixed_code=args.allow_mixed_code)  # MixedCodeError: a usage error, nothing flown
     echo(format_summary(res.summary))
     echo(
         f"\n{res.ran} episodes run, {res.skipped} already done (resumed), wall {time.perf_counter() - t0:.1f} s, "
