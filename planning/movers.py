@@ -412,43 +412,43 @@ class MoverTracker:
         todo = [tr for tr in self._tracks if not tr.static and tr.left_first(cfg.left_m)]
         if not todo:
             return
-        T_cam_world = invert_transform(check_transform(T_world_cam, "T_world_cam"))
         P = np.array([[tr.first_p[0], tr.first_p[1], tr.first_z] for tr in todo])
-        Pc = P @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
-        uv, _ = camera.project(Pc)
-        inside = camera.in_image(uv) & (Pc[:, 2] > 0) & (Pc[:, 2] <= cfg.max_range_m)
+        z, cols, rows, inside = self._in_view(P, camera, T_world_cam)
         depth = np.asarray(depth_m, dtype=np.float32)
         h, w = depth.shape
         for k in np.flatnonzero(inside):
-            c, r = int(uv[k, 0]), int(uv[k, 1])
+            c, r = cols[k], rows[k]
             patch = depth[max(r - 1, 0) : min(r + 2, h), max(c - 1, 0) : min(c + 2, w)]
             with np.errstate(invalid="ignore"):
                 ok = patch[np.isfinite(patch) & (patch > 0)]
             if ok.size == 0:
                 continue  # a hole: nothing to tell
-            z = float(Pc[k, 2])
-            tol = cfg.still_tol_m + 3.0 * _D435_SIGMA_PER_M2 * z * z
-            if abs(float(np.median(ok)) - z) <= tol:
+            tol = cfg.still_tol_m + 3.0 * _D435_SIGMA_PER_M2 * z[k] ** 2
+            if abs(float(np.median(ok)) - z[k]) <= tol:
                 todo[k].static = True
+
+    def _in_view(self, P: np.ndarray, camera: PinholeCamera, T_world_cam):
+        """World points ``P`` (n, 3) in the camera: their z-depth (n,) metres, pixel column and
+        row (n,) ints, and whether each is in the image within ``max_range_m`` (n,) bool."""
+        T_cam_world = invert_transform(check_transform(T_world_cam, "T_world_cam"))
+        Pc = P @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+        z = Pc[:, 2]
+        uv, _ = camera.project(Pc)
+        inside = camera.in_image(uv) & (z > 0) & (z <= self.config.max_range_m)
+        px = np.nan_to_num(uv, nan=-1.0).astype(int)  # NaN behind the camera, never inside
+        return z, px[:, 0], px[:, 1], inside
 
     def _seen_through(self, tracks: list[_Track], t_s: float, depth_m, camera: PinholeCamera, T_world_cam) -> np.ndarray:
         """True per track whose predicted centre is in the image with a reading beyond it."""
-        T_cam_world = invert_transform(check_transform(T_world_cam, "T_world_cam"))
         out = np.zeros(len(tracks), dtype=bool)
+        if not tracks:
+            return out
+        P = np.array([[*(tr.p + tr.v * (t_s - tr.t_s)), 0.5 * (tr.z_lo + tr.z_hi)] for tr in tracks])
+        z, cols, rows, inside = self._in_view(P, camera, T_world_cam)
         depth = np.asarray(depth_m, dtype=np.float32)
-        for k, tr in enumerate(tracks):
-            p = tr.p + tr.v * (t_s - tr.t_s)
-            P = np.array([[p[0], p[1], 0.5 * (tr.z_lo + tr.z_hi)]])
-            Pc = P @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
-            z = float(Pc[0, 2])
-            if not (0 < z <= self.config.max_range_m):
-                continue
-            uv, _ = camera.project(Pc)
-            if not bool(camera.in_image(uv)[0]):
-                continue
-            c, r = int(uv[0, 0]), int(uv[0, 1])
-            reading = float(depth[min(r, depth.shape[0] - 1), min(c, depth.shape[1] - 1)])
-            out[k] = np.isfinite(reading) and reading > z + tr.radius + 0.3
+        for k in np.flatnonzero(inside):
+            reading = float(depth[min(rows[k], depth.shape[0] - 1), min(cols[k], depth.shape[1] - 1)])
+            out[k] = np.isfinite(reading) and reading > z[k] + tracks[k].radius + 0.3
         return out
 
     def active(self, t_s: float) -> list[MoverTrack]:

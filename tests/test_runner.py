@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import json
+import shutil
 
 import pytest
 
@@ -67,8 +68,6 @@ def test_interrupted_run_resumes_only_the_rest(serial_run):
 def test_a_folder_other_code_flew_is_not_resumed_unless_asked(serial_run, tmp_path, monkeypatch, capsys):
     """Every record names the code that flew it; resuming a folder of another code version
     would put two versions in one table, so it is refused before anything flies."""
-    import shutil
-
     import onfly.bench.runner as runner
     from onfly.bench.code_version import CodeVersion
 

@@ -923,7 +923,8 @@ def run_bench(
         "name": config.name, "error_model": error_model_name(config.vlm), "episodes": 0, "realtime_factor": None, "methods": {}}
     summary["run_wall_s"] = time.perf_counter() - wall0
     summary["complete"] = len(records) == len(jobs)
-    summary["code"] = [json.loads(c) for c in sorted({json.dumps(r["code"], sort_keys=True) for r in records if "code" in r})]
+    versions = sorted({(r["code"]["digest"], r["code"]["commit"]) for r in records if "code" in r})
+    summary["code"] = [{"digest": d, "commit": c} for d, c in versions]
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     if records:
         (out / "summary.md").write_text(format_summary(summary) + "\n")
