@@ -122,6 +122,7 @@ __all__ = [
     "look_target",
     "open_heading",
     "open_ray_target",
+    "seen_obstacle_in_column",
     "seen_obstacle_near",
     "side_opening",
     "side_to_look",
@@ -887,6 +888,47 @@ def seen_obstacle_near(field_map, points: np.ndarray, clearance_m: float) -> np.
     probe = (points[:, None, :] + offsets[None, :, :]).reshape(-1, 3)
     blocked = known_mask(field_map, probe) & ~np.asarray(seen_free(probe), dtype=bool)
     return blocked.reshape(len(points), -1).any(axis=1)
+
+
+def seen_obstacle_in_column(field_map, xy: np.ndarray, z_lo_m: float, z_hi_m: float, radius_m: float) -> np.ndarray:
+    """(k,) True where an *observed* obstacle lies within ``radius_m`` of the vertical segment
+    over each ``xy`` (k, 2), metres, world ENU, from height ``z_lo_m`` to ``z_hi_m``, at or above
+    its foot (the ground under a landing site is not beside its column).
+
+    Every voxel of that cylinder and of its top cap is probed: a lattice at the map's voxel
+    spacing (``voxel_m``, else 0.1 m) holds a point in each voxel that lies wholly inside. A few
+    probes would not do: a camera sees an obstacle's surface only (a parked car is one voxel
+    of seen wall around unknown space), and a wall between the probes goes unseen. A field
+    without knownness (``observed_free``) falls back to its distance along the segment.
+    """
+    xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+    step = float(getattr(field_map, "voxel_m", 0.1))
+    seen_free = getattr(field_map, "observed_free", None)
+    if not callable(seen_free):
+        zs = np.linspace(z_lo_m, z_hi_m, max(1, int(np.ceil((z_hi_m - z_lo_m) / step - 1e-9))) + 1)
+        axis = np.column_stack([np.repeat(xy, len(zs), axis=0), np.tile(zs, len(xy))])
+        dist, _ = field_map.query(axis)
+        return (dist < radius_m).reshape(len(xy), -1).any(axis=1)
+    top = z_hi_m + radius_m
+    zs = np.linspace(z_lo_m, top, max(1, int(np.ceil((top - z_lo_m) / step - 1e-9))) + 1)
+    n = int(np.floor(radius_m / step + 1e-9))
+    i, j = np.meshgrid(np.arange(-n, n + 1), np.arange(-n, n + 1), indexing="ij")
+    disc = step * np.column_stack([i.ravel(), j.ravel()])
+    rho = np.hypot(disc[:, 0], disc[:, 1])
+    layers = []
+    for z in zs:  # the cylinder, then the top cap's shrinking discs
+        r_z = radius_m if z <= z_hi_m else np.sqrt(max(radius_m**2 - (z - z_hi_m) ** 2, 0.0))
+        d = disc[rho <= r_z + 1e-9]
+        layers.append(np.column_stack([d, np.full(len(d), z)]))
+    offsets = np.concatenate(layers)  # (m, 3), z absolute
+    blocked = np.zeros(len(xy), dtype=bool)
+    per_chunk = max(1, 200_000 // len(offsets))  # bounds the probe arrays (a few MB)
+    for start in range(0, len(xy), per_chunk):
+        c = xy[start : start + per_chunk]
+        probe = np.repeat(np.column_stack([c, np.zeros(len(c))]), len(offsets), axis=0) + np.tile(offsets, (len(c), 1))
+        hit = known_mask(field_map, probe) & ~np.asarray(seen_free(probe), dtype=bool)
+        blocked[start : start + len(c)] = hit.reshape(len(c), -1).any(axis=1)
+    return blocked
 
 
 def open_heading(position: np.ndarray, yaw: float, field_map, *, clearance_m: float, min_free_m: float = 2.5) -> float:

@@ -28,6 +28,7 @@ from onfly.search import (
     open_heading,
     open_ray_target,
     opening_gain,
+    seen_obstacle_in_column,
     side_opening,
     side_to_look,
 )
@@ -345,6 +346,45 @@ def test_a_dead_end_reverses_the_heading_to_keep_and_an_open_way_keeps_it():
     # a narrow obstacle right ahead with free space 45 deg to the side: the route goes on past it
     post = AnalyticField(boxes=[Box(center=[1.2, 0.0, 1.5], half_extents=[0.2, 0.3, 2.0])])
     assert open_heading(np.zeros(3) + [0, 0, 1.5], 0.0, post, clearance_m=0.45) == pytest.approx(0.0)
+
+
+class ShellMap:
+    """A 0.1 m voxel map of an analytic field as a camera leaves it: the voxel holding a surface
+    seen occupied, the space outside seen free, the inside of an obstacle never seen."""
+
+    voxel_m = 0.1
+
+    def __init__(self, field):
+        self.field = field
+
+    def query(self, points):
+        return self.field.query(points)
+
+    def _centre_distance(self, points):
+        return self.field.query((np.floor(np.atleast_2d(points) / self.voxel_m) + 0.5) * self.voxel_m)[0]
+
+    def known(self, points):
+        return self._centre_distance(points) > -0.5 * self.voxel_m
+
+    def observed_free(self, points):
+        return self._centre_distance(points) > 0.5 * self.voxel_m
+
+
+def test_a_landing_column_finds_a_seen_wall_anywhere_in_its_cylinder_but_not_the_ground_below():
+    # a parked car seen as its surface only (its inside unknown), its side at y = -0.12 m
+    car = Box(center=[0.25, -1.02, 0.745], half_extents=[2.25, 0.9, 0.725])
+    ground = HalfSpace(point=[0.0, 0.0, 0.02], normal=[0.0, 0.0, 1.0])
+    roof = Box(center=[0.0, 3.0, 2.1], half_extents=[1.0, 1.0, 0.05])  # an overhang 0.25 m above the column's top
+    seen = ShellMap(AnalyticField(boxes=[car, roof], half_spaces=[ground]))
+    xy = np.array([[0.0, 0.0], [1.5, 0.3], [0.0, 0.72], [0.0, 3.0]])
+    # 0.12 m and 0.42 m beside the car, or under the overhang: blocked; 0.72 m off the car: clear
+    np.testing.assert_array_equal(seen_obstacle_in_column(seen, xy, 0.3, 1.8, 0.6), [True, True, False, True])
+    assert not seen_obstacle_in_column(seen, xy[3:], 0.3, 1.3, 0.6)[0]  # 0.75 m under it
+    # the ground 0.3 m below the column's foot is where the vehicle lands, not an obstacle beside it
+    assert not seen_obstacle_in_column(seen, np.array([[0.0, 6.0]]), 0.3, 1.8, 0.6)[0]
+    # a field without knownness: its distance along the axis
+    exact = AnalyticField(boxes=[car])
+    np.testing.assert_array_equal(seen_obstacle_in_column(exact, xy[:3], 0.3, 1.8, 0.6), [True, True, False])
 
 
 class SliceMap:
