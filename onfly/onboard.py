@@ -591,18 +591,22 @@ class OnboardFlight:
     def _column_clear(self, xy: np.ndarray, top_m: float) -> np.ndarray:
         """(k,) True where the column above each ``xy`` (k, 2), from ``land_crash_height_m`` to
         ``top_m``, is known (where the map tells knownness) with no seen obstacle within
-        ``land_clear_radius_m``. Unknown space beside the column is not an obstacle here (the
+        ``land_clear_radius_m`` of it (every voxel of that cylinder,
+        :func:`onfly.search.seen_obstacle_in_column`: the planner keeps its goals ``d_safe_m``
+        plus ``goal_clearance_margin_m`` from any obstacle, so a site it would hold off cannot
+        be reached). Unknown space beside the column is not an obstacle here (the
         map's default counts it as one): a level camera never sees the space beside a column
         it looks down, and a site is only taken after the vehicle turned to look at it."""
-        from onfly.search import known_mask, seen_obstacle_near
+        from onfly.search import known_mask, seen_obstacle_in_column
 
         cfg = self.config
         esdf = self.pilot.esdf
-        zs = np.arange(cfg.land_crash_height_m, max(top_m, cfg.land_handover_height_m + 0.1) + 1e-9, 0.25)
+        top = max(top_m, cfg.land_handover_height_m + 0.1)
+        zs = np.arange(cfg.land_crash_height_m, top + 1e-9, 0.25)
         k, nz = len(xy), len(zs)
         pts = np.column_stack([np.repeat(xy, nz, axis=0), np.tile(zs, k)])
-        ok = ~seen_obstacle_near(esdf, pts, cfg.land_clear_radius_m) & known_mask(esdf, pts)
-        return ok.reshape(k, nz).all(axis=1)
+        known = known_mask(esdf, pts).reshape(k, nz).all(axis=1)
+        return known & ~seen_obstacle_in_column(esdf, xy, cfg.land_crash_height_m, top, cfg.land_clear_radius_m)
 
     def landing_site(self, p_now: np.ndarray, yaw: float | None = None, exclude=()) -> tuple[np.ndarray, str]:
         """Where to land (world, on the take-off ground z = 0) and how it was chosen.
