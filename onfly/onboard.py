@@ -132,6 +132,10 @@ class OnboardConfig:
     land_handover_height_m : the planner descends to this height above the take-off ground
         over the site; the autopilot's landing (NAV_LAND) does the last part straight down
     land_approach_timeout_s : give up moving over the site after this long (then hold)
+    land_goal_held_s : a site whose approach goal the planner's goal check has held more than
+        the approach tolerance off it for this long is blocked (the next site is chosen): the
+        planner keeps a goal ``d_safe_m`` plus a margin from every obstacle in its map, so the
+        vehicle would settle beside the site until the approach times out
     land_crash_height_m : a disarm higher than this above the ground is a crash, not a landing
     observe_after_takeover_s : after a takeover, keep the pilot running (no commands) this long
     link_lost_abort_s : a link lost for this long ends the flight
@@ -154,13 +158,14 @@ class OnboardConfig:
     land_clear_radius_m: float = 0.6
     land_handover_height_m: float = 0.7
     land_approach_timeout_s: float = 40.0
+    land_goal_held_s: float = 2.0
     land_crash_height_m: float = 0.3
 
     def __post_init__(self) -> None:
         positive = ("control_period_s", "connect_timeout_s", "takeoff_tolerance_m", "takeoff_speed_tolerance_mps",
                     "takeoff_timeout_s", "time_limit_s", "land_timeout_s", "link_lost_abort_s", "land_search_radius_m",
                     "land_search_step_m", "land_clear_radius_m", "land_handover_height_m", "land_approach_timeout_s",
-                    "land_crash_height_m")
+                    "land_goal_held_s", "land_crash_height_m")
         for name in positive:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
@@ -268,6 +273,15 @@ class OnboardFlight:
     ) -> None:
         if not isinstance(instruction, str) or not instruction.strip():
             raise OnboardConfigError("instruction must be a non-empty string")
+        planner_cfg = getattr(getattr(pilot, "config", None), "planner", None)
+        if config.on_finish == "land" and getattr(getattr(pilot, "config", None), "use_planner", False) and planner_cfg is not None:
+            # the planner keeps its goals d_safe_m + goal_clearance_margin_m from the ground too
+            floor = planner_cfg.d_safe_m + planner_cfg.goal_clearance_margin_m
+            if config.land_handover_height_m <= floor:
+                raise OnboardConfigError(
+                    f"OnboardConfig.land_handover_height_m ({config.land_handover_height_m} m) must exceed the planner's goal "
+                    f"clearance above the ground, d_safe_m + goal_clearance_margin_m = {floor:.2f} m: the planner would hold "
+                    "the descent above it and no landing site could be reached")
         self.bridge = bridge
         self.session = session
         self.pilot = pilot
@@ -577,16 +591,18 @@ class OnboardFlight:
     def _planner_step(self, state: VehicleState, goal: np.ndarray, face_goal: bool = False):
         """One plan toward ``goal`` in the pilot's map (MPC over the ESDF), or a straight line
         when the pilot has no planner. ``face_goal``: turn toward the goal (the camera sees the
-        way), else keep the heading."""
+        way), else keep the heading. Returns ``(trajectory, goal_used)``: the goal the plan aims
+        for, (3,) metres, world ENU (the planner's goal check may move it to clear space)."""
         pilot = self.pilot
         pc = pilot.config.planner
         d = goal[:2] - state.p[:2]
         yaw_ref = float(np.arctan2(d[1], d[0])) if face_goal and np.linalg.norm(d) > 0.5 else state.yaw
         if getattr(pilot.config, "use_planner", False) and getattr(pilot, "planner", None) is not None:
             field = pilot.planning_field(state.t_s) if hasattr(pilot, "planning_field") else pilot.esdf
-            return pilot.planner.step(state, goal, field, yaw_ref=yaw_ref, volume=pilot.volume).trajectory
+            res = pilot.planner.step(state, goal, field, yaw_ref=yaw_ref, volume=pilot.volume)
+            return res.trajectory, np.asarray(res.goal_used, dtype=float)
         return straight_line_plan(state, goal, v_max_mps=pc.v_max_mps, a_max_mps2=pc.a_max_mps2, yaw_rate_max_rps=pc.yaw_rate_max_rps,
-                                  dt_s=pc.dt_s, steps=pc.horizon_steps, yaw_ref=yaw_ref)
+                                  dt_s=pc.dt_s, steps=pc.horizon_steps, yaw_ref=yaw_ref), np.asarray(goal, dtype=float)
 
     def _column_clear(self, xy: np.ndarray, top_m: float) -> np.ndarray:
         """(k,) True where the column above each ``xy`` (k, 2), from ``land_crash_height_m`` to
@@ -723,8 +739,10 @@ class OnboardFlight:
     def _fly_to(self, goal: np.ndarray, tol_xy_m: float, tol_z_m: float, t_end: float, face_goal: bool = False) -> bool | None:
         """Plan toward ``goal`` every tick until within tolerance and slow; False on timeout or
         when the vehicle is taken over / loses its link; None when the site's column (``goal``'s
-        x, y) no longer looks clear in the map the new frames build."""
+        x, y) no longer looks clear in the map the new frames build, or when the planner has
+        held its goal out of tolerance of ``goal`` for ``land_goal_held_s``."""
         esdf = getattr(self.pilot, "esdf", None)
+        held_since = None
         while True:
             step = self._landing_period(t_end)
             if step is None:
@@ -738,7 +756,16 @@ class OnboardFlight:
             d = state.p - goal
             if np.linalg.norm(d[:2]) <= tol_xy_m and abs(d[2]) <= tol_z_m and np.linalg.norm(state.v) < 0.2:
                 return True
-            self.bridge.set_trajectory(self._planner_step(state, goal, face_goal))
+            traj, used = self._planner_step(state, goal, face_goal)
+            off = used - goal
+            if np.linalg.norm(off[:2]) > tol_xy_m or abs(off[2]) > tol_z_m:
+                held_since = t if held_since is None else held_since
+                if t - held_since >= self.config.land_goal_held_s:
+                    self._event("land_goal_held", {"site_m": goal.tolist(), "goal_used_m": used.tolist(), "held_s": t - held_since})
+                    return None
+            else:
+                held_since = None
+            self.bridge.set_trajectory(traj)
 
     def _land(self) -> None:
         cfg = self.config

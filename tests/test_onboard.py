@@ -340,15 +340,15 @@ def test_time_limit_and_lost_link_end_the_mission():
     assert 0.5 < end["data"]["lost_for_s"] <= 0.6 + 1e-6  # the first tick after link_lost_abort_s
 
 
-def _landing_flight(clock, esdf=None, p0=(0.0, 0.0, 1.5), planner=None):
+def _landing_flight(clock, esdf=None, p0=(0.0, 0.0, 1.5), planner=None, **config):
     pilot = FakePilot(finish_after_s=0.5)
     if esdf is not None:
         pilot.esdf = esdf
     if planner is not None:
         pilot.planner, pilot.volume = planner, None
     session = FakeSession()
-    f, bridge, pilot, _ = flight(clock=clock, config=OnboardConfig(takeoff_alt_m=0.0, on_finish="land", hold_after_finish_s=0.3),
-                                 pilot=pilot, p0=p0, session=session)
+    cfg = OnboardConfig(takeoff_alt_m=0.0, on_finish="land", hold_after_finish_s=0.3, **config)
+    f, bridge, pilot, _ = flight(clock=clock, config=cfg, pilot=pilot, p0=p0, session=session)
 
     def land(cmd, params):
         bridge.commands.append((clock.t, cmd, tuple(params)))
@@ -460,6 +460,51 @@ def test_landing_site_keeps_its_column_clear_of_a_car_side_seen_between_the_prob
     assert "land_approach_failed" not in kinds and summary.landed and not summary.crashed
     land = next(e for e in summary.events if e["kind"] == "land")
     assert land["data"]["height_m"] == pytest.approx(cfg.land_handover_height_m, abs=0.15)
+
+
+def test_a_site_the_planner_holds_its_goal_off_is_given_up_for_the_next_one():
+    """A planner that keeps goals farther from obstacles than the landing column's radius (here
+    d_safe 0.6 m against the column's 0.15 m: a bigger airframe configured in one place only)
+    holds the descent goal 0.4 m off a site 0.25 m beside a car. The vehicle would settle there
+    until the 40 s approach timeout and hand over a hold; the site is given up after
+    ``land_goal_held_s`` and a site clear for the planner too is landed on."""
+    from planning.analytic_field import AnalyticField, Box, HalfSpace
+    from planning.planner import Planner
+    from planning.planner_config import PlannerConfig
+
+    clock = FakeClock()
+    car = Box(center=[0.25, -1.15, 0.745], half_extents=[2.25, 0.9, 0.725])  # its side 0.25 m off the stop
+    scene = AnalyticField(boxes=(car,), half_spaces=(HalfSpace([0.0, 0.0, 0.02], [0.0, 0.0, 1.0]),))
+    planner = Planner(PlannerConfig(d_safe_m=0.6))
+    f, bridge, session = _landing_flight(clock, esdf=SeenShellMap(scene), p0=(0.0, 0.0, 1.8), planner=planner,
+                                         land_clear_radius_m=0.15)
+    need = planner.config.d_safe_m + planner.config.goal_clearance_margin_m
+    summary = f.run()
+    kinds = [e["kind"] for e in summary.events]
+    sites = [e for e in summary.events if e["kind"] == "land_site"]
+    first = np.array(sites[0]["data"]["site_m"])
+    car_only = AnalyticField(boxes=(car,))
+    assert car_only.query(np.array([[first[0], first[1], 0.7]]))[0][0] < need - 0.3  # the planner holds it off
+    held = next(e for e in summary.events if e["kind"] == "land_goal_held")
+    assert np.linalg.norm(np.subtract(held["data"]["goal_used_m"], held["data"]["site_m"])[:2]) > 0.3
+    assert held["data"]["held_s"] == pytest.approx(f.config.land_goal_held_s, abs=0.11)
+    assert held["t_s"] - sites[0]["t_s"] < 10.0  # not the 40 s approach timeout
+    assert "land_approach_failed" not in kinds and summary.landed and not summary.crashed
+    last = np.array(sites[-1]["data"]["site_m"])
+    assert car_only.query(np.array([[last[0], last[1], 0.7]]))[0][0] >= need - 0.1
+    land = next(e for e in summary.events if e["kind"] == "land")
+    assert land["data"]["height_m"] == pytest.approx(f.config.land_handover_height_m, abs=0.15)
+
+
+def test_a_handover_height_the_planner_cannot_descend_to_fails_before_flying():
+    from planning.planner_config import PlannerConfig
+
+    pilot = FakePilot(finish_after_s=0.5)
+    pilot.config = SimpleNamespace(use_planner=True, planner=PlannerConfig(d_safe_m=0.8))
+    with pytest.raises(OnboardConfigError, match=r"land_handover_height_m \(0.7 m\) must exceed .* 0.85 m"):
+        flight(clock=FakeClock(), config=OnboardConfig(on_finish="land"), pilot=pilot)
+    # holding at the end needs no descent: the same pilot may fly
+    flight(clock=FakeClock(), config=OnboardConfig(on_finish="hold"), pilot=pilot)
 
 
 def test_a_disarm_in_the_air_during_the_landing_is_a_crash():
