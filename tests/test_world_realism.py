@@ -327,3 +327,52 @@ def test_each_episode_records_its_profile_and_flies_under_it(tmp_path):
         assert rec["realism"] == name
         recs[name] = rec
     assert recs["ideal"]["metrics"] != recs["realistic"]["metrics"]  # lag, drift: another path
+
+
+def test_the_invalid_depth_band_is_the_datasheets_width_down_the_left_edge():
+    # Intel D400 datasheet, "Invalid Depth Band": B * F / Z pixels, on the left of the image
+    d = DepthModel(subpixel=0.0, edge_jump_ratio=0.0)
+    for width, fx in ((848, 424.0), (320, 160.0)):
+        for z in (0.5, 1.0, 3.0):
+            out = d.apply(np.full((4, width), z, np.float32), None, np.random.default_rng(0), fx_px=fx)
+            band = fx * 0.05 / z
+            read = out[0] > 0
+            assert not read[: int(band)].any() and read[int(band) + 1:].all(), (width, z)
+            assert (out[:, int(band) + 1:] == np.float32(z)).all()
+    # without the image's focal length (or with the rule off) there is no band
+    img = np.full((4, 320), 1.0, np.float32)
+    assert (d.apply(img, None, np.random.default_rng(0)) > 0).all()
+    off = DepthModel(subpixel=0.0, edge_jump_ratio=0.0, stereo_shadows=False)
+    assert (off.apply(img, None, np.random.default_rng(0), fx_px=160.0) > 0).all()
+
+
+def test_a_nearer_object_shadows_the_background_on_its_left_side_only():
+    d = DepthModel(subpixel=0.0, edge_jump_ratio=0.0)
+    fx, near, far = 160.0, 1.0, 4.0
+    img = np.full((3, 320), far, np.float32)
+    img[:, 150:170] = near  # a post 1 m away in front of a wall 4 m away
+    out = d.apply(img, None, np.random.default_rng(0), fx_px=fx)
+    assert (out[:, 150:170] == near).all()  # the post itself reads
+    shadow = fx * 0.05 * (1 / near - 1 / far)  # 6 px of wall hidden from the right imager
+    assert not (out[:, 150 - int(shadow):150] > 0).any()
+    assert (out[:, 150 - int(shadow) - 2] == far).all()
+    assert (out[:, 170:] == far).all()  # nothing is hidden on its right side
+    band = fx * 0.05 / far
+    assert (out[:, int(band) + 1:150 - int(shadow) - 1] == far).all()
+    # sky (nothing hit) is at infinity: it hides nothing and reads nothing
+    img[:, 200:] = 0.0
+    out = d.apply(img, None, np.random.default_rng(0), fx_px=fx)
+    assert (out[:, 170:200] == far).all() and not (out[:, 200:] > 0).any()
+
+
+def test_a_rendered_realistic_frame_has_no_reading_down_its_left_edge():
+    start = VehicleState(0.0, [-4.0, -24.0, 1.4], np.zeros(3), math.pi)
+    real = World.from_scene("urban_block", realism="realistic", seed=5, initial_state=start)
+    obs = real.observe()
+    fx = float(real.camera.K[0, 0])
+    exact = obs.annotation.depth_m
+    rows = np.nonzero((exact[:, :4] > 0.3).all(axis=1) & (exact[:, :4] < 9.0).all(axis=1))[0]
+    assert len(rows) > 10
+    for r in rows[::5]:
+        band = fx * 0.05 / float(exact[r, 0])
+        assert not (obs.depth_m[r, : int(band)] > 0).any()

@@ -87,6 +87,14 @@ class DepthModel:
     - **Materials**: pixels whose surface material is in ``no_reading_materials`` read 0 (no
       reading): glass (transparent), mirror (specular) and dark (low infrared albedo) surfaces,
       where the D4xx's matcher finds no texture (Sensors 2022, 22(19), 7378).
+    - **Stereo non-overlap** (``stereo_shadows``): depth is matched with the left imager as the
+      reference, so a pixel whose surface the right imager (``baseline_m`` to its right) does
+      not see reads nothing. That is the datasheet's *invalid depth band* down the left edge of
+      the image (``focal_px * baseline_m / z`` pixels wide: 21 px of 848 at 1 m) and the same
+      shadow down the left side of every nearer object (Intel RealSense D400 Series datasheet,
+      "Invalid Depth Band": "the left imager as the reference for stereo matching resulting in
+      a non-overlap region ... we will not have depth data"; the occlusion geometry of Intel's
+      *Projection, Texture-Mapping and Occlusion with Intel RealSense Depth Cameras*).
     - **Dropout**: independent per-pixel no-reading probability ``dropout_prob``.
     """
 
@@ -98,6 +106,7 @@ class DepthModel:
     edge_jump_ratio: float = 0.05
     dropout_prob: float = 0.0
     no_reading_materials: tuple[str, ...] = ("glass", "mirror", "dark")
+    stereo_shadows: bool = True
 
     def __post_init__(self) -> None:
         _check_nonneg(self, "subpixel", "min_range_m", "edge_jump_ratio", "dropout_prob")
@@ -127,7 +136,33 @@ class DepthModel:
         """uint8 codes (indices in MATERIALS) of the materials that give no reading."""
         return np.array([MATERIALS.index(m) for m in self.no_reading_materials], dtype=np.uint8)
 
-    def apply(self, depth_m: np.ndarray, material: np.ndarray | None, rng: np.random.Generator) -> np.ndarray:
+    def right_imager_sees(self, depth_m: np.ndarray, fx_px: float) -> np.ndarray:
+        """bool (H, W): the pixels of a left-imager z-depth image whose surface the right
+        imager sees too (rectified pair, right imager ``baseline_m`` along the camera's +x).
+
+        A surface at column ``u`` and depth ``z`` lies at column ``u - fx_px * baseline_m / z``
+        of the right image; it is seen there when that column is inside the image and left of
+        every surface to its right in the same row (visible surfaces keep their order along an
+        epipolar line; one that falls behind another's right-image column is hidden by it).
+        Pixels with nothing hit (``depth_m`` 0) are at infinity: disparity 0, never in the way.
+
+        Parameters
+        ----------
+        depth_m : float (H, W), exact z-depth in metres, 0 = nothing hit
+        fx_px : focal length of that image, pixels (the disparity's scale at its resolution)
+        """
+        z = np.asarray(depth_m, dtype=np.float32)
+        disparity = np.zeros_like(z)
+        hit = z > 0
+        disparity[hit] = np.float32(fx_px * self.baseline_m) / z[hit]
+        u_right = np.arange(z.shape[1], dtype=np.float32)[None, :] - disparity
+        # smallest right-image column of the surfaces strictly to the right of each pixel
+        beyond = np.full_like(u_right, np.inf)
+        beyond[:, :-1] = np.minimum.accumulate(u_right[:, :0:-1], axis=1)[:, ::-1]
+        return (u_right > -0.5) & (u_right < beyond)
+
+    def apply(self, depth_m: np.ndarray, material: np.ndarray | None, rng: np.random.Generator,
+              fx_px: float | None = None) -> np.ndarray:
         """The sensor's reading of an exact z-depth image.
 
         Parameters
@@ -135,6 +170,8 @@ class DepthModel:
         depth_m : float32 (H, W), exact z-depth in metres, 0 = nothing hit
         material : uint8 (H, W), material code per pixel (index in MATERIALS), or None
         rng : the frame's generator
+        fx_px : the image's focal length, pixels; needed for the stereo non-overlap
+            (``stereo_shadows``), which is left out without it
 
         Returns
         -------
@@ -142,6 +179,8 @@ class DepthModel:
         """
         z = np.asarray(depth_m, dtype=np.float32)
         valid = z > 0
+        if self.stereo_shadows and fx_px is not None:
+            valid &= self.right_imager_sees(z, fx_px)
         if material is not None and len(self.no_reading_materials):
             reads = np.ones(len(MATERIALS), dtype=bool)
             reads[self.no_reading_codes()] = False

@@ -253,7 +253,7 @@ class Renderer:
             exact = depth
             material = np.take(self._tri_material, tri).reshape(H, W)
             rng = np.random.default_rng([int(self.config.sensor_seed), STREAM_DEPTH, int(noise_key)])
-            depth = sensor.apply(depth, material, rng)
+            depth = sensor.apply(depth, material, rng, fx_px=float(self.camera.K[0, 0]))
         if self.config.depth_noise.enabled:
             depth = self.config.depth_noise.apply(depth, noise_key)
         return RenderResult(rgb.reshape(H, W, 3), depth, inst.reshape(H, W), sem.reshape(H, W), T, exact)
