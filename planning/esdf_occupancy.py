@@ -40,7 +40,6 @@ import numpy as np
 import open3d as o3d
 
 from planning.camera import PinholeCamera
-from planning.depth_holes import hole_bounds
 from planning.esdf_config import EsdfConfig
 from planning.frames import invert_transform
 
@@ -73,6 +72,25 @@ class OccupancyDelta:
     n_miss_voxels: int
     backproject_ms: float
     update_ms: float
+
+
+def _nearest_reading_along(d: np.ndarray, valid: np.ndarray, axis: int, reverse: bool) -> np.ndarray:
+    """Per pixel, the first valid value of ``d`` met scanning along ``axis`` (the pixel itself
+    included), toward lower indices or, with ``reverse``, higher ones; inf where none."""
+    n = d.shape[axis]
+    shape = [1, 1]
+    shape[axis] = n
+    pos = np.arange(n, dtype=np.int32).reshape(shape)
+    if reverse:
+        idx = np.where(valid, pos, np.int32(n))
+        last = np.flip(np.minimum.accumulate(np.flip(idx, axis=axis), axis=axis), axis=axis)
+        found = last < n
+    else:
+        idx = np.where(valid, pos, np.int32(-1))
+        last = np.maximum.accumulate(idx, axis=axis)
+        found = last >= 0
+    out = np.take_along_axis(d, np.clip(last, 0, n - 1), axis=axis)
+    return np.where(found, out, np.float32(np.inf))
 
 
 def free_reach(depth_m: np.ndarray, config: EsdfConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -108,7 +126,13 @@ def free_reach(depth_m: np.ndarray, config: EsdfConfig) -> tuple[np.ndarray, np.
     if cfg.no_reading_clear_m <= 0 or not valid.any():
         reach[~valid] = -np.inf  # off, or a blind frame (nothing bounds a hole): clear nothing
         return reach, valid
-    nb = hole_bounds(clipped, valid, cfg.no_reading_needs_below)
+    nb = _nearest_reading_along(clipped, valid, 1, False)
+    np.minimum(nb, _nearest_reading_along(clipped, valid, 1, True), out=nb)
+    np.minimum(nb, _nearest_reading_along(clipped, valid, 0, False), out=nb)
+    below = _nearest_reading_along(clipped, valid, 0, True)  # down the image: higher rows
+    np.minimum(nb, below, out=nb)
+    if cfg.no_reading_needs_below:
+        nb[~np.isfinite(below)] = np.inf  # nothing read below: unbounded, clears nothing
     hole = ~valid
     # nb is inf where the scans met no reading: then nothing bounds the hole and it clears nothing
     reach[hole] = np.where(np.isfinite(nb[hole]), np.minimum(nb[hole], np.float32(cfg.no_reading_clear_m)) - margin, -np.inf)

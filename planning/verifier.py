@@ -61,7 +61,6 @@ import cv2
 import numpy as np
 
 from planning.camera import PinholeCamera
-from planning.depth_holes import hole_bounds
 from planning.frames import FrameError, check_transform, transform_points
 from planning.verifier_config import VerifierConfig, VerifierConfigError
 
@@ -255,8 +254,8 @@ class VerificationRecord:
         (or of the surface bounding an unread pixel), metres; inf when nothing limits it; NaN
         when refinement ran or the candidate was rejected before.
     bound_depth_m : float
-        Unread target only: the depth of the surface around the hole (the nearest of the first
-        readings on the pixel's row and column in the ROI), metres; NaN otherwise.
+        Unread target only: the depth of the surface around the hole (smallest reading on the
+        border of the no-reading region in the ROI), metres; NaN otherwise.
     """
 
     pixel_uv: tuple[float, float]
@@ -1053,15 +1052,18 @@ class _ObstacleView:
 
 
 def _hole_bound_depth(depth: np.ndarray, roi, row: int, col: int) -> float | None:
-    """The reading that bounds the unread pixel (row, col), metres: the nearest of the first
-    readings met scanning its row and column inside the ROI, none when its column holds no
-    reading below it there (:func:`planning.depth_holes.hole_bounds`, the map's rule for the
-    same holes); None when nothing bounds it."""
+    """Smallest reading on the border of the no-reading region containing (row, col) inside the
+    ROI (4-connected), metres; None when that border has no reading inside the ROI."""
     r0, r1, c0, c1 = roi
     z = depth[r0:r1, c0:c1]
-    valid = cv2.inRange(z, _TINY_DEPTH, _MAX_DEPTH) != 0
-    bound = float(hole_bounds(z, valid, needs_below=True)[row - r0, col - c0])
-    return bound if math.isfinite(bound) else None
+    valid = cv2.inRange(z, _TINY_DEPTH, _MAX_DEPTH)  # 255 where a reading
+    hole = cv2.bitwise_not(valid)
+    _, labels = cv2.connectedComponents(hole, connectivity=4)
+    comp = (labels == labels[row - r0, col - c0]).astype(np.uint8)
+    ring = cv2.dilate(comp, _CROSS_3) & (valid != 0) & (comp == 0)
+    if not ring.any():
+        return None
+    return float(z[ring.astype(bool)].min())
 
 
 def _clear_range_z(

@@ -48,14 +48,12 @@ Pixels without a reading are never open space
 ---------------------------------------------
 A target pixel with no reading (0, NaN, inf: glass, a dark or shiny surface, anything nearer than
 the camera's minimum range) is kept, as the paper keeps far targets (``p' = p``), but is assumed
-to lie on the surface that bounds the hole: its depth is taken as the nearest of the first
-readings met scanning the pixel's row and column outward inside the ROI, the rule the map clears
-free space by (:func:`planning.depth_holes.hole_bounds`). The goal stays on the clear part of the
-ray in front of that surface (see "Far and unread targets"), so a hole in a wall never puts a goal
-behind the wall. Without a reading on the row or column, or with none below the pixel in its
-column (a hole running out of the ROI's bottom may be an object nearer than the camera's minimum
-range), nothing is known about the ray: the candidate is rejected (``NO_DEPTH_AT_TARGET``).
-``reject_no_reading = True`` rejects every unread target.
+to lie on the surface that bounds the hole: its depth is taken as the smallest reading on the
+border of the connected no-reading region around it inside the ROI. The goal stays on the clear
+part of the ray in front of that surface (see "Far and unread targets"), so a hole in a wall never
+puts a goal behind the wall. Without any reading on that border inside the ROI nothing is known
+about the ray: the candidate is rejected (``NO_DEPTH_AT_TARGET``). ``reject_no_reading = True``
+rejects every unread target.
 
 Far and unread targets (refinement skipped)
 -------------------------------------------

@@ -621,34 +621,6 @@ def test_no_reading_next_to_a_near_obstacle_is_bounded_by_it(hole):
     assert_safe(res, cand, VerifierConfig())
 
 
-def test_a_target_beyond_range_is_bounded_by_the_ground_below_it_not_by_a_sign_beside_it():
-    """A D435 outdoors: the target 16 m away gives no reading (range 10 m), nor does the sky;
-    ground at 9 m lies below the target's pixel and a sign 1.4 m away borders the same hole
-    above and to the side of it. The hole's ray ends at the surface on its row and column (the
-    map's rule), so the goal goes out toward the ground's range, not 1.4 m, and clears the sign.
-    (Before, the nearest reading anywhere on the hole's border inside the ROI bounded it.)"""
-    cam = square_camera()
-    depth = np.zeros(cam.shape, np.float32)
-    depth[250:, :] = 9.0  # readable ground (a flat band is enough for the rule)
-    depth[180:212, 258:268] = 1.4  # a near sign above and beside the target, inside the ROI
-    uv = (320.0, 240.0)
-    cand = candidate(uv, depth, cam)
-    res = Verifier().verify(cand)
-    rec = res.record
-    assert res.accepted and rec.refinement_note is RefinementNote.NO_DEPTH_READING
-    assert rec.bound_depth_m == 9.0
-    assert res.goal_world[2] == pytest.approx(VerifierConfig().d_max_m)  # 7 m: the verifier's D_max
-    assert_safe(res, cand, VerifierConfig())
-    # the sign's own row and column bound a hole right beside it
-    near = Verifier().verify(candidate((240.0, 205.0), depth, cam))
-    assert near.record.bound_depth_m == pytest.approx(1.4) and near.goal_world[2] < 1.4 - 0.19
-    # a hole with nothing read below it inside the ROI (an object nearer than the minimum range
-    # running out of view) bounds nothing: no goal
-    depth[250:, 300:340] = 0.0
-    res = Verifier().verify(candidate(uv, depth, cam))
-    assert not res.accepted and res.record.rejection is RejectionReason.NO_DEPTH_AT_TARGET
-
-
 def test_no_reading_anywhere_near_the_target_is_rejected():
     cam = square_camera()
     depth = np.full(cam.shape, 5.0, np.float32)
