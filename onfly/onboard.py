@@ -273,8 +273,9 @@ class OnboardFlight:
     ) -> None:
         if not isinstance(instruction, str) or not instruction.strip():
             raise OnboardConfigError("instruction must be a non-empty string")
-        planner_cfg = getattr(getattr(pilot, "config", None), "planner", None)
-        if config.on_finish == "land" and getattr(getattr(pilot, "config", None), "use_planner", False) and planner_cfg is not None:
+        pilot_cfg = getattr(pilot, "config", None)
+        planner_cfg = getattr(pilot_cfg, "planner", None)
+        if config.on_finish == "land" and getattr(pilot_cfg, "use_planner", False) and planner_cfg is not None:
             # the planner keeps its goals d_safe_m + goal_clearance_margin_m from the ground too
             floor = planner_cfg.d_safe_m + planner_cfg.goal_clearance_margin_m
             if config.land_handover_height_m <= floor:

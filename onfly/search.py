@@ -872,6 +872,12 @@ _PROBES = np.array(
 )
 
 
+def _seen_occupied(field_map, points: np.ndarray) -> np.ndarray:
+    """(n,) True where ``points`` (n, 3) lie in space the map has seen and not seen free: an
+    observed obstacle (needs a map with ``observed_free``)."""
+    return known_mask(field_map, points) & ~np.asarray(field_map.observed_free(points), dtype=bool)
+
+
 def seen_obstacle_near(field_map, points: np.ndarray, clearance_m: float) -> np.ndarray:
     """True where an *observed* obstacle lies within ``clearance_m`` of ``points`` (n, 3)
     (probed at the point and at ``clearance_m`` along the axes and the horizontal diagonals).
@@ -880,14 +886,12 @@ def seen_obstacle_near(field_map, points: np.ndarray, clearance_m: float) -> np.
     is not a wall, it is where a search goes and what a landing first turns to look at. A field
     without knownness falls back to its distance.
     """
-    seen_free = getattr(field_map, "observed_free", None)
-    if not callable(seen_free):
+    if not callable(getattr(field_map, "observed_free", None)):
         dist, _ = field_map.query(points)
         return dist < clearance_m
     offsets = clearance_m * _PROBES
     probe = (points[:, None, :] + offsets[None, :, :]).reshape(-1, 3)
-    blocked = known_mask(field_map, probe) & ~np.asarray(seen_free(probe), dtype=bool)
-    return blocked.reshape(len(points), -1).any(axis=1)
+    return _seen_occupied(field_map, probe).reshape(len(points), -1).any(axis=1)
 
 
 def seen_obstacle_in_column(field_map, xy: np.ndarray, z_lo_m: float, z_hi_m: float, radius_m: float) -> np.ndarray:
@@ -903,8 +907,7 @@ def seen_obstacle_in_column(field_map, xy: np.ndarray, z_lo_m: float, z_hi_m: fl
     """
     xy = np.asarray(xy, dtype=float).reshape(-1, 2)
     step = float(getattr(field_map, "voxel_m", 0.1))
-    seen_free = getattr(field_map, "observed_free", None)
-    if not callable(seen_free):
+    if not callable(getattr(field_map, "observed_free", None)):
         zs = np.linspace(z_lo_m, z_hi_m, max(1, int(np.ceil((z_hi_m - z_lo_m) / step - 1e-9))) + 1)
         axis = np.column_stack([np.repeat(xy, len(zs), axis=0), np.tile(zs, len(xy))])
         dist, _ = field_map.query(axis)
@@ -926,8 +929,7 @@ def seen_obstacle_in_column(field_map, xy: np.ndarray, z_lo_m: float, z_hi_m: fl
     for start in range(0, len(xy), per_chunk):
         c = xy[start : start + per_chunk]
         probe = np.repeat(np.column_stack([c, np.zeros(len(c))]), len(offsets), axis=0) + np.tile(offsets, (len(c), 1))
-        hit = known_mask(field_map, probe) & ~np.asarray(seen_free(probe), dtype=bool)
-        blocked[start : start + len(c)] = hit.reshape(len(c), -1).any(axis=1)
+        blocked[start : start + len(c)] = _seen_occupied(field_map, probe).reshape(len(c), -1).any(axis=1)
     return blocked
 
 

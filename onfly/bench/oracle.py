@@ -196,9 +196,10 @@ class OraclePilot:
     def _visible_carrot(self, p: np.ndarray, field, movers_field=None) -> np.ndarray:
         """The farthest reference point up to the carrot (``lookahead_m`` of arc ahead) whose
         straight segment from ``p`` keeps the goal check's clearance (``d_safe_m +
-        goal_clearance_margin_m``) plus ``sight_margin_m`` in the static map ``field``: a carrot round a corner pulled
-        the goal check back along the segment through the wall, to the vehicle, which hovered
-        to the time limit (21 of the oracle's 22 hard-set failures at ``47e1c57``, 1 m doorways).
+        goal_clearance_margin_m``) plus ``sight_margin_m`` in the static map ``field``: a
+        carrot round a corner pulled the goal check back along the segment through the wall, to
+        the vehicle, which hovered to the time limit (21 of the oracle's 22 hard-set failures at
+        ``47e1c57``, 1 m doorways).
         Without such a point, the reference point 0.25 m ahead; but if ``movers_field`` (the
         map with the movers' predicted lanes) holds that one under the clearance, the carrot,
         which the goal check then holds back: the vehicle waits outside a walker's lane
