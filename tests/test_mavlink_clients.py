@@ -206,12 +206,12 @@ def test_pymavlink_mavproxy_style_ardupilot_guided_flight():
         mp = MavproxyStyle(port)
         # param fetch: the whole table, C-cast integers
         mp.m.mav.param_request_list_send(1, 1)
-        params = {}
-        deadline = time.monotonic() + 3
-        while time.monotonic() < deadline and len(params) < 5:
+        params, count = {}, None
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and (count is None or len(params) < count):
             pv = mp.m.recv_match(type="PARAM_VALUE", blocking=True, timeout=1)
             if pv is not None:
-                params[pv.param_id] = pv.param_value
+                params[pv.param_id], count = pv.param_value, pv.param_count
         assert params["GUID_TIMEOUT"] == pytest.approx(3.0) and params["DISARM_DELAY"] == 10.0 and len(params) == pv.param_count
         mp.m.mav.param_set_send(1, 1, b"GUID_TIMEOUT", 2.0, M.MAV_PARAM_TYPE_REAL32)
         echo = mp.m.recv_match(type="PARAM_VALUE", blocking=True, timeout=2, condition="PARAM_VALUE.param_id=='GUID_TIMEOUT'")

@@ -126,7 +126,7 @@ from typing import Callable
 
 import numpy as np
 
-from onfly.mavlink import frames
+from onfly.mavlink import frames, rtl
 from onfly.mavlink.autopilot import ARDUCOPTER_MODE, PX4_AUTO_SUB, PX4_MAIN, px4_custom_mode, px4_main_mode
 from onfly.mavlink.link import Link, LinkError, mavlink2
 from planning.frames import wrap_angle
@@ -163,6 +163,18 @@ PX4_PARAMS = {
     "MIS_TAKEOFF_ALT": (2.5, _R32),
     "MPC_TKO_SPEED": (1.5, _R32),
     "MPC_LAND_SPEED": (0.7, _R32),
+    # Return mode (navigator rtl_params.yaml) and the speeds and acceptance radii it flies with
+    # (mc_pos_control multicopter_autonomous_params.c, navigator_params.c)
+    "RTL_RETURN_ALT": (60.0, _R32),
+    "RTL_DESCEND_ALT": (30.0, _R32),
+    "RTL_LAND_DELAY": (0.0, _R32),
+    "RTL_MIN_DIST": (10.0, _R32),
+    "RTL_CONE_ANG": (45, _I32),
+    "MPC_XY_CRUISE": (5.0, _R32),
+    "MPC_Z_V_AUTO_UP": (3.0, _R32),
+    "MPC_Z_V_AUTO_DN": (1.5, _R32),
+    "NAV_ACC_RAD": (10.0, _R32),
+    "NAV_MC_ALT_RAD": (0.8, _R32),
 }
 #: ArduCopter parameters: name -> (default, MAV_PARAM_TYPE); units as ArduPilot's (cm/s, s).
 ARDUPILOT_PARAMS = {
@@ -171,6 +183,16 @@ ARDUPILOT_PARAMS = {
     "LAND_SPEED": (50, _I16),
     "WPNAV_SPEED_UP": (250.0, _R32),
     "FS_GCS_ENABLE": (0, _I8),
+    # RTL (ArduCopter Parameters.cpp, config.h) and the waypoint controller it flies with (AC_WPNav.cpp)
+    "RTL_ALT": (1500, _I32),
+    "RTL_CLIMB_MIN": (0, _I16),
+    "RTL_SPEED": (0, _I16),
+    "RTL_LOIT_TIME": (5000, _I32),
+    "RTL_ALT_FINAL": (0, _I16),
+    "RTL_CONE_SLOPE": (3.0, _R32),
+    "WPNAV_SPEED": (1000.0, _R32),
+    "WPNAV_SPEED_DN": (150.0, _R32),
+    "WPNAV_RADIUS": (200.0, _R32),
 }
 
 _ID = {
@@ -459,6 +481,7 @@ class SimMavlinkVehicle:
         self._last_sp_s: float | None = None
         self._takeoff_alt_m: float | None = None  # scene z the current take-off climbs to
         self._guided_timed_out = False
+        self._rtl: rtl.Px4Return | rtl.ArduCopterReturn | None = None  # the Return mode's state machine while in it
         # estimator frame: origin and heading in the scene
         origin = config.estimator_origin_m if config.estimator_origin_m is not None else tuple(self.model.p)
         self._origin = np.array(origin, dtype=float)
@@ -695,6 +718,8 @@ class SimMavlinkVehicle:
                 self._landed_at = t
                 if self._flying_since_arm:
                     self._event("landed")
+                if self._rtl is not None:
+                    self._rtl.landed(t)
         if self.landed_state != _M.MAV_LANDED_STATE_ON_GROUND:
             return
         if not self._flying_since_arm:
@@ -706,12 +731,15 @@ class SimMavlinkVehicle:
         if self.px4:
             limit = float(self.params["COM_DISARM_LAND"])
         else:
-            limit = 0.0 if self.custom_mode == ARDUCOPTER_MODE["land"] else float(self.params["DISARM_DELAY"])
+            in_land = self.custom_mode == ARDUCOPTER_MODE["land"] or (self._rtl is not None and self._rtl.landing)
+            limit = 0.0 if in_land else float(self.params["DISARM_DELAY"])  # mode_land.cpp, mode_rtl.cpp land_run
         landed_at = self._landed_at if self._landed_at is not None else t
         if limit >= 0 and t - landed_at >= limit:
             self._disarm("landed")
 
     def _landing_mode(self) -> bool:
+        if self._rtl is not None and self._rtl.landing:
+            return True
         if self.px4:
             return self.custom_mode == px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["land"])
         return self.custom_mode == ARDUCOPTER_MODE["land"]
@@ -720,6 +748,11 @@ class SimMavlinkVehicle:
         return _Target(p=self.model.p.copy(), yaw=self.model.yaw)
 
     def _apply_rules(self, t: float) -> None:
+        if self._rtl is not None:  # Return mode flies its own state machine (onfly/mavlink/rtl.py)
+            if self.armed:
+                sp = self._rtl.step(t, self.model.p)
+                self._target = None if sp is None else _Target(p=sp.p, v=sp.v, v_limit_mps=sp.v_limit_mps)
+            return
         since_sp = math.inf if self._last_sp_s is None else t - self._last_sp_s
         if self.px4:
             main = px4_main_mode(self.custom_mode)
@@ -802,6 +835,8 @@ class SimMavlinkVehicle:
         with self._lock:
             old = self.custom_mode
             self.custom_mode = int(custom_mode)
+            if old != self.custom_mode:
+                self._rtl = None  # leaving (or re-entering) Return stops its state machine
             hold = self._hold_here()
             if self._landing_mode():
                 speed = float(self.params["MPC_LAND_SPEED"]) if self.px4 else float(self.params["LAND_SPEED"]) / 100.0
@@ -819,6 +854,32 @@ class SimMavlinkVehicle:
             if old != self.custom_mode:
                 self._event(f"mode {self.mode_name}: {why}")
                 self._statustext(_M.MAV_SEVERITY_INFO, f"Mode {self.mode_name}")
+                if self._is_rtl_mode():
+                    self._start_rtl()
+
+    def _is_rtl_mode(self) -> bool:
+        if self.px4:
+            return self.custom_mode == px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["rtl"])
+        return self.custom_mode == ARDUCOPTER_MODE["rtl"]
+
+    def _start_rtl(self) -> None:
+        """Activate the Return mode's state machine (only armed: disarmed it starts at arming,
+        which both autopilots refuse in this mode)."""
+        if not self.armed:
+            return
+        home = self._home if self._home is not None else self.model.p
+        landed = self.landed_state == _M.MAV_LANDED_STATE_ON_GROUND
+        t = self.clock()
+
+        def say(text: str) -> None:
+            self._statustext(_M.MAV_SEVERITY_INFO, text)
+
+        if self.px4:
+            amsl = None if self.c.global_origin is None else self.c.global_origin[2]
+            self._rtl = rtl.Px4Return(home, self.model.p, landed, t, self.params, self._event, say, amsl)
+        else:
+            self._rtl = rtl.ArduCopterReturn(home, self.model.p, landed, t, self.params, self._event, say)
+        self._event(f"rtl: return at {self._rtl.return_z_m:.2f} m (scene z)")
 
     # -- message handling -------------------------------------------------------------------
     def _for_me(self, target_system: int, target_component: int) -> bool:
@@ -968,6 +1029,8 @@ class SimMavlinkVehicle:
             return self._cmd_takeoff(float(z))
         if cmd == _M.MAV_CMD_NAV_LAND:
             return self._cmd_land()
+        if cmd == _M.MAV_CMD_NAV_RETURN_TO_LAUNCH:
+            return self._cmd_return_to_launch()
         if cmd == _M.MAV_CMD_DO_REPOSITION:
             if not is_int:
                 return _M.MAV_RESULT_DENIED  # lat/lon need COMMAND_INT's integer fields
@@ -1049,6 +1112,7 @@ class SimMavlinkVehicle:
                 self._statustext(_M.MAV_SEVERITY_CRITICAL, "Mode not available: no position estimate")
                 return _M.MAV_RESULT_TEMPORARILY_REJECTED
             if main == PX4_MAIN["auto"] and sub_i == PX4_AUTO_SUB["rtl"] and not self._px4_mode_available("rtl"):
+                self._statustext(_M.MAV_SEVERITY_CRITICAL, "Switching to Return is currently not available")
                 return _M.MAV_RESULT_TEMPORARILY_REJECTED
             if main in (PX4_MAIN["manual"], PX4_MAIN["altctl"], PX4_MAIN["stabilized"], PX4_MAIN["acro"], PX4_MAIN["posctl"]) and not self.c.rc_connected:
                 self._statustext(_M.MAV_SEVERITY_CRITICAL, "Mode not available: no manual control")
@@ -1061,8 +1125,29 @@ class SimMavlinkVehicle:
         if number in (ARDUCOPTER_MODE["guided"], ARDUCOPTER_MODE["loiter"], ARDUCOPTER_MODE["rtl"], ARDUCOPTER_MODE["auto"], ARDUCOPTER_MODE["brake"]) and not self._position_valid:
             self._statustext(_M.MAV_SEVERITY_CRITICAL, "Flight mode change failed: requires position")
             return _M.MAV_RESULT_FAILED
+        if number == ARDUCOPTER_MODE["rtl"] and self.armed and not self._ardu_home_set():
+            # ModeRTL::init: home_is_set (checked armed; Copter::set_mode ignores checks disarmed)
+            self._statustext(_M.MAV_SEVERITY_WARNING, "Mode change to RTL failed: init failed")
+            return _M.MAV_RESULT_FAILED
         self._set_mode(number, "commanded")
         return _M.MAV_RESULT_ACCEPTED
+
+    def _ardu_home_set(self) -> bool:
+        """ArduPilot's home is a location: set at arming only with a global position."""
+        return self._home is not None and self.c.global_origin is not None
+
+    def _cmd_return_to_launch(self) -> int:
+        """MAV_CMD_NAV_RETURN_TO_LAUNCH: a switch to the Return mode (PX4 Commander
+        ``VEHICLE_CMD_NAV_RETURN_TO_LAUNCH``: "Returning to launch" or TEMPORARILY_REJECTED with
+        ``printRejectMode``; ArduCopter ``GCS_Mavlink.cpp``: ``set_mode(RTL)`` or FAILED)."""
+        if self.px4:
+            if not self._px4_mode_available("rtl"):
+                self._statustext(_M.MAV_SEVERITY_CRITICAL, "Switching to Return is currently not available")
+                return _M.MAV_RESULT_TEMPORARILY_REJECTED
+            self._statustext(_M.MAV_SEVERITY_INFO, "Returning to launch")
+            self._set_mode(px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["rtl"]), "NAV_RETURN_TO_LAUNCH")
+            return _M.MAV_RESULT_ACCEPTED
+        return self._cmd_set_mode(float(_M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED), float(ARDUCOPTER_MODE["rtl"]), math.nan)
 
     def _cmd_takeoff(self, alt: float) -> int:
         m = self.model
