@@ -202,21 +202,29 @@ _ID = {
     "ATTITUDE": _M.MAVLINK_MSG_ID_ATTITUDE,
     "ATTITUDE_QUATERNION": _M.MAVLINK_MSG_ID_ATTITUDE_QUATERNION,
     "GLOBAL_POSITION_INT": _M.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
+    "GPS_RAW_INT": _M.MAVLINK_MSG_ID_GPS_RAW_INT,
     "HOME_POSITION": _M.MAVLINK_MSG_ID_HOME_POSITION,
     "SYSTEM_TIME": _M.MAVLINK_MSG_ID_SYSTEM_TIME,
     "BATTERY_STATUS": _M.MAVLINK_MSG_ID_BATTERY_STATUS,
     "AUTOPILOT_VERSION": _M.MAVLINK_MSG_ID_AUTOPILOT_VERSION,
 }
 
+#: Fixes per second of the model's GPS receiver (a model choice; PX4 forwards each fix).
+GPS_FIX_RATE_HZ = 5.0
+
 #: Default stream rates (Hz) until SET_MESSAGE_INTERVAL. PX4: ``mavlink_main.cpp``
 #: ``configure_streams_to_default`` onboard mode (the companion port); ArduPilot: the SRn_*
 #: stream-group defaults (EXT_STAT 2, EXTRA1 4, POSITION 2, EXTRA3 2 Hz). ``telemetry_rate_hz``
-#: of the config overrides the position and attitude rates.
+#: of the config overrides the position and attitude rates. GPS_RAW_INT: PX4's onboard mode
+#: sends every new fix (``unlimited_rate``; the model's receiver makes :data:`GPS_FIX_RATE_HZ`
+#: fixes a second); ArduPilot sends it in the EXT_STAT group (``STREAM_EXTENDED_STATUS_msgs``).
 DEFAULT_RATES_HZ = {
     "px4": {"SYS_STATUS": 5.0, "EXTENDED_SYS_STATE": 5.0, "LOCAL_POSITION_NED": 30.0, "ATTITUDE_QUATERNION": 50.0,
-            "GLOBAL_POSITION_INT": 50.0, "HOME_POSITION": 0.5, "SYSTEM_TIME": 1.0, "BATTERY_STATUS": 0.5},
+            "GLOBAL_POSITION_INT": 50.0, "HOME_POSITION": 0.5, "SYSTEM_TIME": 1.0, "BATTERY_STATUS": 0.5,
+            "GPS_RAW_INT": GPS_FIX_RATE_HZ},
     "ardupilot": {"SYS_STATUS": 2.0, "EXTENDED_SYS_STATE": 2.0, "LOCAL_POSITION_NED": 2.0, "ATTITUDE": 4.0,
-                  "GLOBAL_POSITION_INT": 2.0, "HOME_POSITION": 0.0, "SYSTEM_TIME": 2.0, "BATTERY_STATUS": 2.0},
+                  "GLOBAL_POSITION_INT": 2.0, "HOME_POSITION": 0.0, "SYSTEM_TIME": 2.0, "BATTERY_STATUS": 2.0,
+                  "GPS_RAW_INT": 2.0},
 }
 
 #: The two settings: a GPS-less indoor vehicle (vision position, no global origin, offboard
@@ -1317,6 +1325,8 @@ class SimMavlinkVehicle:
                 hdg = int(round(math.degrees(frames.yaw_ned_from_enu(m.yaw)) * 100)) % 36000
                 return mav.global_position_int_encode(self.time_boot_ms(), int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)),
                                                       int(round((m.p[2] - home[2]) * 1000)), *(int(round(x * 100)) for x in v_ned), hdg)
+            if msg_id == _M.MAVLINK_MSG_ID_GPS_RAW_INT:
+                return self._gps_raw_int()
             if msg_id == _M.MAVLINK_MSG_ID_HOME_POSITION:
                 if self._home is None:
                     return None
@@ -1334,6 +1344,24 @@ class SimMavlinkVehicle:
                 version = _flight_sw_version(1, 15, 0) if self.px4 else _flight_sw_version(4, 5, 0)
                 return mav.autopilot_version_encode(caps, version, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, 0x5EED0000 + self.c.system_id)
             return None
+
+    def _gps_raw_int(self):
+        """GPS_RAW_INT of the model's receiver (outdoor only): a 3D fix with 12 satellites, lat/lon
+        degE7, alt mm AMSL, eph/epv the DOPs x 100 (MAVLink: HDOP 0.8, VDOP 1.2), h_acc/v_acc/vel_acc
+        in mm and mm/s, vel cm/s and cog cdeg over ground (cog unknown, UINT16_MAX, below 0.1 m/s).
+        Without a position estimate: no fix. alt_ellipsoid is not modelled (0)."""
+        if self.c.global_origin is None:
+            return None
+        m = self.model
+        t_us = self.time_boot_ms() * 1000
+        if not self._position_valid:
+            return self.link.mav.gps_raw_int_encode(t_us, _M.GPS_FIX_TYPE_NO_FIX, 0, 0, 0, 65535, 65535, 65535, 65535, 0)
+        lat, lon, alt = self._global_from_scene(m.p)
+        speed = float(np.hypot(m.v[0], m.v[1]))
+        cog = 65535 if speed < 0.1 else int(round(math.degrees(math.atan2(m.v[0], m.v[1])) * 100)) % 36000  # from north, clockwise
+        return self.link.mav.gps_raw_int_encode(t_us, _M.GPS_FIX_TYPE_3D_FIX, int(round(lat * 1e7)), int(round(lon * 1e7)),
+                                                int(round(alt * 1000)), 80, 120, int(round(speed * 100)), cog, 12,
+                                                0, 1200, 1800, 250, 0)
 
     def _battery_fraction(self) -> float:
         """Remaining charge: a linear drain over ``battery_capacity_s`` of wall time (a model,
