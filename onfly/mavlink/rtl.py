@@ -7,6 +7,9 @@ metres (z up), home is the arming position, parameters are read live from the ve
 
 PX4 (``src/modules/navigator/rtl.cpp`` and ``rtl_direct.cpp``, RTL_TYPE 0: straight home)
 ------------------------------------------------------------------------------------------
+Multicopter defaults (ROMFS ``rc.mc_defaults`` over ``rtl_params.yaml``): RTL_RETURN_ALT 30 m,
+RTL_DESCEND_ALT 10 m, NAV_ACC_RAD 2 m; RTL_LAND_DELAY 0 s, RTL_MIN_DIST 10 m, RTL_CONE_ANG 45.
+
 - Return altitude (``RTL::computeReturnAltitude``, multicopter with RTL_CONE_ANG > 0): start
   from ``home + RTL_RETURN_ALT``; within NAV_ACC_RAD of home ``home + 2 d``; else within
   RTL_MIN_DIST the cone ``home + d / tan(RTL_CONE_ANG)`` if lower, and never below

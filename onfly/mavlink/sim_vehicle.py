@@ -164,16 +164,18 @@ PX4_PARAMS = {
     "MPC_TKO_SPEED": (1.5, _R32),
     "MPC_LAND_SPEED": (0.7, _R32),
     # Return mode (navigator rtl_params.yaml) and the speeds and acceptance radii it flies with
-    # (mc_pos_control multicopter_autonomous_params.c, navigator_params.c)
-    "RTL_RETURN_ALT": (60.0, _R32),
-    "RTL_DESCEND_ALT": (30.0, _R32),
+    # (mc_pos_control multicopter_autonomous_params.c, navigator_params.c); a multicopter boots
+    # with ROMFS rc.mc_defaults over them: RTL_RETURN_ALT 30 (not 60), RTL_DESCEND_ALT 10 (not
+    # 30), NAV_ACC_RAD 2 (not 10)
+    "RTL_RETURN_ALT": (30.0, _R32),
+    "RTL_DESCEND_ALT": (10.0, _R32),
     "RTL_LAND_DELAY": (0.0, _R32),
     "RTL_MIN_DIST": (10.0, _R32),
     "RTL_CONE_ANG": (45, _I32),
     "MPC_XY_CRUISE": (5.0, _R32),
     "MPC_Z_V_AUTO_UP": (3.0, _R32),
     "MPC_Z_V_AUTO_DN": (1.5, _R32),
-    "NAV_ACC_RAD": (10.0, _R32),
+    "NAV_ACC_RAD": (2.0, _R32),
     "NAV_MC_ALT_RAD": (0.8, _R32),
 }
 #: ArduCopter parameters: name -> (default, MAV_PARAM_TYPE); units as ArduPilot's (cm/s, s).
