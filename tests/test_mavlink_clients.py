@@ -240,3 +240,53 @@ def test_pymavlink_mavproxy_style_ardupilot_guided_flight():
         assert mp.long(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_FAILED
     finally:
         v.stop()
+
+
+def test_mavsdk_px4_return_to_launch_climbs_comes_home_lands_and_gps_has_a_3d_fix(px4_outdoor):
+    from mavsdk.plugins.telemetry.telemetry import FixType
+
+    rig = px4_outdoor
+    act, tel, v = rig.action, rig.telemetry, rig.vehicle
+    wait_until(lambda: tel.health().is_armable, 5.0, "health.is_armable")
+    wait_until(lambda: tel.gps_info().fix_type == FixType.FIX_3D, 5.0, "GPS_RAW_INT 3D fix")  # outdoor: GPS streams
+    assert tel.gps_info().num_satellites >= 6
+    raw = tel.raw_gps()
+    assert raw.latitude_deg == pytest.approx(47.397742, abs=1e-6) and raw.absolute_altitude_m == pytest.approx(488.0, abs=0.01)
+    assert Param(rig.system).get_param_float("RTL_RETURN_ALT") == pytest.approx(30.0)  # PX4 multicopter default
+    act.set_return_to_launch_altitude(4.0)  # PARAM_SET RTL_RETURN_ALT: a short test, not a 60 m climb
+    assert v.params["RTL_RETURN_ALT"] == pytest.approx(4.0)
+    act.set_takeoff_altitude(2.0)
+
+    act.arm()
+    act.takeoff()
+    wait_until(lambda: v.mode_name == "auto.loiter" and tel.in_air(), 15.0, "take-off complete")
+    p = tel.position()
+    dlat = math.degrees(6.0 / EARTH_RADIUS_M)
+    dlon = math.degrees(4.0 / (EARTH_RADIUS_M * math.cos(math.radians(p.latitude_deg))))
+    act.goto_location(p.latitude_deg + dlat, p.longitude_deg + dlon, p.absolute_altitude_m, 0.0)
+    wait_until(lambda: np.linalg.norm(v.position_enu()[:2] - [4.0, 6.0]) < 0.2, 15.0, "goto target reached")
+    assert v.position_enu()[2] == pytest.approx(2.0, abs=0.1)
+
+    act.return_to_launch()  # MAV_CMD_NAV_RETURN_TO_LAUNCH
+    assert v.mode_name == "auto.rtl"
+    wait_until(lambda: tel.flight_mode() == FlightMode.RETURN_TO_LAUNCH, 3.0, "client sees RETURN_TO_LAUNCH")
+    track = []  # (scene position) while returning
+    deadline = time.monotonic() + 40.0
+    while v.armed and time.monotonic() < deadline:
+        track.append(v.position_enu())
+        time.sleep(0.02)
+    assert not v.armed, "still armed 40 s after RTL"
+    track = np.array(track)
+    # climbed to RTL_RETURN_ALT above home before coming home (7.2 m away, inside RTL_MIN_DIST:
+    # the 45 degree cone allows 7.2 m, RTL_RETURN_ALT caps it), then came back and landed on home
+    top = int(np.argmax(track[:, 2]))
+    assert track[top, 2] == pytest.approx(4.0, abs=0.15)
+    # the climb came first, straight up over the goto point, until within NAV_MC_ALT_RAD (0.8 m)
+    climbed = int(np.argmax(track[:, 2] >= 4.0 - 0.9))
+    assert np.linalg.norm(track[climbed, :2] - [4.0, 6.0]) < 0.3
+    assert np.linalg.norm(v.position_enu()[:2]) < 0.15 and v.position_enu()[2] == pytest.approx(0.0, abs=0.02)
+    texts = [text for _, text in v.statustexts]
+    assert v.first_event("mode auto.rtl: commanded") is not None  # MAVSDK sends PX4 a DO_SET_MODE for it
+    assert "RTL: land at destination" in texts
+    assert any(t.startswith("RTL: start return at 492 m (4 m above destination)") for t in texts)
+    wait_until(lambda: tel.landed_state() == LandedState.ON_GROUND and not tel.armed(), 3.0, "client sees landed, disarmed")
