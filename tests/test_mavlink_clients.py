@@ -290,3 +290,56 @@ def test_mavsdk_px4_return_to_launch_climbs_comes_home_lands_and_gps_has_a_3d_fi
     assert "RTL: land at destination" in texts
     assert any(t.startswith("RTL: start return at 492 m (4 m above destination)") for t in texts)
     wait_until(lambda: tel.landed_state() == LandedState.ON_GROUND and not tel.armed(), 3.0, "client sees landed, disarmed")
+
+
+def test_pymavlink_mavproxy_style_ardupilot_mode_rtl_climbs_returns_loiters_lands_and_disarms():
+    port = free_udp_port()
+    v = SimMavlinkVehicle(MavlinkLink(f"udpout:127.0.0.1:{port}", 1, 1), SimVehicleConfig(autopilot="ardupilot", profile="outdoor")).start()
+    try:
+        mp = MavproxyStyle(port)
+        # `param set` (C-cast integers): a low RTL_ALT, a short loiter and a quick final landing keep the test short
+        for name, value, ptype in (("RTL_ALT", 600, M.MAV_PARAM_TYPE_INT32), ("RTL_LOIT_TIME", 1000, M.MAV_PARAM_TYPE_INT32),
+                                   ("LAND_SPEED", 150, M.MAV_PARAM_TYPE_INT16)):
+            mp.drain()
+            mp.m.mav.param_set_send(1, 1, name.encode(), float(value), ptype)
+            echo = mp.m.recv_match(type="PARAM_VALUE", blocking=True, timeout=3, condition=f"PARAM_VALUE.param_id=='{name}'")
+            assert echo is not None and echo.param_value == value and v.params[name] == value
+        assert mp.mode("GUIDED") == M.MAV_RESULT_ACCEPTED
+        assert mp.long(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+        assert mp.long(M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 2.0) == M.MAV_RESULT_ACCEPTED
+        wait_until(lambda: v.position_enu()[2] > 1.9, 10.0, "take-off to 2 m")
+        gp = mp.m.recv_match(type="GLOBAL_POSITION_INT", blocking=True, timeout=3)
+        lat = gp.lat + int(round(math.degrees(5.0 / EARTH_RADIUS_M) * 1e7))
+        mp.drain()
+        mp.m.mav.command_int_send(1, 1, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, M.MAV_CMD_DO_REPOSITION, 0, 0,
+                                  -1, M.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, math.nan, lat, gp.lon, 3.0)
+        assert mp.ack(M.MAV_CMD_DO_REPOSITION) == M.MAV_RESULT_ACCEPTED
+        wait_until(lambda: np.linalg.norm(v.position_enu() - [0.0, 5.0, 3.0]) < 0.15, 15.0, "guided target")
+        mp.drain()
+        gps = mp.latest("GPS_RAW_INT", lambda m: True)  # EXT_STAT group
+        assert gps.fix_type == M.GPS_FIX_TYPE_3D_FIX and gps.satellites_visible > 0 and abs(gps.lat - lat) < 20
+
+        assert mp.mode("RTL") == M.MAV_RESULT_ACCEPTED  # `mode RTL`
+        track, landing_seen = [], False
+        deadline = time.monotonic() + 40.0
+        while v.armed and time.monotonic() < deadline:
+            track.append(v.position_enu())
+            for m in iter(lambda: mp.m.recv_match(blocking=False), None):  # read as MAVProxy does
+                landing_seen |= m.get_type() == "EXTENDED_SYS_STATE" and m.landed_state == M.MAV_LANDED_STATE_LANDING
+            time.sleep(0.02)
+        assert not v.armed, "still armed 40 s after RTL"
+        track = np.array(track)
+        # RTL_ALT 6 m > 3 m + RTL_CLIMB_MIN: climbed over the stopping point (to within WPNAV_RADIUS, 2 m) first
+        climbed = int(np.argmax(track[:, 2] >= 6.0 - 2.05))
+        assert np.linalg.norm(track[climbed, :2] - [0.0, 5.0]) < 0.3
+        assert track[:, 2].max() == pytest.approx(6.0, abs=0.15)
+        assert np.linalg.norm(v.position_enu()[:2]) < 0.15 and v.position_enu()[2] == pytest.approx(0.0, abs=0.02)
+        events = [e for _, e in v.events]
+        assert [e for e in events if e.startswith("rtl: ") and " at " not in e] == ["rtl: climb", "rtl: return", "rtl: loiter", "rtl: land"]
+        assert v.first_event("disarmed: landed") - v.first_event("landed") < 0.1  # at once, as in LAND (land_run)
+        loiter_s = v.first_event("rtl: land") - v.first_event("rtl: loiter")
+        assert 1.0 <= loiter_s <= 1.2  # RTL_LOIT_TIME
+        assert landing_seen
+        mp.latest("HEARTBEAT", lambda m: m.custom_mode == 6 and not m.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED)
+    finally:
+        v.stop()
