@@ -482,3 +482,141 @@ def test_px4_takeoff_accepted_disarmed_climbs_once_armed_to_mis_takeoff_alt():
     finally:
         c.stop()
         v.stop()
+
+
+# -- Return mode (onfly/mavlink/rtl.py) -------------------------------------------------------
+def test_return_altitude_rules_px4_cone_and_arducopter_climb_min_and_cone():
+    from onfly.mavlink.rtl import ardu_return_altitude_cm, px4_return_altitude
+    from onfly.mavlink.sim_vehicle import ARDUPILOT_PARAMS, PX4_PARAMS
+
+    px4 = {k: v for k, (v, _) in PX4_PARAMS.items()}  # RTL_RETURN_ALT 30, cone 45, RTL_MIN_DIST 10, NAV_ACC_RAD 2
+    home = np.zeros(3)
+    assert px4_return_altitude([50.0, 0.0, 5.0], home, px4) == 30.0  # far: RTL_RETURN_ALT above home
+    assert px4_return_altitude([50.0, 0.0, 40.0], home, px4) == 40.0  # above it: returns at its altitude
+    assert px4_return_altitude([1.5, 0.0, 1.0], home, px4) == 3.0  # inside NAV_ACC_RAD: 2 x distance
+    assert px4_return_altitude([6.0, 0.0, 1.0], home, px4) == pytest.approx(6.0)  # inside RTL_MIN_DIST: the 45 deg cone
+    assert px4_return_altitude([3.0, 0.0, 1.0], home, px4) == pytest.approx(4.0)  # never below 2 x NAV_ACC_RAD outside it
+    assert px4_return_altitude([0.0, 0.0, 1.0], home, dict(px4, RTL_CONE_ANG=0)) == 30.0  # no cone
+    ardu = {k: v for k, (v, _) in ARDUPILOT_PARAMS.items()}  # RTL_ALT 1500 cm, RTL_CONE_SLOPE 3
+    assert ardu_return_altitude_cm([100.0, 0.0, 2.0], home, ardu) == 1500.0
+    assert ardu_return_altitude_cm([100.0, 0.0, 2.0], home, dict(ardu, RTL_CLIMB_MIN=2000)) == pytest.approx(2200.0)
+    assert ardu_return_altitude_cm([2.0, 0.0, 2.0], home, ardu) == pytest.approx(600.0)  # cone: 2 m x 3
+    assert ardu_return_altitude_cm([0.0, 0.0, 2.0], home, ardu) == pytest.approx(200.0)  # never descends
+    assert ardu_return_altitude_cm([0.0, 0.0, 0.1], home, ardu) == pytest.approx(30.0)  # RTL_ALT_MIN
+
+
+def test_return_refused_without_global_position_and_no_gps_indoors():
+    c, v = rig(autopilot="px4", params=(("MIS_TAKEOFF_ALT", 1.0),))  # indoor: vision, no global origin
+    try:
+        nan = float("nan")
+        assert c.command(M.MAV_CMD_NAV_TAKEOFF, nan, nan, nan, nan, nan, nan, nan) == M.MAV_RESULT_ACCEPTED
+        assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+        assert _wait(lambda: v.mode_name == "auto.loiter", 4.0)
+        assert c.command(M.MAV_CMD_NAV_RETURN_TO_LAUNCH) == M.MAV_RESULT_TEMPORARILY_REJECTED
+        assert c.command(M.MAV_CMD_DO_SET_MODE, 1, PX4_MAIN["auto"], 5) == M.MAV_RESULT_TEMPORARILY_REJECTED  # AUTO.RTL
+        assert v.mode_name == "auto.loiter" and v.armed
+        assert [t for _, t in v.statustexts].count("Switching to Return is currently not available") == 2
+        assert not c.of_type("GPS_RAW_INT") and c.of_type("LOCAL_POSITION_NED")  # no GPS indoors
+    finally:
+        c.stop()
+        v.stop()
+    c, v = rig(autopilot="ardupilot")  # indoor ArduCopter: home needs a location, RTL's init fails armed
+    try:
+        assert c.command(M.MAV_CMD_DO_SET_MODE, 1, ARDUCOPTER_MODE["guided"]) == M.MAV_RESULT_ACCEPTED
+        assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+        assert c.command(M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 1.0) == M.MAV_RESULT_ACCEPTED
+        assert c.command(M.MAV_CMD_NAV_RETURN_TO_LAUNCH) == M.MAV_RESULT_FAILED
+        assert v.mode_name == "guided" and "Mode change to RTL failed: init failed" in [t for _, t in v.statustexts]
+    finally:
+        c.stop()
+        v.stop()
+
+
+def test_px4_offboard_loss_with_return_outdoors_flies_home_and_lands():
+    c, v = rig(autopilot="px4", profile="outdoor", params=(("COM_OBL_RC_ACT", 3), ("RTL_RETURN_ALT", 2.5),
+                                                           ("LNDMC_TRIG_TIME", 0.3), ("COM_DISARM_LAND", 0.3)))
+    try:
+        c.setpoint([3.0, 0.0, 1.5])
+        assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+        assert c.command(M.MAV_CMD_DO_SET_MODE, 1, PX4_MAIN["offboard"]) == M.MAV_RESULT_ACCEPTED
+        c.stream([3.0, 0.0, 1.5], 2.5)
+        np.testing.assert_allclose(v.position_enu(), [3.0, 0.0, 1.5], atol=0.1)
+        # the stream stops: COM_OF_LOSS_T later COM_OBL_RC_ACT = 3 (Return), available outdoors
+        assert _wait(lambda: v.mode_name == "auto.rtl", 1.0)
+        zs = []
+        assert _wait(lambda: zs.append(v.position_enu()[2]) or not v.armed, 12.0), v.events
+        assert max(zs) == pytest.approx(2.5, abs=0.1)  # 3 m from home: the cone allows 3 m, RTL_RETURN_ALT caps it
+        assert np.linalg.norm(v.position_enu()[:2]) < 0.1 and v.position_enu()[2] == 0.0
+        assert [e for _, e in v.events if e in ("rtl: climb", "rtl: return", "rtl: land", "rtl: idle")] == \
+            ["rtl: climb", "rtl: return", "rtl: land", "rtl: idle"]
+    finally:
+        c.stop()
+        v.stop()
+
+
+def test_px4_return_land_delay_descends_holds_then_lands_and_a_mode_change_stops_it():
+    params = (("MIS_TAKEOFF_ALT", 1.0), ("RTL_CONE_ANG", 0), ("RTL_RETURN_ALT", 3.0), ("RTL_DESCEND_ALT", 2.0),
+              ("RTL_LAND_DELAY", 0.5), ("NAV_MC_ALT_RAD", 0.1), ("LNDMC_TRIG_TIME", 0.3), ("COM_DISARM_LAND", 0.3))
+    c, v = rig(autopilot="px4", profile="outdoor", params=params)
+    try:
+        nan = float("nan")
+        assert c.command(M.MAV_CMD_NAV_TAKEOFF, nan, nan, nan, nan, nan, nan, nan) == M.MAV_RESULT_ACCEPTED
+        assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+        assert _wait(lambda: v.mode_name == "auto.loiter", 4.0)
+        assert c.command(M.MAV_CMD_NAV_RETURN_TO_LAUNCH) == M.MAV_RESULT_ACCEPTED
+        zs = []
+        assert _wait(lambda: zs.append(v.position_enu()[2]) or not v.armed, 12.0), v.events
+        phases = [(t, e) for t, e in v.events if e.startswith("rtl: ") and " at " not in e]
+        assert [e for _, e in phases] == ["rtl: climb", "rtl: return", "rtl: descend", "rtl: hold", "rtl: land", "rtl: idle"]
+        times = dict((e, t) for t, e in phases)
+        assert 0.5 <= times["rtl: land"] - times["rtl: hold"] <= 0.6  # RTL_LAND_DELAY
+        assert max(zs) == pytest.approx(3.0, abs=0.1)  # RTL_RETURN_ALT (no cone)
+        texts = [t for _, t in v.statustexts]
+        assert "Returning to launch" in texts and "RTL: start return at 491 m (3 m above destination)" in texts
+    finally:
+        c.stop()
+        v.stop()
+    c, v = rig(autopilot="px4", profile="outdoor", params=(("MIS_TAKEOFF_ALT", 1.0), ("RTL_CONE_ANG", 0), ("RTL_RETURN_ALT", 30.0)))
+    try:
+        nan = float("nan")
+        assert c.command(M.MAV_CMD_NAV_TAKEOFF, nan, nan, nan, nan, nan, nan, nan) == M.MAV_RESULT_ACCEPTED
+        assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+        assert _wait(lambda: v.mode_name == "auto.loiter", 4.0)
+        assert c.command(M.MAV_CMD_NAV_RETURN_TO_LAUNCH) == M.MAV_RESULT_ACCEPTED
+        assert _wait(lambda: v.position_enu()[2] > 2.0, 3.0)  # climbing toward 30 m
+        assert c.command(M.MAV_CMD_DO_SET_MODE, 1, PX4_MAIN["auto"], 3) == M.MAV_RESULT_ACCEPTED  # Hold
+        time.sleep(1.5)  # Hold brakes and settles on where the switch happened
+        z = v.position_enu()[2]
+        time.sleep(0.5)
+        assert v.mode_name == "auto.loiter" and abs(v.position_enu()[2] - z) < 0.05 and z < 4.5  # the climb stopped
+        assert not [e for t, e in v.events if e.startswith("rtl: ") and t > v.first_event("mode auto.loiter: commanded")]
+    finally:
+        c.stop()
+        v.stop()
+
+
+def test_return_climb_into_a_ceiling_is_a_crash_in_the_embedded_world():
+    """Indoors under a 3.5 m ceiling (the corridor scene) with a GPS origin: Return climbs to
+    RTL_RETURN_ALT as PX4 does, whatever is above, and the world's vehicle hits the ceiling
+    (the sim is not kinder than reality: a real RTL indoors does the same)."""
+    from onfly.mavlink.sim_world import WorldVehicleModel
+
+    model = WorldVehicleModel.from_scene("corridor", position_m=[6.0, 0.0, 1.5], yaw_rad=0.0)
+    assert model.ground_z_m == pytest.approx(0.0, abs=1e-6)
+    a, b = memory_link_pair(1, 191, 1, 1)
+    params = (("MIS_TAKEOFF_ALT", 1.0), ("RTL_CONE_ANG", 0), ("RTL_RETURN_ALT", 5.0))
+    v = SimMavlinkVehicle(b, SimVehicleConfig(heartbeat_period_s=0.2, profile="outdoor", params=params), model=model).start()
+    c = Companion(a)
+    try:
+        nan = float("nan")
+        assert c.command(M.MAV_CMD_NAV_TAKEOFF, nan, nan, nan, nan, nan, nan, nan) == M.MAV_RESULT_ACCEPTED
+        assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+        assert _wait(lambda: v.mode_name == "auto.loiter", 10.0)  # the world's vehicle climbs at 0.6 m/s
+        assert c.command(M.MAV_CMD_NAV_RETURN_TO_LAUNCH) == M.MAV_RESULT_ACCEPTED
+        assert _wait(lambda: not v.armed, 15.0), v.events
+        assert model.collision is not None and model.collision.object_name == "ceiling"
+        assert 3.0 < model.p[2] < 3.5  # stopped under the ceiling's underside (3.5 m), body radius 0.25 m
+        assert v.first_event("disarmed: crashed into 'ceiling'") is not None
+    finally:
+        c.stop()
+        v.stop()
