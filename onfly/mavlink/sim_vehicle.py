@@ -32,6 +32,13 @@ treat NaN as "unchanged / default"). Unknown commands answer UNSUPPORTED.
   position target is ignored until the take-off completes (``mode_guided.cpp``
   ``takeoff_run``); while landed, targets are ignored (the guided run functions' ground
   handling when ``land_complete``).
+- NAV_RETURN_TO_LAUNCH: a switch to the Return mode (below). PX4 Commander
+  ``VEHICLE_CMD_NAV_RETURN_TO_LAUNCH``: "Returning to launch", or TEMPORARILY_REJECTED with
+  "Switching to Return is currently not available" (``printRejectMode``) without a global
+  position and home (docs.px4.io flight_modes_mc/return); ArduCopter ``GCS_Mavlink.cpp``:
+  ``set_mode(RTL)`` or FAILED, armed without home "Mode change to RTL failed: init failed"
+  (``ModeRTL::init`` ``home_is_set``; home is a location, so none without a global origin).
+  MAVSDK's ``action.return_to_launch()`` sends PX4 a DO_SET_MODE to AUTO.RTL instead.
 - NAV_LAND: PX4 AUTO.LAND, ArduCopter LAND (both: land where the vehicle is;
   docs.px4.io flight_modes_mc/land "The mode can be triggered using the MAV_CMD_NAV_LAND";
   ArduCopter ``GCS_Mavlink.cpp`` sets LAND).
@@ -51,8 +58,26 @@ The few parameters a companion reads or sets, with the autopilots' defaults
 the float field, ArduPilot casts them (AUTOPILOT_VERSION's MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_*
 bit says which; mavlink.io/en/services/parameter.html). The rules read them live:
 COM_OF_LOSS_T, COM_OBL_RC_ACT, COM_DISARM_PRFLT, COM_DISARM_LAND, MIS_TAKEOFF_ALT,
-MPC_TKO_SPEED, MPC_LAND_SPEED (PX4); GUID_TIMEOUT, DISARM_DELAY, LAND_SPEED, WPNAV_SPEED_UP
-(ArduCopter).
+MPC_TKO_SPEED, MPC_LAND_SPEED and the Return mode's RTL_RETURN_ALT, RTL_DESCEND_ALT,
+RTL_LAND_DELAY, RTL_MIN_DIST, RTL_CONE_ANG, MPC_XY_CRUISE, MPC_Z_V_AUTO_UP/DN, NAV_ACC_RAD,
+NAV_MC_ALT_RAD (PX4; a multicopter's ROMFS ``rc.mc_defaults`` values: RTL_RETURN_ALT 30,
+RTL_DESCEND_ALT 10, NAV_ACC_RAD 2); GUID_TIMEOUT, DISARM_DELAY, LAND_SPEED, WPNAV_SPEED_UP and
+RTL_ALT, RTL_CLIMB_MIN, RTL_SPEED, RTL_LOIT_TIME, RTL_ALT_FINAL, RTL_CONE_SLOPE, WPNAV_SPEED,
+WPNAV_SPEED_DN, WPNAV_RADIUS (ArduCopter).
+
+Return mode (PX4 AUTO.RTL, ArduCopter RTL)
+------------------------------------------
+Flown by :mod:`onfly.mavlink.rtl` (each rule cited there), entered by DO_SET_MODE, SET_MODE,
+NAV_RETURN_TO_LAUNCH or PX4's COM_OBL_RC_ACT = 3, stopped by any mode change. PX4 (``rtl.cpp``,
+``rtl_direct.cpp``): climb to the return altitude (RTL_RETURN_ALT above home, lowered near home
+by the RTL_CONE_ANG cone, never a descent) at MPC_Z_V_AUTO_UP, fly home at MPC_XY_CRUISE, then
+land at once (RTL_LAND_DELAY 0) or descend to RTL_DESCEND_ALT, wait RTL_LAND_DELAY (-1: for
+ever) and land; the land detector and COM_DISARM_LAND disarm. ArduCopter (``mode_rtl.cpp``):
+climb to max(RTL_ALT, current + RTL_CLIMB_MIN) (cm; capped by the RTL_CONE_SLOPE cone) at
+WPNAV_SPEED_UP, return at RTL_SPEED (0: WPNAV_SPEED), loiter RTL_LOIT_TIME, then land (disarming
+at touchdown) or, RTL_ALT_FINAL > 0, descend to it and hover. Landed when entered: nothing
+moves. EXTENDED_SYS_STATE says LANDING in the land phase. The climb ignores what is above: in
+the embedded world a ceiling below the return altitude is a crash.
 
 Arming and disarming
 --------------------
@@ -74,7 +99,8 @@ Companion loss
 - PX4 OFFBOARD: no setpoint for COM_OF_LOSS_T (1 s) -> the COM_OBL_RC_ACT action (0 Position,
   1 Altitude, 2 Manual, 3 Return, 4 Land, 5 Hold, 6 Terminate, 7 Disarm; PX4 parameter
   reference). Position/Altitude/Manual need an RC link (``rc_connected``), Position and
-  Hold a position estimate, Return a global origin and home; an action that cannot run
+  Hold a position estimate, Return a global origin and home (and then flies the Return mode
+  home); an action that cannot run
   falls back to Hold, then to Land, then to Descend (PX4 ``failsafe.cpp`` mode fallback).
 - ArduCopter GUIDED: GUID_TIMEOUT (3 s) applies only to velocity and acceleration targets: a
   velocity (or acceleration) target not refreshed stops the vehicle (velocity zero), a
@@ -101,9 +127,12 @@ HOME_POSITION carry lat/lon (PX4 ``lib/geo`` azimuthal-equidistant projection, e
 6371 km). Streams at the autopilot's default rates until SET_MESSAGE_INTERVAL
 (:data:`DEFAULT_RATES_HZ`): HEARTBEAT, SYS_STATUS (sensor and pre-arm health, battery),
 EXTENDED_SYS_STATE (landed state), LOCAL_POSITION_NED, ATTITUDE_QUATERNION (PX4) / ATTITUDE
-(ArduPilot), GLOBAL_POSITION_INT and HOME_POSITION (with a global origin; HOME_POSITION
+(ArduPilot), GLOBAL_POSITION_INT, GPS_RAW_INT and HOME_POSITION (with a global origin; HOME_POSITION
 also without, lat/lon 0, once home is set at arming), SYSTEM_TIME, BATTERY_STATUS; STATUSTEXT on
-events; AUTOPILOT_VERSION on request.
+events; AUTOPILOT_VERSION on request. GPS_RAW_INT (outdoor only): PX4's onboard mode forwards
+every fix (``mavlink_main.cpp`` ``unlimited_rate``; the model makes 5 a second), ArduPilot sends
+it in the EXT_STAT group (``STREAM_EXTENDED_STATUS_msgs``, 2 Hz); 3D fix, 12 satellites, degE7,
+mm AMSL, eph/epv = HDOP/VDOP x 100 (MAVLink), h_acc/v_acc mm, vel cm/s, cog cdeg.
 
 Dynamics: :class:`PointMassModel` (default) or the embedded world's
 :class:`~onfly.mavlink.sim_world.WorldVehicleModel` (``model=``, exact collisions; a crash
