@@ -129,6 +129,7 @@ import numpy as np
 from onfly.mavlink import frames
 from onfly.mavlink.autopilot import ARDUCOPTER_MODE, PX4_AUTO_SUB, PX4_MAIN, px4_custom_mode, px4_main_mode
 from onfly.mavlink.link import Link, LinkError, mavlink2
+from onfly.mavlink.mission import MissionManager
 from planning.frames import wrap_angle
 
 __all__ = [
@@ -184,6 +185,7 @@ _ID = {
     "SYSTEM_TIME": _M.MAVLINK_MSG_ID_SYSTEM_TIME,
     "BATTERY_STATUS": _M.MAVLINK_MSG_ID_BATTERY_STATUS,
     "AUTOPILOT_VERSION": _M.MAVLINK_MSG_ID_AUTOPILOT_VERSION,
+    "MISSION_CURRENT": _M.MAVLINK_MSG_ID_MISSION_CURRENT,
 }
 
 #: Default stream rates (Hz) until SET_MESSAGE_INTERVAL. PX4: ``mavlink_main.cpp``
@@ -194,7 +196,8 @@ DEFAULT_RATES_HZ = {
     "px4": {"SYS_STATUS": 5.0, "EXTENDED_SYS_STATE": 5.0, "LOCAL_POSITION_NED": 30.0, "ATTITUDE_QUATERNION": 50.0,
             "GLOBAL_POSITION_INT": 50.0, "HOME_POSITION": 0.5, "SYSTEM_TIME": 1.0, "BATTERY_STATUS": 0.5},
     "ardupilot": {"SYS_STATUS": 2.0, "EXTENDED_SYS_STATE": 2.0, "LOCAL_POSITION_NED": 2.0, "ATTITUDE": 4.0,
-                  "GLOBAL_POSITION_INT": 2.0, "HOME_POSITION": 0.0, "SYSTEM_TIME": 2.0, "BATTERY_STATUS": 2.0},
+                  "GLOBAL_POSITION_INT": 2.0, "HOME_POSITION": 0.0, "SYSTEM_TIME": 2.0, "BATTERY_STATUS": 2.0,
+                  "MISSION_CURRENT": 2.0},
 }
 
 #: The two settings: a GPS-less indoor vehicle (vision position, no global origin, offboard
@@ -478,6 +481,7 @@ class SimMavlinkVehicle:
             self._default_rates[_ID[name]] = rate
         self._rates_hz = dict(self._default_rates)
         self._next_send: dict[int, float] = {}
+        self.mission = MissionManager(self)  # mission protocol and AUTO flight (onfly/mavlink/mission.py)
 
     # -- lifecycle --------------------------------------------------------------------------
     def start(self) -> "SimMavlinkVehicle":
@@ -656,6 +660,7 @@ class SimMavlinkVehicle:
     def _physics(self, dt: float, t: float) -> None:
         with self._lock:
             self._apply_rules(t)
+            self.mission.step(t)
             self.model.step(dt, self._target, self.armed)
             if self.armed and getattr(self.model, "crashed", False):
                 hit = getattr(self.model, "collision", None)
@@ -826,6 +831,8 @@ class SimMavlinkVehicle:
 
     def _handle(self, msg) -> None:
         mtype = msg.get_type()
+        if mtype.startswith("MISSION_") and self.mission.handle(msg):
+            return
         if mtype == "SET_POSITION_TARGET_LOCAL_NED":
             self._on_setpoint(msg)
         elif mtype in ("COMMAND_LONG", "COMMAND_INT"):
@@ -833,7 +840,9 @@ class SimMavlinkVehicle:
                 return
             with self._lock:
                 self._pending = []
-                result = self._on_command(msg, mtype == "COMMAND_INT")
+                result = self.mission.on_command(int(msg.command), [msg.param1, msg.param2, msg.param3, msg.param4])
+                if result is None:
+                    result = self._on_command(msg, mtype == "COMMAND_INT")
                 pending, self._pending = self._pending, []
             self._send(self.link.mav.command_ack_encode(msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
             for m in pending:
@@ -1053,6 +1062,9 @@ class SimMavlinkVehicle:
             if main in (PX4_MAIN["manual"], PX4_MAIN["altctl"], PX4_MAIN["stabilized"], PX4_MAIN["acro"], PX4_MAIN["posctl"]) and not self.c.rc_connected:
                 self._statustext(_M.MAV_SEVERITY_CRITICAL, "Mode not available: no manual control")
                 return _M.MAV_RESULT_TEMPORARILY_REJECTED
+            refused = self.mission.refuse_mode(px4_custom_mode(main, sub_i if main == PX4_MAIN["auto"] else 0))
+            if refused is not None:
+                return refused
             self._set_mode(px4_custom_mode(main, sub_i if main == PX4_MAIN["auto"] else 0), "commanded")
             return _M.MAV_RESULT_ACCEPTED
         number = int(mode)
@@ -1061,6 +1073,9 @@ class SimMavlinkVehicle:
         if number in (ARDUCOPTER_MODE["guided"], ARDUCOPTER_MODE["loiter"], ARDUCOPTER_MODE["rtl"], ARDUCOPTER_MODE["auto"], ARDUCOPTER_MODE["brake"]) and not self._position_valid:
             self._statustext(_M.MAV_SEVERITY_CRITICAL, "Flight mode change failed: requires position")
             return _M.MAV_RESULT_FAILED
+        refused = self.mission.refuse_mode(number)
+        if refused is not None:
+            return refused
         self._set_mode(number, "commanded")
         return _M.MAV_RESULT_ACCEPTED
 
@@ -1241,11 +1256,14 @@ class SimMavlinkVehicle:
                 h_ned = frames.ned_from_enu(self.local_from_scene(self._home))
                 return mav.home_position_encode(int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)), *h_ned,
                                                 [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, int(time.time() * 1e6))
+            if msg_id == _M.MAVLINK_MSG_ID_MISSION_CURRENT:
+                return self.mission.mission_current_stream()
             if msg_id == _M.MAVLINK_MSG_ID_AUTOPILOT_VERSION and not streaming:
                 C = _M
                 caps = (C.MAV_PROTOCOL_CAPABILITY_COMMAND_INT | C.MAV_PROTOCOL_CAPABILITY_MAVLINK2
                         | C.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED | C.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT)
                 caps |= C.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE if self.px4 else C.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST
+                caps |= C.MAV_PROTOCOL_CAPABILITY_MISSION_INT | (C.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT if self.px4 else 0)
                 version = _flight_sw_version(1, 15, 0) if self.px4 else _flight_sw_version(4, 5, 0)
                 return mav.autopilot_version_encode(caps, version, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, 0x5EED0000 + self.c.system_id)
             return None
