@@ -10,7 +10,6 @@ import time
 import numpy as np
 import pytest
 from mavsdk.plugins.mission.mission import Mission, MissionItem, MissionPlan
-from pymavlink import mavutil
 from test_mavlink_clients import MavproxyStyle, MavsdkRig, free_udp_port, wait_until
 from test_sim_vehicle import Companion
 

@@ -170,7 +170,9 @@ class MissionManager:
         self._active = False
         self._phase: str | None = None
         self._phase_t = 0.0
-        self._target: np.ndarray | None = None
+        self._target: np.ndarray | None = None  # the current NAV item's point (scene ENU)
+        self._takeoff_point = np.zeros(3)  # PX4: the climb of a take-off
+        self._land_alt = 0.0  # PX4: the altitude a NAV_LAND moves over its point at
         self._speed: float | None = None  # DO_CHANGE_SPEED horizontal speed
         self._last_reached = -1
         self._reached_resends = 0

@@ -43,6 +43,11 @@ treat NaN as "unchanged / default"). Unknown commands answer UNSUPPORTED.
 - REQUEST_MESSAGE / REQUEST_AUTOPILOT_CAPABILITIES / GET_HOME_POSITION: the message is sent
   once after the ACK (DENIED if it cannot be produced, e.g. HOME_POSITION before home is set).
 - SET_MESSAGE_INTERVAL: any stream below; interval -1 stops it, 0 restores the default.
+- MISSION_START, DO_SET_MISSION_CURRENT and the whole mission protocol (MISSION_* messages,
+  PX4 AUTO.MISSION, ArduCopter AUTO): :mod:`onfly.mavlink.mission`, with its sources. PX4
+  MISSION_START switches to AUTO.MISSION and arms (``Commander.cpp``), DENIED without a valid
+  mission; AUTO.MISSION / AUTO need a mission (PX4: and a global origin), ArduCopter refuses
+  AUTO armed on the ground unless the mission starts with a take-off.
 
 Parameters (PARAM_REQUEST_LIST / PARAM_REQUEST_READ / PARAM_SET -> PARAM_VALUE)
 --------------------------------------------------------------------------------
@@ -102,8 +107,9 @@ HOME_POSITION carry lat/lon (PX4 ``lib/geo`` azimuthal-equidistant projection, e
 (:data:`DEFAULT_RATES_HZ`): HEARTBEAT, SYS_STATUS (sensor and pre-arm health, battery),
 EXTENDED_SYS_STATE (landed state), LOCAL_POSITION_NED, ATTITUDE_QUATERNION (PX4) / ATTITUDE
 (ArduPilot), GLOBAL_POSITION_INT and HOME_POSITION (with a global origin; HOME_POSITION
-also without, lat/lon 0, once home is set at arming), SYSTEM_TIME, BATTERY_STATUS; STATUSTEXT on
-events; AUTOPILOT_VERSION on request.
+also without, lat/lon 0, once home is set at arming), SYSTEM_TIME, BATTERY_STATUS, MISSION_CURRENT
+(ArduPilot's EXT_STAT stream; PX4 sends it at 1 Hz from its mission manager, not as a stream);
+MISSION_ITEM_REACHED and STATUSTEXT on events; AUTOPILOT_VERSION on request.
 
 Dynamics: :class:`PointMassModel` (default) or the embedded world's
 :class:`~onfly.mavlink.sim_world.WorldVehicleModel` (``model=``, exact collisions; a crash
