@@ -50,6 +50,11 @@ treat NaN as "unchanged / default"). Unknown commands answer UNSUPPORTED.
 - REQUEST_MESSAGE / REQUEST_AUTOPILOT_CAPABILITIES / GET_HOME_POSITION: the message is sent
   once after the ACK (DENIED if it cannot be produced, e.g. HOME_POSITION before home is set).
 - SET_MESSAGE_INTERVAL: any stream below; interval -1 stops it, 0 restores the default.
+- MISSION_START, DO_SET_MISSION_CURRENT and the whole mission protocol (MISSION_* messages,
+  PX4 AUTO.MISSION, ArduCopter AUTO): :mod:`onfly.mavlink.mission`, with its sources. PX4
+  MISSION_START switches to AUTO.MISSION and arms (``Commander.cpp``), DENIED without a valid
+  mission; AUTO.MISSION / AUTO need a mission (PX4: and a global origin), ArduCopter refuses
+  AUTO armed on the ground unless the mission starts with a take-off.
 
 Parameters (PARAM_REQUEST_LIST / PARAM_REQUEST_READ / PARAM_SET -> PARAM_VALUE)
 --------------------------------------------------------------------------------
@@ -128,8 +133,9 @@ HOME_POSITION carry lat/lon (PX4 ``lib/geo`` azimuthal-equidistant projection, e
 (:data:`DEFAULT_RATES_HZ`): HEARTBEAT, SYS_STATUS (sensor and pre-arm health, battery),
 EXTENDED_SYS_STATE (landed state), LOCAL_POSITION_NED, ATTITUDE_QUATERNION (PX4) / ATTITUDE
 (ArduPilot), GLOBAL_POSITION_INT, GPS_RAW_INT and HOME_POSITION (with a global origin; HOME_POSITION
-also without, lat/lon 0, once home is set at arming), SYSTEM_TIME, BATTERY_STATUS; STATUSTEXT on
-events; AUTOPILOT_VERSION on request. GPS_RAW_INT (outdoor only): PX4's onboard mode forwards
+also without, lat/lon 0, once home is set at arming), SYSTEM_TIME, BATTERY_STATUS, MISSION_CURRENT
+(ArduPilot's EXT_STAT stream; PX4 sends it at 1 Hz from its mission manager, not as a stream);
+MISSION_ITEM_REACHED and STATUSTEXT on events; AUTOPILOT_VERSION on request. GPS_RAW_INT (outdoor only): PX4's onboard mode forwards
 every fix (``mavlink_main.cpp`` ``unlimited_rate``; the model makes 5 a second), ArduPilot sends
 it in the EXT_STAT group (``STREAM_EXTENDED_STATUS_msgs``, 2 Hz); 3D fix, 12 satellites, degE7,
 mm AMSL, eph/epv = HDOP/VDOP x 100 (MAVLink), h_acc/v_acc mm, vel cm/s, cog cdeg.
@@ -158,6 +164,7 @@ import numpy as np
 from onfly.mavlink import frames, rtl
 from onfly.mavlink.autopilot import ARDUCOPTER_MODE, PX4_AUTO_SUB, PX4_MAIN, px4_custom_mode, px4_main_mode
 from onfly.mavlink.link import Link, LinkError, mavlink2
+from onfly.mavlink.mission import MissionManager
 from planning.frames import wrap_angle
 
 __all__ = [
@@ -238,6 +245,7 @@ _ID = {
     "SYSTEM_TIME": _M.MAVLINK_MSG_ID_SYSTEM_TIME,
     "BATTERY_STATUS": _M.MAVLINK_MSG_ID_BATTERY_STATUS,
     "AUTOPILOT_VERSION": _M.MAVLINK_MSG_ID_AUTOPILOT_VERSION,
+    "MISSION_CURRENT": _M.MAVLINK_MSG_ID_MISSION_CURRENT,
 }
 
 #: Fixes per second of the model's GPS receiver (a model choice; PX4 forwards each fix).
@@ -255,7 +263,7 @@ DEFAULT_RATES_HZ = {
             "GPS_RAW_INT": GPS_FIX_RATE_HZ},
     "ardupilot": {"SYS_STATUS": 2.0, "EXTENDED_SYS_STATE": 2.0, "LOCAL_POSITION_NED": 2.0, "ATTITUDE": 4.0,
                   "GLOBAL_POSITION_INT": 2.0, "HOME_POSITION": 0.0, "SYSTEM_TIME": 2.0, "BATTERY_STATUS": 2.0,
-                  "GPS_RAW_INT": 2.0},
+                  "GPS_RAW_INT": 2.0, "MISSION_CURRENT": 2.0},
 }
 
 #: The two settings: a GPS-less indoor vehicle (vision position, no global origin, offboard
@@ -540,6 +548,7 @@ class SimMavlinkVehicle:
             self._default_rates[_ID[name]] = rate
         self._rates_hz = dict(self._default_rates)
         self._next_send: dict[int, float] = {}
+        self.mission = MissionManager(self)  # mission protocol and AUTO flight (onfly/mavlink/mission.py)
 
     # -- lifecycle --------------------------------------------------------------------------
     def start(self) -> "SimMavlinkVehicle":
@@ -718,6 +727,7 @@ class SimMavlinkVehicle:
     def _physics(self, dt: float, t: float) -> None:
         with self._lock:
             self._apply_rules(t)
+            self.mission.step(t)
             self.model.step(dt, self._target, self.armed)
             if self.armed and getattr(self.model, "crashed", False):
                 hit = getattr(self.model, "collision", None)
@@ -926,6 +936,8 @@ class SimMavlinkVehicle:
 
     def _handle(self, msg) -> None:
         mtype = msg.get_type()
+        if mtype.startswith("MISSION_") and self.mission.handle(msg):
+            return
         if mtype == "SET_POSITION_TARGET_LOCAL_NED":
             self._on_setpoint(msg)
         elif mtype in ("COMMAND_LONG", "COMMAND_INT"):
@@ -933,7 +945,9 @@ class SimMavlinkVehicle:
                 return
             with self._lock:
                 self._pending = []
-                result = self._on_command(msg, mtype == "COMMAND_INT")
+                result = self.mission.on_command(int(msg.command), [msg.param1, msg.param2, msg.param3, msg.param4])
+                if result is None:
+                    result = self._on_command(msg, mtype == "COMMAND_INT")
                 pending, self._pending = self._pending, []
             self._send(self.link.mav.command_ack_encode(msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
             for m in pending:
@@ -1156,6 +1170,9 @@ class SimMavlinkVehicle:
             if main in (PX4_MAIN["manual"], PX4_MAIN["altctl"], PX4_MAIN["stabilized"], PX4_MAIN["acro"], PX4_MAIN["posctl"]) and not self.c.rc_connected:
                 self._statustext(_M.MAV_SEVERITY_CRITICAL, "Mode not available: no manual control")
                 return _M.MAV_RESULT_TEMPORARILY_REJECTED
+            refused = self.mission.refuse_mode(px4_custom_mode(main, sub_i if main == PX4_MAIN["auto"] else 0))
+            if refused is not None:
+                return refused
             self._set_mode(px4_custom_mode(main, sub_i if main == PX4_MAIN["auto"] else 0), "commanded")
             return _M.MAV_RESULT_ACCEPTED
         number = int(mode)
@@ -1168,6 +1185,9 @@ class SimMavlinkVehicle:
             # ModeRTL::init: home_is_set (checked armed; Copter::set_mode ignores checks disarmed)
             self._statustext(_M.MAV_SEVERITY_WARNING, "Mode change to RTL failed: init failed")
             return _M.MAV_RESULT_FAILED
+        refused = self.mission.refuse_mode(number)
+        if refused is not None:
+            return refused
         self._set_mode(number, "commanded")
         return _M.MAV_RESULT_ACCEPTED
 
@@ -1367,11 +1387,14 @@ class SimMavlinkVehicle:
                 h_ned = frames.ned_from_enu(self.local_from_scene(self._home))
                 return mav.home_position_encode(int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000)), *h_ned,
                                                 [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, int(time.time() * 1e6))
+            if msg_id == _M.MAVLINK_MSG_ID_MISSION_CURRENT:
+                return self.mission.mission_current_stream()
             if msg_id == _M.MAVLINK_MSG_ID_AUTOPILOT_VERSION and not streaming:
                 C = _M
                 caps = (C.MAV_PROTOCOL_CAPABILITY_COMMAND_INT | C.MAV_PROTOCOL_CAPABILITY_MAVLINK2
                         | C.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED | C.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT)
                 caps |= C.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE if self.px4 else C.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST
+                caps |= C.MAV_PROTOCOL_CAPABILITY_MISSION_INT | (C.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT if self.px4 else 0)
                 version = _flight_sw_version(1, 15, 0) if self.px4 else _flight_sw_version(4, 5, 0)
                 return mav.autopilot_version_encode(caps, version, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, 0x5EED0000 + self.c.system_id)
             return None
