@@ -397,12 +397,14 @@ def _of_head(text: list[str], breaks: list[bool], end: int) -> str | None:
 
 
 def _postmodifier(text: list[str], breaks: list[bool], end: int) -> list[str]:
-    """The words that name the landmark of a locating phrase right after a mention that ends
-    before word ``end`` (``the charger by the red car``: ``red``, ``car``; ``the whiteboard in
-    the small meeting room``: ``small``, ``meeting``, ``room``), or none when no locating
-    preposition (:data:`_LOCATING_PREPOSITIONS`) follows or its noun phrase names nothing
-    (``the tree on the left``, ``the bench at the far end``: directions and parts of a place,
-    :data:`_RELATIONAL_WORDS`). Determiners and words that end a phrase are not read."""
+    """The noun phrase of a prepositional phrase right after a mention that ends before word
+    ``end``, which says which object the mention is: where it is or what it has (``the
+    charger by the red car``: ``red``, ``car``; ``the whiteboard in the small meeting room``:
+    ``small``, ``meeting``, ``room``; ``the person in white``: ``white``; ``the man with the
+    cart``: ``cart``). Empty when no such preposition (:data:`_POSTMODIFIER_PREPOSITIONS`)
+    follows, or when its phrase says which way and not next to what (``the tree on the left``,
+    ``the bench at the far end``: a head of :data:`_RELATIONAL_WORDS` or none). Determiners and
+    words that end a phrase are not read."""
     if end >= len(text) or breaks[end - 1]:
         return []
     for prep in _POSTMODIFIER_PREPOSITIONS:
