@@ -332,6 +332,57 @@ def test_an_object_that_says_where_the_target_is_is_a_landmark():
     assert flags("the person on the blue car, stop there", {2: 100}) == [(2, True)]
 
 
+def test_a_phrase_after_the_name_says_which_object_when_the_object_has_one_of_its_own():
+    """``the EV charger by the red car`` is not the ``charging station by the blue car``, ``the
+    person in white`` not the ``person near the railing`` (alias ``person in purple``): an object
+    whose own name or alias has a phrase after its noun is named only when the phrase the words
+    put after the mention fits it (its head one of the object's own words, and its attributes
+    too when the object's own phrases have some). An object with no such phrase of its own
+    (``red motorcycle``) is still named by its label; directions say which way, not which object
+    (``the bench on the left``)."""
+    objs = {
+        1: VisibleObject(1, "charging station by the red car", "charger", ("EV charger by the red car",)),
+        2: VisibleObject(2, "charging station by the blue car", "charger", ("EV charger by the blue car",)),
+        3: VisibleObject(3, "person near the railing", "person", ("person in purple",)),
+        4: VisibleObject(4, "person in white shirt", "person", ("person in white",)),
+        5: VisibleObject(5, "potted plant in the bedroom", "plant"),
+        6: VisibleObject(6, "potted plant in the living room", "plant"),
+        7: VisibleObject(7, "red motorcycle", "motorcycle"),
+        8: VisibleObject(8, "white bench", "bench", ("bench on the lower lawn",)),
+        9: VisibleObject(9, "mobile whiteboard", "whiteboard", ("whiteboard on wheels",)),
+        10: VisibleObject(10, "whiteboard in the large meeting room", "whiteboard"),
+    }
+    best = lambda s, ids: [m.instance_id for m in ground(s, objs, {k: 100 for k in ids})]  # noqa: E731
+    assert best("stop next to the EV charger by the red car", [2]) == []
+    assert best("stop next to the EV charger by the red car", [1, 2]) == [1]
+    assert best("stop at the charger", [1, 2]) == [1, 2]  # no phrase: both chargers
+    assert best("approach the person in white", [3]) == []
+    assert best("approach the person in purple", [3, 4]) == [3]
+    assert best("fly to the person", [3, 4]) == [3, 4]
+    # the head fits, an extra attribute the object's own phrase does not contradict is no objection
+    assert best("stop next to the plant in the big bedroom", [5, 6]) == [5]
+    assert best("stop next to the plant in the big bedroom", [6]) == []
+    assert best("hover over the red motorcycle in the bike cage", [7]) == [7]  # no phrase of its own
+    assert best("stop at the bench on the left", [8]) == [8]
+    assert best("stop in front of the whiteboard in the small meeting room", [9, 10]) == []
+
+
+def test_the_charger_by_another_car_is_neither_pointed_at_nor_stopped_at():
+    """With only the charger by the blue car in view, asked for the one by the red car, the
+    model says the target is not visible and the monitor does not stop 1.5 m from it; with
+    both in view it points at the right one."""
+    sim = SimulatedVlm("perfect", seed=0)
+    red = Obj(5, "charging station by the red car", "charger", 4.0, rect=(120, 40, 130, 60), aliases=("EV charger by the red car",))
+    blue = Obj(6, "charging station by the blue car", "charger", 4.0, rect=(20, 40, 30, 60), aliases=("EV charger by the blue car",))
+    subtask = "Stop next to the EV charger by the red car."
+    answer = json.loads(decide(sim, subtask, frame("pc1", [blue], open_cols=(200, 220))).text)
+    assert answer["target_visible"] is False
+    near_blue = frame("pc2", [dataclasses.replace(blue, depth_m=1.5)])
+    assert parse_status(monitor(sim, subtask, [near_blue, near_blue]).text).status is MonitorStatus.CONTINUE
+    u, v = json.loads(decide(sim, subtask, frame("pc3", [blue, red])).text)["point_2d"]
+    assert 120 <= u < 130 and 40 <= v < 60
+
+
 def test_with_only_the_landmark_in_view_the_model_looks_there_and_never_stops_at_it():
     sim = SimulatedVlm("perfect", seed=0)
     charger = Obj(5, "charging station by the blue car", "charger", 4.0, rect=(120, 40, 130, 60))

@@ -30,6 +30,20 @@ naive singular) and
   (rule 4) instead of pointing at the shutter; ``the van`` names both vans. The head of an
   ``of`` phrase after it must be the object's own too (``the doorway of the bathroom``, ``the
   painting of a sailboat``). Look-alikes are confused only at ``confusion_prob`` (rule 2);
+- when the object's own name or an alias has a phrase after its noun that says which one it
+  is (``charging station by the blue car``, ``person in white shirt``, ``whiteboard on
+  wheels``, ``cafe table with the red umbrella``), a prepositional phrase right after the
+  mention must fit it: its head one of the object's own words, and its attributes too when
+  the object's own phrases carry attributes (``the EV charger by the red car`` does not name
+  the charger by the blue car, nor ``the person in white`` the person in purple; ``the plant in
+  the big bedroom`` names the ``potted plant in the bedroom``). A phrase that gives a direction
+  (``the bench on the left``) says nothing of which object. An object whose name has no such
+  phrase (``red motorcycle``) is still named by ``the red motorcycle in the bike cage``: the
+  model cannot tell from the name where it is. Before, ``charger`` named both chargers, so with
+  the red car's out of view the model stopped at the blue car's every time, where a model that
+  sees the blue car beside it says the target is not visible (a relational referring
+  expression, as in RefCOCO below); with both in view the other one is now a look-alike,
+  confused at ``confusion_prob`` (rule 2) instead of never;
 - a contraction is read as its words (``you're``: ``you are``): a clitic is never a noun;
 - the object is a target: scene objects with ``target = false`` (ground, walls, roofs, parked
   cars and street furniture the scene marks as background; :attr:`vlm.types.VisibleObject.target`)

@@ -101,6 +101,13 @@ _LEAVE_WORDS = frozenset("leave leaves leaving exit exits exiting".split())
 #: the object named after one, when a noun comes right before it, is a landmark of that noun
 _LOCATING_PREPOSITIONS = (("in", "front", "of"), ("next", "to"), ("across", "from"), ("by",), ("near",), ("beside",),
                           ("behind",), ("opposite",), ("in",), ("inside",), ("on",), ("under",), ("above",))
+#: prepositions that open a phrase after a noun saying which one it is: where it is (the
+#: locating ones) or what it has (``the man with the cart``)
+_POSTMODIFIER_PREPOSITIONS = _LOCATING_PREPOSITIONS + (("with",),)
+#: nouns that name a part of a place or a side, not a landmark (``the tree on the left side``,
+#: ``the bench at the far end``): a locating phrase with one as its head says which way, not
+#: next to what
+_RELATIONAL_WORDS = frozenset("side end middle center centre corner edge top bottom half part front back".split())
 #: prepositions that open a place phrase ("on the upper deck, stop beside the chair")
 _PLACE_OPENERS = frozenset("on in at inside outside upon from".split())
 #: nouns ending in -ing or -ed that are not participles (they can continue a noun phrase)
@@ -249,6 +256,7 @@ def ground(subtask: str, objects: Mapping[int, VisibleObject], areas_px: Mapping
             continue
         phrases = [(words(obj.name), "name")] + [(words(a), "alias") for a in obj.aliases] + [(words(obj.label), "label")]
         own = {w for p, _ in phrases for w in p}
+        own_post = [q for p, _ in phrases for k in range(1, len(p)) if (q := _postmodifier(p, [False] * (len(p) - 1) + [True], k))]
         for phrase, via in phrases:
             for i in _occurrences(phrase, text):
                 end = i + len(phrase)
@@ -260,6 +268,8 @@ def ground(subtask: str, objects: Mapping[int, VisibleObject], areas_px: Mapping
                 of = _of_head(text, breaks, end)
                 if of is not None and of not in own:
                     continue  # so does an "of" phrase ("the doorway of the bathroom", "the painting of a sailboat")
+                if own_post and not _postmodifier_fits(_postmodifier(text, breaks, end), own, own_post):
+                    continue  # and a phrase after it, against its own name's ("by the red car", "in white")
                 p = _phrase_start(text, breaks, j)
                 landmark = _governing_word(text, breaks, p) in _PAST_WORDS | _ROUTE_WORDS or end <= opening or _is_place(text[j:end])
                 m = Match(iid, j, len(phrase) + (i - j), via, landmark, locates_head(text, breaks, p))
@@ -384,6 +394,48 @@ def _of_head(text: list[str], breaks: list[bool], end: int) -> str | None:
         if breaks[k]:
             break
     return head
+
+
+def _postmodifier(text: list[str], breaks: list[bool], end: int) -> list[str]:
+    """The noun phrase of a prepositional phrase right after a mention that ends before word
+    ``end``, which says which object the mention is: where it is or what it has (``the
+    charger by the red car``: ``red``, ``car``; ``the whiteboard in the small meeting room``:
+    ``small``, ``meeting``, ``room``; ``the person in white``: ``white``; ``the man with the
+    cart``: ``cart``). Empty when no such preposition (:data:`_POSTMODIFIER_PREPOSITIONS`)
+    follows, or when its phrase says which way and not next to what (``the tree on the left``,
+    ``the bench at the far end``: a head of :data:`_RELATIONAL_WORDS` or none). Determiners and
+    words that end a phrase are not read."""
+    if end >= len(text) or breaks[end - 1]:
+        return []
+    for prep in _POSTMODIFIER_PREPOSITIONS:
+        if text[end : end + len(prep)] != list(prep) or any(breaks[end : end + len(prep) - 1]):
+            continue
+        found: list[str] = []
+        for k in range(end + len(prep), len(text)):
+            w = text[k]
+            if w not in _DETERMINERS:
+                if _ends_phrase(w) and not _is_premodifier(w):
+                    break
+                found.append(w)
+            if breaks[k]:
+                break
+        return [] if not found or found[-1] in _RELATIONAL_WORDS else found
+    return []
+
+
+def _postmodifier_fits(said: list[str], own: set[str], own_post: list[list[str]]) -> bool:
+    """Whether the phrase ``said`` after a mention (:func:`_postmodifier`; empty: none) can be
+    said of an object whose own words are ``own`` and whose name or aliases have the phrases
+    ``own_post`` after their noun. Its head must be one of the object's own words (``by the red
+    car``, ``in white``, ``with the cart``; ``in the big bedroom`` fits ``potted plant in the
+    bedroom``), and an attribute in it one of the object's own words when the object's own
+    phrases carry attributes (``red`` against ``charger by the blue car``)."""
+    if not said:
+        return True
+    if said[-1] not in own:
+        return False
+    attributed = any(w in ATTRIBUTE_WORDS for q in own_post for w in q)
+    return not attributed or all(w in own for w in said if w in ATTRIBUTE_WORDS)
 
 
 def _is_premodifier(word: str) -> bool:
