@@ -81,6 +81,8 @@ def test_mavsdk_px4_arm_takeoff_goto_land_with_telemetry_units(px4_outdoor):
     rig = px4_outdoor
     act, tel, v = rig.action, rig.telemetry, rig.vehicle
     wait_until(lambda: tel.health().is_armable, 5.0, "health.is_armable")
+    # MAVSDK reports NaN until its first GLOBAL_POSITION_INT: a client waits for one, as here
+    wait_until(lambda: math.isfinite(tel.position().latitude_deg), 5.0, "a first global position")
     pos0 = tel.position()
     assert pos0.latitude_deg == pytest.approx(47.397742, abs=1e-6) and pos0.absolute_altitude_m == pytest.approx(488.0, abs=0.01)
     batt = tel.battery()
