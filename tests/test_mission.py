@@ -177,9 +177,9 @@ def test_pymavlink_mavproxy_wp_load_and_auto_on_ardupilot():
         pts = trace.stop()
         assert reached == [1, 2, 3]
         assert 2.5 < max(trace.speeds_xy) < 3.2  # WPNAV_SPEED in cm/s, flown in m/s
-        for e, n, u in wps:  # within WPNAV_RADIUS (2 m, 3-D) of each waypoint, in order
-            d = np.linalg.norm(pts - [e, n, u], axis=1)
-            assert d.min() < 2.05, (e, n, u, d.min())
+        for e, n, u in wps:  # within WPNAV_RADIUS (2 m, 3-D) of each waypoint, in order; the 20 Hz
+            d = np.linalg.norm(pts - [e, n, u], axis=1)  # trace at 3 m/s samples every 0.15 m
+            assert d.min() < 2.0 + 0.2, (e, n, u, d.min())
         order = [int(np.argmin(np.linalg.norm(pts - list(w), axis=1))) for w in wps]
         assert order == sorted(order)
         # exit_mission in the air: it loiters in AUTO
