@@ -45,7 +45,7 @@ treat NaN as "unchanged / default"). Unknown commands answer UNSUPPORTED.
 - DO_REPOSITION (COMMAND_INT, x/y = lat/lon degE7, z = metres in the message's frame): needs a
   global origin (FAILED without). PX4 switches to AUTO.LOITER if param2 has
   MAV_DO_REPOSITION_FLAGS_CHANGE_MODE and flies there (PX4 ``Commander`` +
-  ``navigator_main.cpp`` reposition); ArduCopter flies there in GUIDED (switching to it with
+  ``navigator_main.cpp`` reposition, param4 the yaw in radians); ArduCopter flies there in GUIDED (switching to it with
   the flag, else FAILED outside GUIDED; ``GCS_Mavlink.cpp`` ``handle_command_int_do_reposition``).
 - REQUEST_MESSAGE / REQUEST_AUTOPILOT_CAPABILITIES / GET_HOME_POSITION: the message is sent
   once after the ACK (DENIED if it cannot be produced, e.g. HOME_POSITION before home is set).
@@ -1327,7 +1327,12 @@ class SimMavlinkVehicle:
             target = self._scene_from_global(x * 1e-7, y * 1e-7, alt if math.isfinite(alt) else 0.0)
         if not math.isfinite(alt):
             target[2] = cur[2]
-        yaw = wrap_angle(math.pi / 2 - math.radians(p[3])) if math.isfinite(p[3]) else None
+        # param4 is the yaw: PX4's navigator copies it into the position setpoint's yaw, which is in
+        # radians (navigator_main.cpp DO_REPOSITION: rep->current.yaw = cmd.param4; MAVSDK's
+        # goto_location sends radians for it); for ArduCopter it stays in degrees (the MAVLink spec;
+        # not checked against ArduCopter's handler)
+        yaw_ned = (float(p[3]) if self.px4 else math.radians(p[3])) if math.isfinite(p[3]) else None
+        yaw = None if yaw_ned is None else wrap_angle(math.pi / 2 - yaw_ned)
         speed = float(p[0]) if math.isfinite(p[0]) and p[0] > 0 else None
         change_mode = math.isfinite(p[1]) and int(p[1]) & _M.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE
         if self.px4:
