@@ -130,15 +130,31 @@ scene's origin: by default the vehicle's position at boot, rotated by ``estimato
 origin where the estimate starts. With a global origin (outdoor), GLOBAL_POSITION_INT and
 HOME_POSITION carry lat/lon (PX4 ``lib/geo`` azimuthal-equidistant projection, earth radius
 6371 km). Streams at the autopilot's default rates until SET_MESSAGE_INTERVAL
-(:data:`DEFAULT_RATES_HZ`): HEARTBEAT, SYS_STATUS (sensor and pre-arm health, battery),
-EXTENDED_SYS_STATE (landed state), LOCAL_POSITION_NED, ATTITUDE_QUATERNION (PX4) / ATTITUDE
-(ArduPilot), GLOBAL_POSITION_INT, GPS_RAW_INT and HOME_POSITION (with a global origin; HOME_POSITION
-also without, lat/lon 0, once home is set at arming), SYSTEM_TIME, BATTERY_STATUS, MISSION_CURRENT
+(:data:`DEFAULT_RATES_HZ`; PX4: ``mavlink_main.cpp`` onboard mode; ArduPilot: the ``STREAM_*_msgs``
+groups at this simulation's companion-port SRn_* rates, ArduCopter's compiled defaults being 0):
+HEARTBEAT, SYS_STATUS (sensor and pre-arm health, battery), EXTENDED_SYS_STATE (landed state),
+LOCAL_POSITION_NED, ATTITUDE_QUATERNION and ATTITUDE (PX4) / ATTITUDE (ArduPilot),
+GLOBAL_POSITION_INT, GPS_RAW_INT and HOME_POSITION (with a global origin; HOME_POSITION also
+without, lat/lon 0, once home is set at arming), SYSTEM_TIME, BATTERY_STATUS, MISSION_CURRENT
 (ArduPilot's EXT_STAT stream; PX4 sends it at 1 Hz from its mission manager, not as a stream);
 MISSION_ITEM_REACHED and STATUSTEXT on events; AUTOPILOT_VERSION on request. GPS_RAW_INT (outdoor only): PX4's onboard mode forwards
 every fix (``mavlink_main.cpp`` ``unlimited_rate``; the model makes 5 a second), ArduPilot sends
 it in the EXT_STAT group (``STREAM_EXTENDED_STATUS_msgs``, 2 Hz); 3D fix, 12 satellites, degE7,
 mm AMSL, eph/epv = HDOP/VDOP x 100 (MAVLink), h_acc/v_acc mm, vel cm/s, cog cdeg.
+
+What a client's telemetry plugin waits for, each from the model's state (``_altitude``,
+``_vfr_hud``, ``_odometry``, ``_highres_imu``, ``_raw_imu``, ``_position_target_local_ned`` cite
+their sources): PX4 ALTITUDE 10 Hz, VFR_HUD 10, ODOMETRY 30 (EKF2: pose and velocity in
+MAV_FRAME_LOCAL_NED, quality 0, covariances NaN), HIGHRES_IMU 50, POSITION_TARGET_LOCAL_NED 10,
+and its TIMESYNC (10) and PING (1) requests; ArduCopter VFR_HUD in EXTRA2 (4 Hz), RAW_IMU in
+RAW_SENS (2 Hz), POSITION_TARGET_LOCAL_NED on request in GUIDED. The accelerometer measures the
+model's acceleration over the last physics step minus gravity (FRD: -9.81 on z at rest), the
+gyro the yaw rate; the baro is an ISA standard day at the AMSL altitude, so only outdoors (indoors
+the model knows no altitude above sea level: ALTITUDE's amsl and monotonic are NaN); no
+magnetometer field. VFR_HUD's throttle is the hover throttle (MPC_THR_HOVER / MOT_THST_HOVER) times
+the thrust the model needs. ESTIMATOR_STATUS and VIBRATION are not sent: the model has no
+estimator innovations or vibration to report. TIMESYNC requests (tc1 = 0) are answered with
+tc1 = time since boot in ns and ts1 echoed (both autopilots); PING requests only by PX4.
 
 Dynamics: :class:`PointMassModel` (default) or the embedded world's
 :class:`~onfly.mavlink.sim_world.WorldVehicleModel` (``model=``, exact collisions; a crash
