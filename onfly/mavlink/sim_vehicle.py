@@ -45,7 +45,7 @@ treat NaN as "unchanged / default"). Unknown commands answer UNSUPPORTED.
 - DO_REPOSITION (COMMAND_INT, x/y = lat/lon degE7, z = metres in the message's frame): needs a
   global origin (FAILED without). PX4 switches to AUTO.LOITER if param2 has
   MAV_DO_REPOSITION_FLAGS_CHANGE_MODE and flies there (PX4 ``Commander`` +
-  ``navigator_main.cpp`` reposition); ArduCopter flies there in GUIDED (switching to it with
+  ``navigator_main.cpp`` reposition, param4 the yaw in radians); ArduCopter flies there in GUIDED (switching to it with
   the flag, else FAILED outside GUIDED; ``GCS_Mavlink.cpp`` ``handle_command_int_do_reposition``).
 - REQUEST_MESSAGE / REQUEST_AUTOPILOT_CAPABILITIES / GET_HOME_POSITION: the message is sent
   once after the ACK (DENIED if it cannot be produced, e.g. HOME_POSITION before home is set).
@@ -130,15 +130,31 @@ scene's origin: by default the vehicle's position at boot, rotated by ``estimato
 origin where the estimate starts. With a global origin (outdoor), GLOBAL_POSITION_INT and
 HOME_POSITION carry lat/lon (PX4 ``lib/geo`` azimuthal-equidistant projection, earth radius
 6371 km). Streams at the autopilot's default rates until SET_MESSAGE_INTERVAL
-(:data:`DEFAULT_RATES_HZ`): HEARTBEAT, SYS_STATUS (sensor and pre-arm health, battery),
-EXTENDED_SYS_STATE (landed state), LOCAL_POSITION_NED, ATTITUDE_QUATERNION (PX4) / ATTITUDE
-(ArduPilot), GLOBAL_POSITION_INT, GPS_RAW_INT and HOME_POSITION (with a global origin; HOME_POSITION
-also without, lat/lon 0, once home is set at arming), SYSTEM_TIME, BATTERY_STATUS, MISSION_CURRENT
+(:data:`DEFAULT_RATES_HZ`; PX4: ``mavlink_main.cpp`` onboard mode; ArduPilot: the ``STREAM_*_msgs``
+groups at this simulation's companion-port SRn_* rates, ArduCopter's compiled defaults being 0):
+HEARTBEAT, SYS_STATUS (sensor and pre-arm health, battery), EXTENDED_SYS_STATE (landed state),
+LOCAL_POSITION_NED, ATTITUDE_QUATERNION and ATTITUDE (PX4) / ATTITUDE (ArduPilot),
+GLOBAL_POSITION_INT, GPS_RAW_INT and HOME_POSITION (with a global origin; HOME_POSITION also
+without, lat/lon 0, once home is set at arming), SYSTEM_TIME, BATTERY_STATUS, MISSION_CURRENT
 (ArduPilot's EXT_STAT stream; PX4 sends it at 1 Hz from its mission manager, not as a stream);
 MISSION_ITEM_REACHED and STATUSTEXT on events; AUTOPILOT_VERSION on request. GPS_RAW_INT (outdoor only): PX4's onboard mode forwards
 every fix (``mavlink_main.cpp`` ``unlimited_rate``; the model makes 5 a second), ArduPilot sends
 it in the EXT_STAT group (``STREAM_EXTENDED_STATUS_msgs``, 2 Hz); 3D fix, 12 satellites, degE7,
 mm AMSL, eph/epv = HDOP/VDOP x 100 (MAVLink), h_acc/v_acc mm, vel cm/s, cog cdeg.
+
+What a client's telemetry plugin waits for, each from the model's state (``_altitude``,
+``_vfr_hud``, ``_odometry``, ``_highres_imu``, ``_raw_imu``, ``_position_target_local_ned`` cite
+their sources): PX4 ALTITUDE 10 Hz, VFR_HUD 10, ODOMETRY 30 (EKF2: pose and velocity in
+MAV_FRAME_LOCAL_NED, quality 0, covariances NaN), HIGHRES_IMU 50, POSITION_TARGET_LOCAL_NED 10,
+and its TIMESYNC (10) and PING (1) requests; ArduCopter VFR_HUD in EXTRA2 (4 Hz), RAW_IMU in
+RAW_SENS (2 Hz), POSITION_TARGET_LOCAL_NED on request in GUIDED. The accelerometer measures the
+model's acceleration over the last physics step minus gravity (FRD: -9.81 on z at rest), the
+gyro the yaw rate; the baro is an ISA standard day at the AMSL altitude, so only outdoors (indoors
+the model knows no altitude above sea level: ALTITUDE's amsl and monotonic are NaN); no
+magnetometer field. VFR_HUD's throttle is the hover throttle (MPC_THR_HOVER / MOT_THST_HOVER) times
+the thrust the model needs. ESTIMATOR_STATUS and VIBRATION are not sent: the model has no
+estimator innovations or vibration to report. TIMESYNC requests (tc1 = 0) are answered with
+tc1 = time since boot in ns and ts1 echoed (both autopilots); PING requests only by PX4.
 
 Dynamics: :class:`PointMassModel` (default) or the embedded world's
 :class:`~onfly.mavlink.sim_world.WorldVehicleModel` (``model=``, exact collisions; a crash
@@ -199,6 +215,8 @@ PX4_PARAMS = {
     "MIS_TAKEOFF_ALT": (2.5, _R32),
     "MPC_TKO_SPEED": (1.5, _R32),
     "MPC_LAND_SPEED": (0.7, _R32),
+    # hover thrust (mc_pos_control multicopter_position_control_params.c): VFR_HUD's throttle
+    "MPC_THR_HOVER": (0.5, _R32),
     # Return mode (navigator rtl_params.yaml) and the speeds and acceptance radii it flies with
     # (mc_pos_control multicopter_autonomous_params.c, navigator_params.c); a multicopter boots
     # with ROMFS rc.mc_defaults over them: RTL_RETURN_ALT 30 (not 60), RTL_DESCEND_ALT 10 (not
@@ -220,6 +238,8 @@ ARDUPILOT_PARAMS = {
     "DISARM_DELAY": (10, _I16),
     "LAND_SPEED": (50, _I16),
     "WPNAV_SPEED_UP": (250.0, _R32),
+    # hover throttle (AP_MotorsMulticopter.cpp): VFR_HUD's throttle
+    "MOT_THST_HOVER": (0.35, _R32),
     "FS_GCS_ENABLE": (0, _I8),
     # RTL (ArduCopter Parameters.cpp, config.h) and the waypoint controller it flies with (AC_WPNav.cpp)
     "RTL_ALT": (1500, _I32),
@@ -246,24 +266,42 @@ _ID = {
     "BATTERY_STATUS": _M.MAVLINK_MSG_ID_BATTERY_STATUS,
     "AUTOPILOT_VERSION": _M.MAVLINK_MSG_ID_AUTOPILOT_VERSION,
     "MISSION_CURRENT": _M.MAVLINK_MSG_ID_MISSION_CURRENT,
+    "ALTITUDE": _M.MAVLINK_MSG_ID_ALTITUDE,
+    "VFR_HUD": _M.MAVLINK_MSG_ID_VFR_HUD,
+    "ODOMETRY": _M.MAVLINK_MSG_ID_ODOMETRY,
+    "HIGHRES_IMU": _M.MAVLINK_MSG_ID_HIGHRES_IMU,
+    "RAW_IMU": _M.MAVLINK_MSG_ID_RAW_IMU,
+    "POSITION_TARGET_LOCAL_NED": _M.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED,
+    "TIMESYNC": _M.MAVLINK_MSG_ID_TIMESYNC,
+    "PING": _M.MAVLINK_MSG_ID_PING,
 }
 
 #: Fixes per second of the model's GPS receiver (a model choice; PX4 forwards each fix).
 GPS_FIX_RATE_HZ = 5.0
 
 #: Default stream rates (Hz) until SET_MESSAGE_INTERVAL. PX4: ``mavlink_main.cpp``
-#: ``configure_streams_to_default`` onboard mode (the companion port); ArduPilot: the SRn_*
-#: stream-group defaults (EXT_STAT 2, EXTRA1 4, POSITION 2, EXTRA3 2 Hz). ``telemetry_rate_hz``
-#: of the config overrides the position and attitude rates. GPS_RAW_INT: PX4's onboard mode
-#: sends every new fix (``unlimited_rate``; the model's receiver makes :data:`GPS_FIX_RATE_HZ`
-#: fixes a second); ArduPilot sends it in the EXT_STAT group (``STREAM_EXTENDED_STATUS_msgs``).
+#: ``configure_streams_to_default`` onboard mode (the companion port): TIMESYNC 10, HIGHRES_IMU
+#: 50, LOCAL_POSITION_NED 30, ATTITUDE 100, ALTITUDE 10, ODOMETRY 30, ATTITUDE_QUATERNION 50,
+#: EXTENDED_SYS_STATE 5, GLOBAL_POSITION_INT 50, GPS_RAW_INT every fix, HOME_POSITION 0.5, PING 1,
+#: POSITION_TARGET_LOCAL_NED 10, SYS_STATUS 5, SYSTEM_TIME 1, VFR_HUD 10, BATTERY_STATUS 0.5.
+#: ArduPilot: per stream group (``GCS_MAVLink`` ``STREAM_*_msgs``): RAW_SENS (RAW_IMU) 2,
+#: EXT_STAT (SYS_STATUS, GPS_RAW_INT, MISSION_CURRENT) 2, POSITION (GLOBAL_POSITION_INT,
+#: LOCAL_POSITION_NED) 2, EXTRA1 (ATTITUDE) 4, EXTRA2 (VFR_HUD) 4, EXTRA3 (SYSTEM_TIME,
+#: BATTERY_STATUS) 2 Hz. These are the companion port's SRn_* settings of this simulation:
+#: ArduCopter's compiled defaults are 0 for every group (``AP_MAV_DEFAULT_STREAM_RATE_*``), so a
+#: real port streams only what was configured or requested. POSITION_TARGET_LOCAL_NED is in no
+#: ArduPilot group (0: on request, and only in GUIDED). ``telemetry_rate_hz`` of the config
+#: overrides the position and attitude rates. GPS_RAW_INT: PX4's onboard mode sends every new fix
+#: (``unlimited_rate``; the model's receiver makes :data:`GPS_FIX_RATE_HZ` fixes a second).
 DEFAULT_RATES_HZ = {
     "px4": {"SYS_STATUS": 5.0, "EXTENDED_SYS_STATE": 5.0, "LOCAL_POSITION_NED": 30.0, "ATTITUDE_QUATERNION": 50.0,
-            "GLOBAL_POSITION_INT": 50.0, "HOME_POSITION": 0.5, "SYSTEM_TIME": 1.0, "BATTERY_STATUS": 0.5,
-            "GPS_RAW_INT": GPS_FIX_RATE_HZ},
+            "ATTITUDE": 100.0, "GLOBAL_POSITION_INT": 50.0, "HOME_POSITION": 0.5, "SYSTEM_TIME": 1.0,
+            "BATTERY_STATUS": 0.5, "GPS_RAW_INT": GPS_FIX_RATE_HZ, "ALTITUDE": 10.0, "VFR_HUD": 10.0,
+            "ODOMETRY": 30.0, "HIGHRES_IMU": 50.0, "POSITION_TARGET_LOCAL_NED": 10.0, "TIMESYNC": 10.0, "PING": 1.0},
     "ardupilot": {"SYS_STATUS": 2.0, "EXTENDED_SYS_STATE": 2.0, "LOCAL_POSITION_NED": 2.0, "ATTITUDE": 4.0,
                   "GLOBAL_POSITION_INT": 2.0, "HOME_POSITION": 0.0, "SYSTEM_TIME": 2.0, "BATTERY_STATUS": 2.0,
-                  "GPS_RAW_INT": 2.0, "MISSION_CURRENT": 2.0},
+                  "GPS_RAW_INT": 2.0, "MISSION_CURRENT": 2.0, "VFR_HUD": 4.0, "RAW_IMU": 2.0,
+                  "POSITION_TARGET_LOCAL_NED": 0.0},
 }
 
 #: The two settings: a GPS-less indoor vehicle (vision position, no global origin, offboard
@@ -521,7 +559,10 @@ class SimMavlinkVehicle:
         self._thread: threading.Thread | None = None
         self._cut = threading.Event()
         self._frozen_pos = None
+        self._frozen_odom = None
         self._position_valid = True
+        self._accel_enu = np.zeros(3)  # the model's acceleration over the last physics step (scene ENU)
+        self._ping_seq = 0
         self._t_boot = clock()
         self._target: _Target | None = None
         self._setpoint: _Target | None = None
@@ -548,6 +589,16 @@ class SimMavlinkVehicle:
             self._default_rates[_ID[name]] = rate
         self._rates_hz = dict(self._default_rates)
         self._next_send: dict[int, float] = {}
+        self._builders = {
+            _M.MAVLINK_MSG_ID_ALTITUDE: self._altitude,
+            _M.MAVLINK_MSG_ID_VFR_HUD: self._vfr_hud,
+            _M.MAVLINK_MSG_ID_ODOMETRY: lambda: self._frozen_odom if self._frozen_odom is not None else self._odometry(),
+            _M.MAVLINK_MSG_ID_HIGHRES_IMU: self._highres_imu,
+            _M.MAVLINK_MSG_ID_RAW_IMU: self._raw_imu,
+            _M.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED: self._position_target_local_ned,
+            _M.MAVLINK_MSG_ID_TIMESYNC: self._timesync_request,
+            _M.MAVLINK_MSG_ID_PING: self._ping_request,
+        }
         self.mission = MissionManager(self)  # mission protocol and AUTO flight (onfly/mavlink/mission.py)
 
     # -- lifecycle --------------------------------------------------------------------------
@@ -635,14 +686,16 @@ class SimMavlinkVehicle:
         self._event(f"link {'cut' if cut else 'restored'}")
 
     def set_odometry_frozen(self, frozen: bool) -> None:
-        """Keep re-sending the last position sample unchanged, old timestamp included."""
+        """Keep re-sending the last position sample (LOCAL_POSITION_NED, and PX4's ODOMETRY)
+        unchanged, old timestamp included."""
         with self._lock:
             self._frozen_pos = self._position_message() if frozen else None
+            self._frozen_odom = self._odometry() if (frozen and self.px4) else None
         self._event(f"odometry {'frozen' if frozen else 'live'}")
 
     def set_position_valid(self, valid: bool) -> None:
         """The estimator has (True) or has lost (False) its position estimate (e.g. vision
-        dropped): LOCAL_POSITION_NED stops, arming and position modes are refused."""
+        dropped): LOCAL_POSITION_NED and ODOMETRY stop, arming and position modes are refused."""
         with self._lock:
             self._position_valid = bool(valid)
         self._event(f"position estimate {'valid' if valid else 'lost'}")
@@ -660,6 +713,10 @@ class SimMavlinkVehicle:
 
     def time_boot_ms(self) -> int:
         return int(self.c.boot_time_ms + (self.clock() - self._t_boot) * 1000.0) % 2**32
+
+    def time_boot_us(self) -> int:
+        """Microseconds since boot (uint64: PX4 ``hrt_absolute_time``, ArduPilot ``micros64``)."""
+        return int(round((self.c.boot_time_ms + (self.clock() - self._t_boot) * 1000.0) * 1000.0))
 
     # -- main loop --------------------------------------------------------------------------
     def _run(self) -> None:
@@ -728,7 +785,9 @@ class SimMavlinkVehicle:
         with self._lock:
             self._apply_rules(t)
             self.mission.step(t)
+            v0 = np.array(self.model.v, dtype=float)
             self.model.step(dt, self._target, self.armed)
+            self._accel_enu = (np.array(self.model.v, dtype=float) - v0) / dt
             if self.armed and getattr(self.model, "crashed", False):
                 hit = getattr(self.model, "collision", None)
                 self._disarm(f"crashed{'' if hit is None else f' into {hit.object_name!r}'}")
@@ -937,6 +996,20 @@ class SimMavlinkVehicle:
     def _handle(self, msg) -> None:
         mtype = msg.get_type()
         if mtype.startswith("MISSION_") and self.mission.handle(msg):
+            return
+        if mtype == "TIMESYNC":
+            # a request (tc1 = 0) is answered with our time since boot in ns and ts1 echoed (PX4
+            # ``mavlink_timesync.cpp`` / ``Timesync::handle_message``: hrt_absolute_time * 1000;
+            # ArduPilot ``GCS_MAVLINK::handle_timesync``: receive time in us * 1000); tc1 != 0 is
+            # an answer to a request of ours: neither autopilot replies to it
+            if int(msg.tc1) == 0:
+                self._send(self.link.mav.timesync_encode(self.time_boot_us() * 1000, int(msg.ts1)))
+            return
+        if mtype == "PING":
+            # PX4 ``MavlinkReceiver::handle_message_ping``: a request (target 0/0) goes back to the
+            # sender with its seq and time_usec; ArduPilot's GCS_MAVLINK has no PING handler
+            if self.px4 and msg.target_system == 0 and msg.target_component == 0:
+                self._send(self.link.mav.ping_encode(int(msg.time_usec), int(msg.seq), msg.get_srcSystem(), msg.get_srcComponent()))
             return
         if mtype == "SET_POSITION_TARGET_LOCAL_NED":
             self._on_setpoint(msg)
@@ -1270,7 +1343,12 @@ class SimMavlinkVehicle:
             target = self._scene_from_global(x * 1e-7, y * 1e-7, alt if math.isfinite(alt) else 0.0)
         if not math.isfinite(alt):
             target[2] = cur[2]
-        yaw = wrap_angle(math.pi / 2 - math.radians(p[3])) if math.isfinite(p[3]) else None
+        # param4 is the yaw: PX4's navigator copies it into the position setpoint's yaw, which is in
+        # radians (navigator_main.cpp DO_REPOSITION: rep->current.yaw = cmd.param4; MAVSDK's
+        # goto_location sends radians for it); for ArduCopter it stays in degrees (the MAVLink spec;
+        # not checked against ArduCopter's handler)
+        yaw_ned = (float(p[3]) if self.px4 else math.radians(p[3])) if math.isfinite(p[3]) else None
+        yaw = None if yaw_ned is None else wrap_angle(math.pi / 2 - yaw_ned)
         speed = float(p[0]) if math.isfinite(p[0]) and p[0] > 0 else None
         change_mode = math.isfinite(p[1]) and int(p[1]) & _M.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE
         if self.px4:
@@ -1389,6 +1467,9 @@ class SimMavlinkVehicle:
                                                 [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, int(time.time() * 1e6))
             if msg_id == _M.MAVLINK_MSG_ID_MISSION_CURRENT:
                 return self.mission.mission_current_stream()
+            if msg_id in self._builders:
+                # messages of one autopilot only: the other neither streams nor sends them on request
+                return self._builders[msg_id]() if msg_id in self._default_rates else None
             if msg_id == _M.MAVLINK_MSG_ID_AUTOPILOT_VERSION and not streaming:
                 C = _M
                 caps = (C.MAV_PROTOCOL_CAPABILITY_COMMAND_INT | C.MAV_PROTOCOL_CAPABILITY_MAVLINK2
@@ -1398,6 +1479,193 @@ class SimMavlinkVehicle:
                 version = _flight_sw_version(1, 15, 0) if self.px4 else _flight_sw_version(4, 5, 0)
                 return mav.autopilot_version_encode(caps, version, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, 0x5EED0000 + self.c.system_id)
             return None
+
+    # -- state as the vehicle's sensors and estimator report it -------------------------------
+    #: ISA sea-level pressure (hPa) and temperature (deg C); PX4 SENS_BARO_QNH 1013.25
+    _ISA_P0_HPA = 1013.25
+    _ISA_T0_C = 15.0
+    #: ArduPilot's GRAVITY_MSS (RAW_IMU milli-g)
+    _AP_GRAVITY_MSS = 9.80665
+
+    def _baro(self):
+        """(pressure hPa, pressure altitude m, temperature deg C) of an ISA standard day at the
+        vehicle's AMSL altitude, or None indoors: without a global origin the model does not know
+        the altitude above sea level, so it has no pressure to report."""
+        if self.c.global_origin is None:
+            return None
+        h = self.c.global_origin[2] + float(self.model.p[2])
+        p = self._ISA_P0_HPA * (1.0 - 2.25577e-5 * h) ** 5.25588
+        return p, h, self._ISA_T0_C - 0.0065 * h
+
+    def _specific_force_frd(self) -> np.ndarray:
+        """What an accelerometer measures (m/s^2, body FRD): the model's acceleration over the
+        last physics step minus gravity, so at rest z = -9.81 and in free fall 0."""
+        f_enu = self._accel_enu + np.array([0.0, 0.0, PointMassModel.GRAVITY_MPS2])
+        f_flu = self.model.R_enu_flu().T @ f_enu
+        return frames.frd_from_flu(f_flu)
+
+    def _body_rates_frd(self) -> np.ndarray:
+        """Gyro (rad/s, body FRD): the model turns about its yaw axis only (as ATTITUDE says)."""
+        return frames.frd_from_flu(np.array([0.0, 0.0, float(self.model.yaw_rate)]))
+
+    def _heading_ned_rad(self) -> float:
+        """Heading (rad, NED, from north clockwise) in the estimator's frame."""
+        return float(frames.yaw_ned_from_enu(wrap_angle(self.model.yaw - self.c.estimator_yaw_rad)))
+
+    def _throttle_fraction(self) -> float:
+        """Collective thrust in [0, 1]: the hover throttle (MPC_THR_HOVER / MOT_THST_HOVER) scaled by
+        the thrust the model needs (|a + g| / g); 0 disarmed or resting on the ground (idle)."""
+        if not self.armed or self.model.on_ground:
+            return 0.0
+        hover = float(self.params["MPC_THR_HOVER"] if self.px4 else self.params["MOT_THST_HOVER"])
+        need = np.linalg.norm(self._accel_enu + np.array([0.0, 0.0, PointMassModel.GRAVITY_MPS2])) / PointMassModel.GRAVITY_MPS2
+        return float(np.clip(hover * need, 0.0, 1.0))
+
+    def _local_ned(self):
+        """Position and velocity (NED, the estimator's frame) of the model."""
+        p_loc = self.local_from_scene(self.model.p)
+        v_loc = self.model.v @ self._R_scene_est
+        return frames.ned_from_enu(np.stack([p_loc, v_loc]))
+
+    def _altitude(self):
+        """PX4 ALTITUDE (``streams/ALTITUDE.hpp``): monotonic = baro altitude; amsl = -z + the
+        origin's AMSL altitude with a global origin, else the baro altitude; local = -z; relative
+        = height above home (-z without home); terrain and bottom clearance NaN (no distance
+        sensor). Without a position estimate only the baro altitude."""
+        nan = math.nan
+        baro = self._baro()
+        mono = nan if baro is None else baro[1]
+        amsl = local = rel = nan
+        if self._position_valid:
+            p_ned, _ = self._local_ned()
+            local = -float(p_ned[2])
+            if self.c.global_origin is not None:
+                amsl = self.c.global_origin[2] + float(self.model.p[2])
+            else:
+                amsl = mono
+            rel = float(self.model.p[2] - self._home[2]) if self._home is not None else local
+        return self.link.mav.altitude_encode(self.time_boot_us(), mono, amsl, local, rel, nan, nan)
+
+    def _vfr_hud(self):
+        """VFR_HUD. PX4 (``streams/VFR_HUD.hpp``): airspeed from an airspeed sensor (none on a
+        multicopter: 0), groundspeed and heading (deg) of the local position, throttle = 100 x the
+        thrust setpoint armed, alt AMSL of the global estimate (else the baro altitude, 0 without
+        air data), climb = -vz. ArduCopter (``GCS_Common.cpp`` ``send_vfr_hud``): airspeed = GPS
+        ground speed without an airspeed sensor, heading ``yaw_sensor / 100``, throttle =
+        ``motors->get_throttle() * 100``, alt = the current location's AMSL altitude (0 without
+        an EKF origin), climb = -vD."""
+        m = self.model
+        _, v_ned = self._local_ned()
+        ground = float(np.hypot(v_ned[0], v_ned[1]))
+        heading = int(math.degrees(self._heading_ned_rad() % (2 * math.pi))) % 360
+        throttle = int(round(100.0 * self._throttle_fraction()))
+        has_global = self.c.global_origin is not None and self._position_valid
+        if self.px4:
+            airspeed = 0.0
+            if has_global:
+                alt = self.c.global_origin[2] + float(m.p[2])
+            else:
+                baro = self._baro()
+                alt = 0.0 if baro is None else baro[1]
+        else:
+            airspeed = ground if has_global else 0.0
+            alt = self.c.global_origin[2] + float(m.p[2]) if has_global else 0.0
+        climb = -float(v_ned[2]) if self._position_valid else 0.0
+        if not self._position_valid:
+            ground = 0.0
+        return self.link.mav.vfr_hud_encode(airspeed, ground, heading, throttle, alt, climb)
+
+    def _odometry(self):
+        """PX4 ODOMETRY (``streams/ODOMETRY.hpp`` of EKF2's ``PublishOdometry``): position and
+        velocity in the estimator's local NED frame (frame_id and child_frame_id
+        MAV_FRAME_LOCAL_NED), attitude quaternion NED->FRD, body rates FRD, estimator_type
+        AUTOPILOT, quality 0 (EKF2 sets none). Covariances NaN: the model has no estimator
+        variances. None without a position estimate (as LOCAL_POSITION_NED)."""
+        if not self._position_valid:
+            return None
+        p_ned, v_ned = self._local_ned()
+        q = frames.quat_ned_frd_from_matrix_enu_flu(self._R_scene_est.T @ self.model.R_enu_flu())
+        rates = self._body_rates_frd()
+        cov = [math.nan] * 21
+        return self.link.mav.odometry_encode(self.time_boot_us(), _M.MAV_FRAME_LOCAL_NED, _M.MAV_FRAME_LOCAL_NED,
+                                             *(float(x) for x in p_ned), [float(x) for x in q], *(float(x) for x in v_ned),
+                                             *(float(x) for x in rates), cov, cov, 0, _M.MAV_ESTIMATOR_TYPE_AUTOPILOT, 0)
+
+    def _highres_imu(self):
+        """PX4 HIGHRES_IMU (``streams/HIGHRES_IMU.hpp``): accel (m/s^2, FRD, gravity included) and
+        gyro (rad/s) with fields_updated bits 0-5; outdoors also the baro (abs_pressure hPa,
+        pressure_alt m, temperature deg C; bits 9, 11, 12). No magnetometer field is modelled:
+        mag 0 and its bits clear."""
+        f = self._specific_force_frd()
+        g = self._body_rates_frd()
+        fields = 0x3F
+        press = alt = temp = 0.0
+        baro = self._baro()
+        if baro is not None:
+            press, alt, temp = baro
+            fields |= (1 << 9) | (1 << 11) | (1 << 12)
+        return self.link.mav.highres_imu_encode(self.time_boot_us(), *(float(x) for x in f), *(float(x) for x in g),
+                                                0.0, 0.0, 0.0, press, 0.0, alt, temp, fields)
+
+    def _raw_imu(self):
+        """ArduPilot RAW_IMU (RAW_SENS group; ``GCS_Common.cpp`` ``send_raw_imu``): the first
+        IMU's scaled accel in milli-g (x 1000 / GRAVITY_MSS) and gyro in mrad/s, FRD; mag 0 (not
+        modelled); temperature 0 (no IMU temperature modelled)."""
+        f = self._specific_force_frd() * 1000.0 / self._AP_GRAVITY_MSS
+        g = self._body_rates_frd() * 1000.0
+        ints = [int(np.clip(round(float(x)), -32768, 32767)) for x in (*f, *g)]
+        return self.link.mav.raw_imu_encode(self.time_boot_us(), *ints, 0, 0, 0, 0, 0)
+
+    def _position_target_local_ned(self):
+        """What the position controller tracks, MAV_FRAME_LOCAL_NED in the estimator's frame.
+        PX4 (``streams/POSITION_TARGET_LOCAL_NED.hpp``): every setpoint component that is not
+        finite is NaN with its ignore bit; none while nothing is tracked (disarmed). ArduCopter
+        (``GCS_MAVLINK_Copter::send_position_target_local_ned``): only in GUIDED, the tracked
+        position and/or velocity, the rest ignored (0)."""
+        t = self._target
+        if t is None or not self.armed:
+            return None
+        if not self.px4 and self.custom_mode != ARDUCOPTER_MODE["guided"]:
+            return None
+        nan = math.nan
+        rows = [None, None, None]
+        if t.p is not None:
+            rows[0] = frames.ned_from_enu(self.local_from_scene(t.p))
+        if t.v is not None:
+            rows[1] = frames.ned_from_enu(t.v @ self._R_scene_est)
+        if t.a is not None:
+            rows[2] = frames.ned_from_enu(t.a @ self._R_scene_est)
+        T = _M
+        ignore = [(T.POSITION_TARGET_TYPEMASK_X_IGNORE | T.POSITION_TARGET_TYPEMASK_Y_IGNORE | T.POSITION_TARGET_TYPEMASK_Z_IGNORE),
+                  (T.POSITION_TARGET_TYPEMASK_VX_IGNORE | T.POSITION_TARGET_TYPEMASK_VY_IGNORE | T.POSITION_TARGET_TYPEMASK_VZ_IGNORE),
+                  (T.POSITION_TARGET_TYPEMASK_AX_IGNORE | T.POSITION_TARGET_TYPEMASK_AY_IGNORE | T.POSITION_TARGET_TYPEMASK_AZ_IGNORE)]
+        absent = nan if self.px4 else 0.0
+        mask = T.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
+        vals = []
+        for k in range(3):
+            if rows[k] is None:
+                mask |= ignore[k]
+                vals += [absent] * 3
+            else:
+                vals += [float(x) for x in rows[k]]
+        if self.px4 and t.yaw is not None:
+            yaw = float(frames.yaw_ned_from_enu(wrap_angle(t.yaw - self.c.estimator_yaw_rad)))
+        else:
+            yaw = absent
+            mask |= T.POSITION_TARGET_TYPEMASK_YAW_IGNORE
+        return self.link.mav.position_target_local_ned_encode(self.time_boot_ms(), _M.MAV_FRAME_LOCAL_NED, mask, *vals,
+                                                              yaw, absent)
+
+    def _timesync_request(self):
+        """PX4's TIMESYNC stream (``MavlinkStreamTimesync``): a request, tc1 = 0, ts1 = our time
+        since boot in ns; the companion's answer is not used here."""
+        return self.link.mav.timesync_encode(0, self.time_boot_us() * 1000)
+
+    def _ping_request(self):
+        """PX4's PING stream (``streams/PING.hpp``): a request to all (target 0/0), seq counting up,
+        time_usec = our time since boot (from seq 0); answers are not used here."""
+        seq, self._ping_seq = self._ping_seq, (self._ping_seq + 1) % 2**32
+        return self.link.mav.ping_encode(self.time_boot_us(), seq, 0, 0)
 
     def _gps_raw_int(self):
         """GPS_RAW_INT of the model's receiver (outdoor only): a 3D fix with 12 satellites, lat/lon
