@@ -294,6 +294,7 @@ def test_mavsdk_px4_return_to_launch_climbs_comes_home_lands_and_gps_has_a_3d_fi
     wait_until(lambda: tel.landed_state() == LandedState.ON_GROUND and not tel.armed(), 3.0, "client sees landed, disarmed")
 
 
+@pytest.mark.slow  # real time, ~10 s: opt-in (`-m slow`)
 def test_pymavlink_mavproxy_style_ardupilot_mode_rtl_climbs_returns_loiters_lands_and_disarms():
     port = free_udp_port()
     v = SimMavlinkVehicle(MavlinkLink(f"udpout:127.0.0.1:{port}", 1, 1), SimVehicleConfig(autopilot="ardupilot", profile="outdoor")).start()

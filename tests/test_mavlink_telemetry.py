@@ -191,6 +191,7 @@ def count_over(mp, types, seconds):
     return counts, last
 
 
+@pytest.mark.slow  # real time, ~10 s: opt-in (`-m slow`)
 def test_pymavlink_ardupilot_stream_groups_rates_values_and_message_interval():
     port = free_udp_port()
     v = SimMavlinkVehicle(MavlinkLink(f"udpout:127.0.0.1:{port}", 1, 1), SimVehicleConfig(autopilot="ardupilot", profile="outdoor")).start()

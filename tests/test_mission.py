@@ -321,6 +321,7 @@ def test_protocol_sequence_frame_space_and_legacy_request_rules():
             v.stop()
 
 
+@pytest.mark.slow  # real time, ~10 s: opt-in (`-m slow`)
 def test_a_client_that_stops_mid_upload_times_out():
     px, vp = raw("px4")
     ap, va = raw("ardupilot")
@@ -388,6 +389,7 @@ def test_mission_start_is_refused_without_a_mission_or_a_global_origin():
             v.stop()
 
 
+@pytest.mark.slow  # real time, ~10 s: opt-in (`-m slow`)
 def test_px4_mission_start_arms_takes_off_keeps_speed_and_lands_on_a_final_land_item():
     c, v = raw("px4")
     try:

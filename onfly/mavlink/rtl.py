@@ -125,7 +125,7 @@ def ardu_return_altitude_cm(p_m, home_m, params: dict) -> float:
 class _Return:
     """Common state: phase, home, the phase's target and the event/STATUSTEXT callbacks."""
 
-    def __init__(self, home_m, params: dict, event: Callable[[str], None], statustext: Callable[[str], None]) -> None:
+    def __init__(self, home_m, params: dict, event: Callable[[str, float], None], statustext: Callable[[str], None]) -> None:
         self.home = np.array(home_m, dtype=float)
         self.params = params
         self._event = event
@@ -141,7 +141,7 @@ class _Return:
 
     def _enter(self, phase: str, t_s: float, sp: ReturnSetpoint | None) -> None:
         self.phase, self._since_s, self._sp = phase, t_s, sp
-        self._event(f"rtl: {phase}")
+        self._event(f"rtl: {phase}", t_s)  # on the physics clock the phases run on
 
     def _land_setpoint(self, p, speed_mps: float, v_xy_limit_mps: float) -> ReturnSetpoint:
         """Down at ``speed_mps`` over home: a position target at the current height plus a

@@ -769,8 +769,9 @@ class SimMavlinkVehicle:
         except LinkError as exc:
             log.debug("vehicle send failed: %s", exc)
 
-    def _event(self, text: str) -> None:
-        t = self.clock()
+    def _event(self, text: str, t_s: float | None = None) -> None:
+        """Record an event at ``t_s`` (a physics step's time, for rules that run on it) or now."""
+        t = self.clock() if t_s is None else float(t_s)
         with self._lock:
             self.events.append((t, text))
         log.info("sim vehicle t=%.3f: %s", t, text)
