@@ -191,6 +191,26 @@ class MavproxyStyle:
         self.m.mav.command_long_send(self.m.target_system, self.m.target_component, cmd, 0, *p)
         return self.ack(cmd)
 
+    def guided_takeoff(self, v, alt_m):
+        """`mode GUIDED`, `arm throttle`, `takeoff ALT`; waits on the vehicle's truth."""
+        assert self.mode("GUIDED") == M.MAV_RESULT_ACCEPTED
+        assert self.long(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+        assert self.long(M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, alt_m) == M.MAV_RESULT_ACCEPTED
+        wait_until(lambda: v.position_enu()[2] > alt_m - 0.1, 10.0, f"take-off to {alt_m} m")
+
+    def guided_north(self, v, north_m, alt_m):
+        """`guided LAT LON ALT` ``north_m`` north of the vehicle: COMMAND_INT DO_REPOSITION,
+        relative altitude; waits until the vehicle (taken off at the scene origin) is there.
+        Returns the target's latitude, degE7."""
+        gp = self.m.recv_match(type="GLOBAL_POSITION_INT", blocking=True, timeout=3)
+        lat = gp.lat + int(round(math.degrees(north_m / EARTH_RADIUS_M) * 1e7))
+        self.drain()
+        self.m.mav.command_int_send(1, 1, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, M.MAV_CMD_DO_REPOSITION, 0, 0,
+                                    -1, M.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, math.nan, lat, gp.lon, alt_m)
+        assert self.ack(M.MAV_CMD_DO_REPOSITION) == M.MAV_RESULT_ACCEPTED
+        wait_until(lambda: np.linalg.norm(v.position_enu() - [0.0, north_m, alt_m]) < 0.15, 15.0, "guided target")
+        return lat
+
     def latest(self, mtype, pred, timeout_s=3.0):
         """Read ``mtype`` messages (older buffered ones first) until one satisfies ``pred``."""
         deadline = time.monotonic() + timeout_s
@@ -219,18 +239,8 @@ def test_pymavlink_mavproxy_style_ardupilot_guided_flight():
         echo = mp.m.recv_match(type="PARAM_VALUE", blocking=True, timeout=2, condition="PARAM_VALUE.param_id=='GUID_TIMEOUT'")
         assert echo.param_value == pytest.approx(2.0) and v.params["GUID_TIMEOUT"] == pytest.approx(2.0)
 
-        assert mp.mode("GUIDED") == M.MAV_RESULT_ACCEPTED
-        assert mp.long(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
-        assert mp.long(M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 2.0) == M.MAV_RESULT_ACCEPTED
-        wait_until(lambda: v.position_enu()[2] > 1.9, 10.0, "take-off to 2 m")
-        # `guided LAT LON ALT`: COMMAND_INT DO_REPOSITION, relative altitude
-        gp = mp.m.recv_match(type="GLOBAL_POSITION_INT", blocking=True, timeout=3)
-        lat = gp.lat + int(round(math.degrees(5.0 / EARTH_RADIUS_M) * 1e7))
-        mp.drain()
-        mp.m.mav.command_int_send(1, 1, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, M.MAV_CMD_DO_REPOSITION, 0, 0,
-                                  -1, M.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, math.nan, lat, gp.lon, 3.0)
-        assert mp.ack(M.MAV_CMD_DO_REPOSITION) == M.MAV_RESULT_ACCEPTED
-        wait_until(lambda: np.linalg.norm(v.position_enu() - [0.0, 5.0, 3.0]) < 0.15, 15.0, "guided target")
+        mp.guided_takeoff(v, 2.0)
+        mp.guided_north(v, 5.0, 3.0)
         time.sleep(2.5)  # past GUID_TIMEOUT: a position target is held, not dropped
         assert np.linalg.norm(v.position_enu() - [0.0, 5.0, 3.0]) < 0.15 and v.mode_name == "guided"
         # `mode LAND`: ArduCopter disarms as soon as the land detector says landed
@@ -307,17 +317,8 @@ def test_pymavlink_mavproxy_style_ardupilot_mode_rtl_climbs_returns_loiters_land
             mp.m.mav.param_set_send(1, 1, name.encode(), float(value), ptype)
             echo = mp.m.recv_match(type="PARAM_VALUE", blocking=True, timeout=3, condition=f"PARAM_VALUE.param_id=='{name}'")
             assert echo is not None and echo.param_value == value and v.params[name] == value
-        assert mp.mode("GUIDED") == M.MAV_RESULT_ACCEPTED
-        assert mp.long(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
-        assert mp.long(M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 2.0) == M.MAV_RESULT_ACCEPTED
-        wait_until(lambda: v.position_enu()[2] > 1.9, 10.0, "take-off to 2 m")
-        gp = mp.m.recv_match(type="GLOBAL_POSITION_INT", blocking=True, timeout=3)
-        lat = gp.lat + int(round(math.degrees(5.0 / EARTH_RADIUS_M) * 1e7))
-        mp.drain()
-        mp.m.mav.command_int_send(1, 1, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, M.MAV_CMD_DO_REPOSITION, 0, 0,
-                                  -1, M.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, math.nan, lat, gp.lon, 3.0)
-        assert mp.ack(M.MAV_CMD_DO_REPOSITION) == M.MAV_RESULT_ACCEPTED
-        wait_until(lambda: np.linalg.norm(v.position_enu() - [0.0, 5.0, 3.0]) < 0.15, 15.0, "guided target")
+        mp.guided_takeoff(v, 2.0)
+        lat = mp.guided_north(v, 5.0, 3.0)
         mp.drain()
         gps = mp.latest("GPS_RAW_INT", lambda m: True)  # EXT_STAT group
         assert gps.fix_type == M.GPS_FIX_TYPE_3D_FIX and gps.satellites_visible > 0 and abs(gps.lat - lat) < 20

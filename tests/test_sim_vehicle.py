@@ -373,6 +373,14 @@ def _wait(pred, timeout_s=3.0):
     return False
 
 
+def _px4_take_off(c, v, timeout_s=4.0):
+    """PX4 NAV_TAKEOFF (MIS_TAKEOFF_ALT), arm, and wait for AUTO.LOITER at the top."""
+    nan = float("nan")
+    assert c.command(M.MAV_CMD_NAV_TAKEOFF, nan, nan, nan, nan, nan, nan, nan) == M.MAV_RESULT_ACCEPTED
+    assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+    assert _wait(lambda: v.mode_name == "auto.loiter", timeout_s)
+
+
 def test_commands_with_nan_params_request_message_and_parameters():
     c, v = rig(autopilot="px4", params=(("COM_DISARM_PRFLT", 30.0),))
     try:
@@ -508,10 +516,7 @@ def test_return_altitude_rules_px4_cone_and_arducopter_climb_min_and_cone():
 def test_return_refused_without_global_position_and_no_gps_indoors():
     c, v = rig(autopilot="px4", params=(("MIS_TAKEOFF_ALT", 1.0),))  # indoor: vision, no global origin
     try:
-        nan = float("nan")
-        assert c.command(M.MAV_CMD_NAV_TAKEOFF, nan, nan, nan, nan, nan, nan, nan) == M.MAV_RESULT_ACCEPTED
-        assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
-        assert _wait(lambda: v.mode_name == "auto.loiter", 4.0)
+        _px4_take_off(c, v)
         assert c.command(M.MAV_CMD_NAV_RETURN_TO_LAUNCH) == M.MAV_RESULT_TEMPORARILY_REJECTED
         assert c.command(M.MAV_CMD_DO_SET_MODE, 1, PX4_MAIN["auto"], 5) == M.MAV_RESULT_TEMPORARILY_REJECTED  # AUTO.RTL
         assert v.mode_name == "auto.loiter" and v.armed
@@ -560,10 +565,7 @@ def test_px4_return_land_delay_descends_holds_then_lands_and_a_mode_change_stops
               ("RTL_LAND_DELAY", 0.5), ("NAV_MC_ALT_RAD", 0.1), ("LNDMC_TRIG_TIME", 0.3), ("COM_DISARM_LAND", 0.3))
     c, v = rig(autopilot="px4", profile="outdoor", params=params)
     try:
-        nan = float("nan")
-        assert c.command(M.MAV_CMD_NAV_TAKEOFF, nan, nan, nan, nan, nan, nan, nan) == M.MAV_RESULT_ACCEPTED
-        assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
-        assert _wait(lambda: v.mode_name == "auto.loiter", 4.0)
+        _px4_take_off(c, v)
         assert c.command(M.MAV_CMD_NAV_RETURN_TO_LAUNCH) == M.MAV_RESULT_ACCEPTED
         zs = []
         assert _wait(lambda: zs.append(v.position_enu()[2]) or not v.armed, 12.0), v.events
@@ -579,10 +581,7 @@ def test_px4_return_land_delay_descends_holds_then_lands_and_a_mode_change_stops
         v.stop()
     c, v = rig(autopilot="px4", profile="outdoor", params=(("MIS_TAKEOFF_ALT", 1.0), ("RTL_CONE_ANG", 0), ("RTL_RETURN_ALT", 30.0)))
     try:
-        nan = float("nan")
-        assert c.command(M.MAV_CMD_NAV_TAKEOFF, nan, nan, nan, nan, nan, nan, nan) == M.MAV_RESULT_ACCEPTED
-        assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
-        assert _wait(lambda: v.mode_name == "auto.loiter", 4.0)
+        _px4_take_off(c, v)
         assert c.command(M.MAV_CMD_NAV_RETURN_TO_LAUNCH) == M.MAV_RESULT_ACCEPTED
         assert _wait(lambda: v.position_enu()[2] > 2.0, 3.0)  # climbing toward 30 m
         assert c.command(M.MAV_CMD_DO_SET_MODE, 1, PX4_MAIN["auto"], 3) == M.MAV_RESULT_ACCEPTED  # Hold
@@ -609,10 +608,7 @@ def test_return_climb_into_a_ceiling_is_a_crash_in_the_embedded_world():
     v = SimMavlinkVehicle(b, SimVehicleConfig(heartbeat_period_s=0.2, profile="outdoor", params=params), model=model).start()
     c = Companion(a)
     try:
-        nan = float("nan")
-        assert c.command(M.MAV_CMD_NAV_TAKEOFF, nan, nan, nan, nan, nan, nan, nan) == M.MAV_RESULT_ACCEPTED
-        assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
-        assert _wait(lambda: v.mode_name == "auto.loiter", 10.0)  # the world's vehicle climbs at 0.6 m/s
+        _px4_take_off(c, v, 10.0)  # the world's vehicle climbs at 0.6 m/s
         assert c.command(M.MAV_CMD_NAV_RETURN_TO_LAUNCH) == M.MAV_RESULT_ACCEPTED
         assert _wait(lambda: not v.armed, 15.0), v.events
         assert model.collision is not None and model.collision.object_name == "ceiling"
