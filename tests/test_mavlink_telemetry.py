@@ -268,3 +268,33 @@ def test_timesync_answered_with_ts1_echoed_and_ping_as_each_autopilot(autopilot)
             assert pong is None
     finally:
         v.stop()
+
+
+@pytest.mark.parametrize("autopilot", ["ardupilot", "px4"])
+def test_request_data_stream_sets_arducopter_groups_and_px4_ignores_it(autopilot):
+    """MAVProxy's ``--streamrate`` on connect: REQUEST_DATA_STREAM for every stream at 10 Hz,
+    then the POSITION group stopped. ArduCopter sets its groups (``handle_request_data_stream``);
+    PX4 has no handler, so its streams keep their onboard-mode rates."""
+    port = free_udp_port()
+    v = SimMavlinkVehicle(MavlinkLink(f"udpout:127.0.0.1:{port}", 1, 1), SimVehicleConfig(autopilot=autopilot, profile="outdoor")).start()
+    try:
+        mp = MavproxyStyle(port)
+        mp.m.mav.request_data_stream_send(1, 1, M.MAV_DATA_STREAM_ALL, 10, 1)
+        time.sleep(0.3)
+        mp.drain()
+        counts, _ = count_over(mp, ("ATTITUDE", "VFR_HUD", "GLOBAL_POSITION_INT"), 2.0)
+        if autopilot == "ardupilot":  # 4, 4 and 2 Hz before: now 10 Hz each (20 in 2 s, +-30 %)
+            assert all(14 <= counts[t] <= 26 for t in ("ATTITUDE", "VFR_HUD", "GLOBAL_POSITION_INT")), counts
+        else:  # PX4 onboard rates, unchanged: ATTITUDE and GLOBAL_POSITION_INT 50 Hz (the config's
+            # telemetry rate), not 10
+            assert counts["ATTITUDE"] > 60 and counts["GLOBAL_POSITION_INT"] > 60, counts
+        mp.m.mav.request_data_stream_send(1, 1, M.MAV_DATA_STREAM_POSITION, 0, 0)
+        time.sleep(0.3)
+        mp.drain()
+        counts, _ = count_over(mp, ("ATTITUDE", "GLOBAL_POSITION_INT"), 1.5)
+        if autopilot == "ardupilot":
+            assert counts["GLOBAL_POSITION_INT"] == 0 and counts["ATTITUDE"] >= 10, counts
+        else:
+            assert counts["GLOBAL_POSITION_INT"] > 40, counts
+    finally:
+        v.stop()

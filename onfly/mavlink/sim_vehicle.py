@@ -304,6 +304,21 @@ DEFAULT_RATES_HZ = {
                   "POSITION_TARGET_LOCAL_NED": 0.0},
 }
 
+#: ArduCopter's stream groups as far as the model sends their messages (``GCS_MAVLink``
+#: ``STREAM_*_msgs``; MAV_DATA_STREAM id -> messages), for REQUEST_DATA_STREAM. RC_CHANNELS and
+#: RAW_CONTROLLER hold nothing the model sends; EXTENDED_SYS_STATE and HOME_POSITION are in no
+#: group.
+ARDUPILOT_STREAM_GROUPS = {
+    _M.MAV_DATA_STREAM_RAW_SENSORS: ("RAW_IMU",),
+    _M.MAV_DATA_STREAM_EXTENDED_STATUS: ("SYS_STATUS", "GPS_RAW_INT", "MISSION_CURRENT"),
+    _M.MAV_DATA_STREAM_RC_CHANNELS: (),
+    _M.MAV_DATA_STREAM_RAW_CONTROLLER: (),
+    _M.MAV_DATA_STREAM_POSITION: ("GLOBAL_POSITION_INT", "LOCAL_POSITION_NED"),
+    _M.MAV_DATA_STREAM_EXTRA1: ("ATTITUDE",),
+    _M.MAV_DATA_STREAM_EXTRA2: ("VFR_HUD",),
+    _M.MAV_DATA_STREAM_EXTRA3: ("SYSTEM_TIME", "BATTERY_STATUS"),
+}
+
 #: The two settings: a GPS-less indoor vehicle (vision position, no global origin, offboard
 #: loss -> Hold, since Position mode needs an RC link it does not have) and an outdoor one
 #: (GPS: a global origin, offboard loss -> PX4's default Position, falling back to Hold
@@ -998,6 +1013,11 @@ class SimMavlinkVehicle:
         mtype = msg.get_type()
         if mtype.startswith("MISSION_") and self.mission.handle(msg):
             return
+        if mtype == "REQUEST_DATA_STREAM":
+            if not self.px4 and self._for_me(msg.target_system, msg.target_component):
+                with self._lock:
+                    self._request_data_stream(int(msg.req_stream_id), int(msg.req_message_rate), int(msg.start_stop))
+            return  # PX4's receiver has no handler for it (SET_MESSAGE_INTERVAL only); no ACK either way
         if mtype == "TIMESYNC":
             # a request (tc1 = 0) is answered with our time since boot in ns and ts1 echoed (PX4
             # ``mavlink_timesync.cpp`` / ``Timesync::handle_message``: hrt_absolute_time * 1000;
@@ -1366,6 +1386,22 @@ class SimMavlinkVehicle:
         self._target = _Target(p=target, yaw=yaw, v_limit_mps=speed)
         self._event(f"reposition to scene ({target[0]:.2f}, {target[1]:.2f}, {target[2]:.2f})")
         return _M.MAV_RESULT_ACCEPTED
+
+    def _request_data_stream(self, stream_id: int, rate_hz: int, start_stop: int) -> None:
+        """ArduPilot's REQUEST_DATA_STREAM (``GCS_MAVLINK::handle_request_data_stream``): every
+        message of the stream group at ``rate_hz`` (start_stop 1) or stopped (0; any other value
+        is ignored); MAV_DATA_STREAM_ALL sets every group. MAVProxy and Mission Planner ask for
+        their streams this way (MAVProxy's ``--streamrate``, 4 Hz, on connect)."""
+        if start_stop not in (0, 1):
+            return
+        rate = float(rate_hz) if start_stop == 1 else 0.0
+        groups = ARDUPILOT_STREAM_GROUPS.values() if stream_id == _M.MAV_DATA_STREAM_ALL else [ARDUPILOT_STREAM_GROUPS.get(stream_id, ())]
+        for names in groups:
+            for name in names:
+                mid = _ID[name]
+                self._rates_hz[mid] = min(rate, self.c.physics_rate_hz)
+                self._next_send.pop(mid, None)
+        self._event(f"data stream {stream_id} at {rate:g} Hz")
 
     def _cmd_interval(self, msg_id: float, interval_us: float) -> int:
         if not (math.isfinite(msg_id) and math.isfinite(interval_us)) or int(msg_id) not in self._default_rates:
