@@ -141,6 +141,7 @@ def test_mavsdk_px4_outdoor_telemetry_matches_ground_truth_in_flight(px4_outdoor
     assert odo.position_body.x_m == pytest.approx(p[1], abs=0.1) and odo.position_body.y_m == pytest.approx(p[0], abs=0.1)
 
 
+@pytest.mark.slow  # real time, ~8 s: opt-in (`-m slow`)
 def test_mavsdk_px4_indoor_sends_what_a_gps_less_vehicle_sends_and_set_rate_works(px4_indoor):
     rig = px4_indoor
     act, tel, v = rig.action, rig.telemetry, rig.vehicle
@@ -270,7 +271,7 @@ def test_timesync_answered_with_ts1_echoed_and_ping_as_each_autopilot(autopilot)
         v.stop()
 
 
-@pytest.mark.parametrize("autopilot", ["ardupilot", "px4"])
+@pytest.mark.parametrize("autopilot", ["ardupilot", pytest.param("px4", marks=pytest.mark.slow)])
 def test_request_data_stream_sets_arducopter_groups_and_px4_ignores_it(autopilot):
     """MAVProxy's ``--streamrate`` on connect: REQUEST_DATA_STREAM for every stream at 10 Hz,
     then the POSITION group stopped. ArduCopter sets its groups (``handle_request_data_stream``);

@@ -140,6 +140,7 @@ def item_int(seq, east, north, alt, command=M.MAV_CMD_NAV_WAYPOINT, frame=M.MAV_
     return M.MAVLink_mission_item_int_message(1, 1, seq, frame, command, 0, 1, p1, 0.0, 0.0, 0.0, x, y, alt, M.MAV_MISSION_TYPE_MISSION)
 
 
+@pytest.mark.slow  # real time, ~8 s: opt-in (`-m slow`)
 def test_pymavlink_mavproxy_wp_load_and_auto_on_ardupilot():
     port = free_udp_port()
     v = SimMavlinkVehicle(MavlinkLink(f"udpout:127.0.0.1:{port}", 1, 1), SimVehicleConfig(autopilot="ardupilot", profile="outdoor")).start()

@@ -537,6 +537,7 @@ def test_return_refused_without_global_position_and_no_gps_indoors():
         v.stop()
 
 
+@pytest.mark.slow  # real time, ~8 s: opt-in (`-m slow`)
 def test_px4_offboard_loss_with_return_outdoors_flies_home_and_lands():
     c, v = rig(autopilot="px4", profile="outdoor", params=(("COM_OBL_RC_ACT", 3), ("RTL_RETURN_ALT", 2.5),
                                                            ("LNDMC_TRIG_TIME", 0.3), ("COM_DISARM_LAND", 0.3)))
