@@ -1436,9 +1436,7 @@ class SimMavlinkVehicle:
 
     def _position_message(self):
         with self._lock:
-            p_loc = self.local_from_scene(self.model.p)
-            v_loc = self.model.v @ self._R_scene_est
-            p_ned, v_ned = frames.ned_from_enu(np.stack([p_loc, v_loc]))
+            p_ned, v_ned = self._local_ned()
         return self.link.mav.local_position_ned_encode(self.time_boot_ms(), *p_ned, *v_ned)
 
     def _telemetry(self, msg_id: int, streaming: bool):

@@ -384,16 +384,23 @@ def _of_head(text: list[str], breaks: list[bool], end: int) -> str | None:
     None when none follows. Like a modifier before it, it says which object of the kind."""
     if end >= len(text) or text[end] != "of" or breaks[end - 1]:
         return None
-    head = None
-    for k in range(end + 1, len(text)):
+    found = _noun_phrase_words(text, breaks, end + 1)
+    return found[-1] if found else None
+
+
+def _noun_phrase_words(text: list[str], breaks: list[bool], start: int) -> list[str]:
+    """The words of the noun phrase that begins at word ``start`` (after a preposition),
+    determiners left out, up to a word that ends the phrase or punctuation; its head is last."""
+    found: list[str] = []
+    for k in range(start, len(text)):
         w = text[k]
         if w not in _DETERMINERS:
             if _ends_phrase(w) and not _is_premodifier(w):
                 break
-            head = w
+            found.append(w)
         if breaks[k]:
             break
-    return head
+    return found
 
 
 def _postmodifier(text: list[str], breaks: list[bool], end: int) -> list[str]:
@@ -410,15 +417,7 @@ def _postmodifier(text: list[str], breaks: list[bool], end: int) -> list[str]:
     for prep in _POSTMODIFIER_PREPOSITIONS:
         if text[end : end + len(prep)] != list(prep) or any(breaks[end : end + len(prep) - 1]):
             continue
-        found: list[str] = []
-        for k in range(end + len(prep), len(text)):
-            w = text[k]
-            if w not in _DETERMINERS:
-                if _ends_phrase(w) and not _is_premodifier(w):
-                    break
-                found.append(w)
-            if breaks[k]:
-                break
+        found = _noun_phrase_words(text, breaks, end + len(prep))
         return [] if not found or found[-1] in _RELATIONAL_WORDS else found
     return []
 
