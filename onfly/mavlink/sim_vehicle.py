@@ -47,6 +47,23 @@ treat NaN as "unchanged / default"). Unknown commands answer UNSUPPORTED.
   MAV_DO_REPOSITION_FLAGS_CHANGE_MODE and flies there (PX4 ``Commander`` +
   ``navigator_main.cpp`` reposition, param4 the yaw in radians); ArduCopter flies there in GUIDED (switching to it with
   the flag, else FAILED outside GUIDED; ``GCS_Mavlink.cpp`` ``handle_command_int_do_reposition``).
+- DO_CHANGE_SPEED (MAVSDK ``set_current_speed``, MAVProxy ``setspeed``): PX4 always ACCEPTED
+  (``navigator_main.cpp``): param2 > 0 sets the navigator's cruising speed, else resets it; the
+  next reposition made in Hold without its own speed flies at it (entering Hold resets to the
+  default MPC_XY_CRUISE; every goto speed is capped at MPC_XY_VEL_MAX, ``FlightTaskAuto``).
+  ArduCopter (``GCS_MAVLINK_Copter::handle_MAV_CMD_DO_CHANGE_SPEED``): param2 <= 0 or an unknown
+  speed type DENIED, a mode without ``set_speed_NE_ms`` FAILED; GUIDED limits position targets
+  until the guided submode changes (``ModeGuided::set_speed_NE_ms``, ``pva_control_start``), RTL
+  its return leg (``ModeRTL::set_speed_NE_ms``).
+- CONDITION_YAW (MAVProxy ``setyaw``): ArduCopter ACCEPTED for a heading in [0, 360] and param4
+  0/1 (else FAILED), turning in GUIDED at min(param2, ATC_SLEW_YAW) until the next target
+  (``handle_MAV_CMD_CONDITION_YAW``, ``AutoYaw::set_fixed_yaw_rad``); PX4 has no handler outside
+  missions: UNSUPPORTED (``Commander::handle_command`` default).
+- PREFLIGHT_REBOOT_SHUTDOWN (MAVSDK ``reboot``, MAVProxy ``reboot``): armed, PX4 DENIED
+  (``shutdown_if_allowed``) and ArduPilot FAILED ("refuse reboot when armed"); disarmed, param1
+  = 1 ACCEPTED, then silence for ``reboot_time_s`` and a fresh boot (parameters and the mission
+  kept). PX4 param1 0 ACCEPTED (nothing), others DENIED; ArduPilot param1 other than 1/3
+  UNSUPPORTED (3: held in the bootloader, silent).
 - REQUEST_MESSAGE / REQUEST_AUTOPILOT_CAPABILITIES / GET_HOME_POSITION: the message is sent
   once after the ACK (DENIED if it cannot be produced, e.g. HOME_POSITION before home is set).
 - SET_MESSAGE_INTERVAL: any stream below; interval -1 stops it, 0 restores the default.
@@ -64,11 +81,11 @@ the float field, ArduPilot casts them (AUTOPILOT_VERSION's MAV_PROTOCOL_CAPABILI
 bit says which; mavlink.io/en/services/parameter.html). The rules read them live:
 COM_OF_LOSS_T, COM_OBL_RC_ACT, COM_DISARM_PRFLT, COM_DISARM_LAND, MIS_TAKEOFF_ALT,
 MPC_TKO_SPEED, MPC_LAND_SPEED and the Return mode's RTL_RETURN_ALT, RTL_DESCEND_ALT,
-RTL_LAND_DELAY, RTL_MIN_DIST, RTL_CONE_ANG, MPC_XY_CRUISE, MPC_Z_V_AUTO_UP/DN, NAV_ACC_RAD,
+RTL_LAND_DELAY, RTL_MIN_DIST, RTL_CONE_ANG, MPC_XY_CRUISE, MPC_XY_VEL_MAX, MPC_Z_V_AUTO_UP/DN, NAV_ACC_RAD,
 NAV_MC_ALT_RAD (PX4; a multicopter's ROMFS ``rc.mc_defaults`` values: RTL_RETURN_ALT 30,
 RTL_DESCEND_ALT 10, NAV_ACC_RAD 2); GUID_TIMEOUT, DISARM_DELAY, LAND_SPEED, WPNAV_SPEED_UP and
 RTL_ALT, RTL_CLIMB_MIN, RTL_SPEED, RTL_LOIT_TIME, RTL_ALT_FINAL, RTL_CONE_SLOPE, WPNAV_SPEED,
-WPNAV_SPEED_DN, WPNAV_RADIUS (ArduCopter).
+WPNAV_SPEED_DN, WPNAV_RADIUS, ATC_SLEW_YAW (ArduCopter).
 
 Return mode (PX4 AUTO.RTL, ArduCopter RTL)
 ------------------------------------------
