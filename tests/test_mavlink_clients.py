@@ -347,3 +347,99 @@ def test_pymavlink_mavproxy_style_ardupilot_mode_rtl_climbs_returns_loiters_land
         mp.latest("HEARTBEAT", lambda m: m.custom_mode == 6 and not m.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED)
     finally:
         v.stop()
+
+
+# -- speed, yaw and reboot: MAVSDK's set_current_speed / reboot, MAVProxy's setspeed / setyaw / reboot --
+def test_mavsdk_px4_set_current_speed_slows_the_next_goto_and_reboot_is_refused_armed(px4_outdoor):
+    from mavsdk.plugins.action.action import ActionResult
+
+    rig = px4_outdoor
+    act, tel, v = rig.action, rig.telemetry, rig.vehicle
+    wait_until(lambda: tel.health().is_armable, 5.0, "health.is_armable")
+    wait_until(lambda: math.isfinite(tel.position().latitude_deg), 5.0, "a first global position")
+    act.set_takeoff_altitude(2.0)
+    act.arm()
+    with pytest.raises(ActionError) as refused:
+        act.reboot()  # PREFLIGHT_REBOOT_SHUTDOWN armed: Commander's shutdown_if_allowed -> DENIED
+    assert refused.value.result == ActionResult.COMMAND_DENIED
+    assert v.armed and not v.rebooting
+    act.takeoff()
+    wait_until(lambda: v.mode_name == "auto.loiter" and tel.in_air(), 15.0, "take-off complete")
+    act.set_current_speed(1.0)  # DO_CHANGE_SPEED ground speed: the navigator's cruising speed
+    p = tel.position()
+    dlat = math.degrees(3.0 / EARTH_RADIUS_M)
+    t0 = time.monotonic()
+    act.goto_location(p.latitude_deg + dlat, p.longitude_deg, p.absolute_altitude_m, float("nan"))
+    speeds = []
+    while np.linalg.norm(v.position_enu()[:2] - [0.0, 3.0]) > 0.2 and time.monotonic() - t0 < 15.0:
+        vel = tel.position_velocity_ned().velocity  # LOCAL_POSITION_NED, m/s
+        speeds.append(math.hypot(vel.north_m_s, vel.east_m_s))
+        time.sleep(0.05)
+    assert np.linalg.norm(v.position_enu()[:2] - [0.0, 3.0]) <= 0.2, "goto target not reached"
+    # the goto flew at the commanded 1 m/s, not MPC_XY_CRUISE (5 m/s): 3 m took more than 2.5 s
+    assert 0.9 < max(speeds) <= 1.05 and time.monotonic() - t0 > 2.5
+
+
+def test_pymavlink_mavproxy_style_ardupilot_setspeed_setyaw_and_reboot():
+    port = free_udp_port()
+    cfg = SimVehicleConfig(autopilot="ardupilot", profile="outdoor", reboot_time_s=1.0)
+    v = SimMavlinkVehicle(MavlinkLink(f"udpout:127.0.0.1:{port}", 1, 1), cfg).start()
+    try:
+        mp = MavproxyStyle(port)
+        # `setspeed` outside GUIDED/RTL/AUTO: the mode has no set_speed_NE_ms -> FAILED
+        assert mp.long(M.MAV_CMD_DO_CHANGE_SPEED, 0, 1.0) == M.MAV_RESULT_FAILED
+        mp.guided_takeoff(v, 1.5)
+        assert mp.long(M.MAV_CMD_DO_CHANGE_SPEED, 0, 0.0) == M.MAV_RESULT_DENIED  # speed must be > 0
+        assert mp.long(M.MAV_CMD_DO_CHANGE_SPEED, 0, 1.0) == M.MAV_RESULT_ACCEPTED  # `setspeed 1`
+        # `guided` 3 m north: a position target flown at the changed speed (WPNAV_SPEED is 10 m/s)
+        gp = mp.m.recv_match(type="GLOBAL_POSITION_INT", blocking=True, timeout=3)
+        lat = gp.lat + int(round(math.degrees(3.0 / EARTH_RADIUS_M) * 1e7))
+        mp.drain()
+        mp.m.mav.command_int_send(1, 1, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, M.MAV_CMD_DO_REPOSITION, 0, 0,
+                                  -1, 0, 0, math.nan, lat, gp.lon, 1.5)
+        assert mp.ack(M.MAV_CMD_DO_REPOSITION) == M.MAV_RESULT_ACCEPTED
+        speeds, reported = [], []
+        t0 = time.monotonic()
+        while np.linalg.norm(v.position_enu()[:2] - [0.0, 3.0]) > 0.15 and time.monotonic() - t0 < 10.0:
+            speeds.append(float(np.linalg.norm(v.velocity_enu()[:2])))
+            for m in iter(lambda: mp.m.recv_match(type="GLOBAL_POSITION_INT", blocking=False), None):
+                reported.append(math.hypot(m.vx, m.vy) / 100.0)  # cm/s
+            time.sleep(0.02)
+        assert np.linalg.norm(v.position_enu()[:2] - [0.0, 3.0]) <= 0.15, "guided target not reached"
+        assert 0.9 < max(speeds) <= 1.02 and reported and max(reported) <= 1.02
+
+        # `setyaw 0 45 0`: from east (the boot heading) to north at 45 deg/s (below ATC_SLEW_YAW's 60)
+        assert abs(math.degrees(v.model.yaw)) < 1.0
+        assert mp.long(M.MAV_CMD_CONDITION_YAW, 0.0, 45.0, 0, 0) == M.MAV_RESULT_ACCEPTED
+        assert mp.long(M.MAV_CMD_CONDITION_YAW, 400.0, 45.0, 0, 0) == M.MAV_RESULT_FAILED  # not a heading
+        t0 = time.monotonic()
+        rates = []
+        while abs(math.degrees(v.model.yaw) - 90.0) > 0.5 and time.monotonic() - t0 < 6.0:
+            rates.append(abs(v.model.yaw_rate))
+            time.sleep(0.02)
+        assert abs(math.degrees(v.model.yaw) - 90.0) <= 0.5  # ENU yaw 90 deg = facing north
+        assert rates and 40.0 < math.degrees(max(rates)) <= 45.5 and time.monotonic() - t0 > 1.9
+        hud = mp.latest("VFR_HUD", lambda m: m.heading in (0, 359, 1))  # what a ground station shows
+        assert np.linalg.norm(v.position_enu()[:2] - [0.0, 3.0]) < 0.15  # turned in place
+
+        # `reboot` armed: FAILED; after landing and disarming it is ACCEPTED and the link goes quiet
+        assert mp.long(M.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 1) == M.MAV_RESULT_FAILED
+        mp.m.mav.param_set_send(1, 1, b"WPNAV_SPEED", 500.0, M.MAV_PARAM_TYPE_REAL32)
+        mp.m.mav.param_set_send(1, 1, b"LAND_SPEED", 150.0, M.MAV_PARAM_TYPE_INT16)  # a quick landing
+        wait_until(lambda: v.params["LAND_SPEED"] == 150, 2.0, "LAND_SPEED set")
+        assert mp.mode("LAND") == M.MAV_RESULT_ACCEPTED
+        wait_until(lambda: not v.armed, 10.0, "landed and disarmed")
+        assert mp.long(M.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 2) == M.MAV_RESULT_UNSUPPORTED  # only 1 / 3
+        assert mp.long(M.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 1, 0, 0, 0) == M.MAV_RESULT_ACCEPTED
+        time.sleep(0.5)
+        mp.drain()
+        assert mp.m.recv_match(type="HEARTBEAT", blocking=True, timeout=0.6) is None  # silent while it boots
+        hb = mp.m.recv_match(type="HEARTBEAT", blocking=True, timeout=3.0)
+        assert hb is not None and hb.custom_mode == 0  # back, in its boot mode (STABILIZE)
+        st = mp.latest("SYSTEM_TIME", lambda m: True)
+        assert st.time_boot_ms < 1500  # a fresh boot
+        mp.m.mav.param_request_read_send(1, 1, b"WPNAV_SPEED", -1)
+        pv = mp.m.recv_match(type="PARAM_VALUE", blocking=True, timeout=2, condition="PARAM_VALUE.param_id=='WPNAV_SPEED'")
+        assert pv is not None and pv.param_value == pytest.approx(500.0)  # parameters survive a reboot
+    finally:
+        v.stop()

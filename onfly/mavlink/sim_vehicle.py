@@ -47,6 +47,23 @@ treat NaN as "unchanged / default"). Unknown commands answer UNSUPPORTED.
   MAV_DO_REPOSITION_FLAGS_CHANGE_MODE and flies there (PX4 ``Commander`` +
   ``navigator_main.cpp`` reposition, param4 the yaw in radians); ArduCopter flies there in GUIDED (switching to it with
   the flag, else FAILED outside GUIDED; ``GCS_Mavlink.cpp`` ``handle_command_int_do_reposition``).
+- DO_CHANGE_SPEED (MAVSDK ``set_current_speed``, MAVProxy ``setspeed``): PX4 always ACCEPTED
+  (``navigator_main.cpp``): param2 > 0 sets the navigator's cruising speed, else resets it; the
+  next reposition made in Hold without its own speed flies at it (entering Hold resets to the
+  default MPC_XY_CRUISE; every goto speed is capped at MPC_XY_VEL_MAX, ``FlightTaskAuto``).
+  ArduCopter (``GCS_MAVLINK_Copter::handle_MAV_CMD_DO_CHANGE_SPEED``): param2 <= 0 or an unknown
+  speed type DENIED, a mode without ``set_speed_NE_ms`` FAILED; GUIDED limits position targets
+  until the guided submode changes (``ModeGuided::set_speed_NE_ms``, ``pva_control_start``), RTL
+  its return leg (``ModeRTL::set_speed_NE_ms``).
+- CONDITION_YAW (MAVProxy ``setyaw``): ArduCopter ACCEPTED for a heading in [0, 360] and param4
+  0/1 (else FAILED), turning in GUIDED at min(param2, ATC_SLEW_YAW) until the next target
+  (``handle_MAV_CMD_CONDITION_YAW``, ``AutoYaw::set_fixed_yaw_rad``); PX4 has no handler outside
+  missions: UNSUPPORTED (``Commander::handle_command`` default).
+- PREFLIGHT_REBOOT_SHUTDOWN (MAVSDK ``reboot``, MAVProxy ``reboot``): armed, PX4 DENIED
+  (``shutdown_if_allowed``) and ArduPilot FAILED ("refuse reboot when armed"); disarmed, param1
+  = 1 ACCEPTED, then silence for ``reboot_time_s`` and a fresh boot (parameters and the mission
+  kept). PX4 param1 0 ACCEPTED (nothing), others DENIED; ArduPilot param1 other than 1/3
+  UNSUPPORTED (3: held in the bootloader, silent).
 - REQUEST_MESSAGE / REQUEST_AUTOPILOT_CAPABILITIES / GET_HOME_POSITION: the message is sent
   once after the ACK (DENIED if it cannot be produced, e.g. HOME_POSITION before home is set).
 - SET_MESSAGE_INTERVAL: any stream below; interval -1 stops it, 0 restores the default.
@@ -64,11 +81,11 @@ the float field, ArduPilot casts them (AUTOPILOT_VERSION's MAV_PROTOCOL_CAPABILI
 bit says which; mavlink.io/en/services/parameter.html). The rules read them live:
 COM_OF_LOSS_T, COM_OBL_RC_ACT, COM_DISARM_PRFLT, COM_DISARM_LAND, MIS_TAKEOFF_ALT,
 MPC_TKO_SPEED, MPC_LAND_SPEED and the Return mode's RTL_RETURN_ALT, RTL_DESCEND_ALT,
-RTL_LAND_DELAY, RTL_MIN_DIST, RTL_CONE_ANG, MPC_XY_CRUISE, MPC_Z_V_AUTO_UP/DN, NAV_ACC_RAD,
+RTL_LAND_DELAY, RTL_MIN_DIST, RTL_CONE_ANG, MPC_XY_CRUISE, MPC_XY_VEL_MAX, MPC_Z_V_AUTO_UP/DN, NAV_ACC_RAD,
 NAV_MC_ALT_RAD (PX4; a multicopter's ROMFS ``rc.mc_defaults`` values: RTL_RETURN_ALT 30,
 RTL_DESCEND_ALT 10, NAV_ACC_RAD 2); GUID_TIMEOUT, DISARM_DELAY, LAND_SPEED, WPNAV_SPEED_UP and
 RTL_ALT, RTL_CLIMB_MIN, RTL_SPEED, RTL_LOIT_TIME, RTL_ALT_FINAL, RTL_CONE_SLOPE, WPNAV_SPEED,
-WPNAV_SPEED_DN, WPNAV_RADIUS (ArduCopter).
+WPNAV_SPEED_DN, WPNAV_RADIUS, ATC_SLEW_YAW (ArduCopter).
 
 Return mode (PX4 AUTO.RTL, ArduCopter RTL)
 ------------------------------------------
@@ -227,6 +244,9 @@ PX4_PARAMS = {
     "RTL_MIN_DIST": (10.0, _R32),
     "RTL_CONE_ANG": (45, _I32),
     "MPC_XY_CRUISE": (5.0, _R32),
+    # the cap on every horizontal speed the position controller is given (FlightTaskAuto: the
+    # cruise speed of a goto is min(cruise, MPC_XY_VEL_MAX); multicopter_position_control_params.c)
+    "MPC_XY_VEL_MAX": (12.0, _R32),
     "MPC_Z_V_AUTO_UP": (3.0, _R32),
     "MPC_Z_V_AUTO_DN": (1.5, _R32),
     "NAV_ACC_RAD": (2.0, _R32),
@@ -251,6 +271,8 @@ ARDUPILOT_PARAMS = {
     "WPNAV_SPEED": (1000.0, _R32),
     "WPNAV_SPEED_DN": (150.0, _R32),
     "WPNAV_RADIUS": (200.0, _R32),
+    # the attitude controller's yaw slew limit (cdeg/s, AC_AttitudeControl.cpp): CONDITION_YAW's rate cap
+    "ATC_SLEW_YAW": (6000.0, _R32),
 }
 
 _ID = {
@@ -352,6 +374,8 @@ class SimVehicleConfig:
     global_origin : ``(lat_deg, lon_deg, alt_amsl_m)`` of the scene origin, or None (GPS-less);
         default from the profile
     rc_connected : an RC link is present (PX4 manual-control modes as loss actions)
+    reboot_time_s : how long an accepted reboot keeps the autopilot silent (a model choice: a
+        flight controller takes a few seconds to boot)
     """
 
     autopilot: str = "px4"
@@ -378,6 +402,7 @@ class SimVehicleConfig:
     global_origin: tuple | None | str = "profile"
     rc_connected: bool | None = None
     battery_capacity_s: float = 1200.0
+    reboot_time_s: float = 3.0
 
     def __post_init__(self) -> None:
         if self.autopilot not in ("px4", "ardupilot"):
@@ -389,6 +414,7 @@ class SimVehicleConfig:
         positive = (
             "physics_rate_hz", "heartbeat_period_s", "offboard_loss_timeout_s", "guided_timeout_s",
             "v_max_mps", "a_max_mps2", "yaw_rate_max_radps", "k_pos", "k_vel", "k_yaw", "battery_capacity_s",
+            "reboot_time_s",
         )
         for name in positive:
             val = getattr(self, name)
@@ -456,6 +482,7 @@ class _Target:
     yaw: float | None = None
     v_limit_mps: float | None = None
     kind: str = "position"  # position | velocity | acceleration | full (for GUID_TIMEOUT)
+    yaw_rate_limit_radps: float | None = None  # a slower turn than the model's limit (CONDITION_YAW)
 
 
 class PointMassModel:
@@ -508,7 +535,8 @@ class PointMassModel:
         self.a = a
         self._integrate(dt_s)
         if target.yaw is not None:
-            rate = float(np.clip(c.k_yaw * wrap_angle(target.yaw - self.yaw), -c.yaw_rate_max_radps, c.yaw_rate_max_radps))
+            r_max = c.yaw_rate_max_radps if target.yaw_rate_limit_radps is None else min(c.yaw_rate_max_radps, target.yaw_rate_limit_radps)
+            rate = float(np.clip(c.k_yaw * wrap_angle(target.yaw - self.yaw), -r_max, r_max))
         else:
             rate = 0.0
         self.yaw_rate = rate
@@ -585,6 +613,11 @@ class SimMavlinkVehicle:
         self._takeoff_alt_m: float | None = None  # scene z the current take-off climbs to
         self._guided_timed_out = False
         self._rtl: rtl.Px4Return | rtl.ArduCopterReturn | None = None  # the Return mode's state machine while in it
+        self._px4_cruise_mps: float | None = None  # PX4 navigator's DO_CHANGE_SPEED cruising speed (None: default)
+        self._ardu_speed_ne_mps: float | None = None  # ArduCopter DO_CHANGE_SPEED horizontal speed (GUIDED Pos / RTL)
+        self._reboot_at: float | None = None  # clock time the accepted reboot starts (the link goes silent)
+        self._back_at: float | None = None  # clock time the rebooted autopilot speaks again (inf: stays down)
+        self._boot_offset_ms = float(config.boot_time_ms)
         # estimator frame: origin and heading in the scene
         origin = config.estimator_origin_m if config.estimator_origin_m is not None else tuple(self.model.p)
         self._origin = np.array(origin, dtype=float)
@@ -727,11 +760,11 @@ class SimMavlinkVehicle:
             return next((t for t, e in self.events if e.startswith(text)), None)
 
     def time_boot_ms(self) -> int:
-        return int(self.c.boot_time_ms + (self.clock() - self._t_boot) * 1000.0) % 2**32
+        return int(self._boot_offset_ms + (self.clock() - self._t_boot) * 1000.0) % 2**32
 
     def time_boot_us(self) -> int:
         """Microseconds since boot (uint64: PX4 ``hrt_absolute_time``, ArduPilot ``micros64``)."""
-        return int(round((self.c.boot_time_ms + (self.clock() - self._t_boot) * 1000.0) * 1000.0))
+        return int(round((self._boot_offset_ms + (self.clock() - self._t_boot) * 1000.0) * 1000.0))
 
     # -- main loop --------------------------------------------------------------------------
     def _run(self) -> None:
@@ -750,7 +783,8 @@ class SimMavlinkVehicle:
                 log.error("vehicle link receive failed: %s", exc)
                 self._stop.wait(0.05)
                 continue
-            if msg is not None and not self._cut.is_set():
+            self._reboot_tick()
+            if msg is not None and not self._cut.is_set() and not self.rebooting:
                 try:
                     self._handle(msg)
                 except Exception:  # a malformed message must never stop the vehicle
@@ -777,7 +811,7 @@ class SimMavlinkVehicle:
                     self._next_send[msg_id] = max(due + 1.0 / rate, now)
 
     def _send(self, msg) -> None:
-        if self._cut.is_set() or msg is None:
+        if self._cut.is_set() or msg is None or self.rebooting:
             return
         try:
             self.link.send(msg)
@@ -874,8 +908,14 @@ class SimMavlinkVehicle:
     def _apply_rules(self, t: float) -> None:
         if self._rtl is not None:  # Return mode flies its own state machine (onfly/mavlink/rtl.py)
             if self.armed:
+                phase = self._rtl.phase
                 sp = self._rtl.step(t, self.model.p)
-                self._target = None if sp is None else _Target(p=sp.p, v=sp.v, v_limit_mps=sp.v_limit_mps)
+                if not self.px4 and self._rtl.phase != phase and self._rtl.phase == "return":
+                    self._ardu_speed_ne_mps = None  # return_start: wp_and_spline_init at RTL_SPEED
+                limit = None if sp is None else sp.v_limit_mps
+                if not self.px4 and self._rtl.phase == "return" and self._ardu_speed_ne_mps is not None:
+                    limit = self._ardu_speed_ne_mps  # ModeRTL::set_speed_NE_ms: wp_nav's leg speed
+                self._target = None if sp is None else _Target(p=sp.p, v=sp.v, v_limit_mps=limit)
             return
         since_sp = math.inf if self._last_sp_s is None else t - self._last_sp_s
         if self.px4:
@@ -917,7 +957,7 @@ class SimMavlinkVehicle:
                 self._event(f"guided timeout ({since_sp:.2f} s without a {sp.kind} target)")
         else:
             self._guided_timed_out = False
-            self._target = sp
+            self._target = self._ardu_limit(sp)
 
     def _offboard_lost(self, since_sp: float) -> None:
         action = int(self.params["COM_OBL_RC_ACT"])
@@ -974,6 +1014,8 @@ class SimMavlinkVehicle:
             if not self.px4 and custom_mode != ARDUCOPTER_MODE["guided"]:
                 self._setpoint = None
                 self._takeoff_alt_m = None
+            if not self.px4 and old != self.custom_mode:
+                self._ardu_speed_ne_mps = None  # the new mode's init sets its default speeds
             self._target = hold
             if old != self.custom_mode:
                 self._event(f"mode {self.mode_name}: {why}")
@@ -1135,6 +1177,8 @@ class SimMavlinkVehicle:
             if self.px4:
                 self._setpoint = target
             elif self.custom_mode == ARDUCOPTER_MODE["guided"] and self.armed and self._takeoff_alt_m is None:
+                if target.kind != "position":
+                    self._ardu_speed_ne_mps = None  # a new submode: pva_control_start restores WPNAV_SPEED
                 self._setpoint = target
                 self._guided_timed_out = False
 
@@ -1182,6 +1226,12 @@ class SimMavlinkVehicle:
             if not is_int:
                 return _M.MAV_RESULT_DENIED  # lat/lon need COMMAND_INT's integer fields
             return self._cmd_reposition(p, x, y, z, frame)
+        if cmd == _M.MAV_CMD_DO_CHANGE_SPEED:
+            return self._cmd_change_speed(p)
+        if cmd == _M.MAV_CMD_CONDITION_YAW and not self.px4:  # PX4: no handler outside missions (Commander: UNSUPPORTED)
+            return self._cmd_condition_yaw(p)
+        if cmd == _M.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN:
+            return self._cmd_reboot(p)
         if cmd == _M.MAV_CMD_SET_MESSAGE_INTERVAL:
             return self._cmd_interval(p[0], p[1])
         if cmd == _M.MAV_CMD_REQUEST_MESSAGE:
@@ -1328,6 +1378,7 @@ class SimMavlinkVehicle:
         home_z = (self._home if self._home is not None else m.p)[2]
         self._takeoff_alt_m = float(home_z + alt)
         self._setpoint = None
+        self._ardu_speed_ne_mps = None  # the TakeOff submode
         p = m.p.copy()
         p[2] = self._takeoff_alt_m
         self._target = _Target(p=p, yaw=m.yaw, v_limit_mps=float(self.params["WPNAV_SPEED_UP"]) / 100.0)
@@ -1373,6 +1424,7 @@ class SimMavlinkVehicle:
         speed = float(p[0]) if math.isfinite(p[0]) and p[0] > 0 else None
         change_mode = math.isfinite(p[1]) and int(p[1]) & _M.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE
         if self.px4:
+            speed = self._px4_goto_speed(speed, self.custom_mode == px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["loiter"]))
             if change_mode:
                 self._set_mode(px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["loiter"]), "reposition")
             elif self.custom_mode != px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["loiter"]):
@@ -1386,6 +1438,149 @@ class SimMavlinkVehicle:
         self._target = _Target(p=target, yaw=yaw, v_limit_mps=speed)
         self._event(f"reposition to scene ({target[0]:.2f}, {target[1]:.2f}, {target[2]:.2f})")
         return _M.MAV_RESULT_ACCEPTED
+
+    # -- speed, yaw and reboot commands (what MAVSDK's Action plugin and MAVProxy send) --------
+    def _px4_goto_speed(self, commanded: float | None, in_loiter: bool) -> float:
+        """Horizontal speed (m/s) of a PX4 reposition: its param1 if > 0; else, when the
+        navigator is already in Loiter, the DO_CHANGE_SPEED cruising speed; else (entering
+        Loiter resets it) MPC_XY_CRUISE; always capped at MPC_XY_VEL_MAX (``navigator_main.cpp``
+        DO_REPOSITION ``cruising_speed``; ``FlightTaskAuto`` cruise speed)."""
+        if commanded is not None:
+            speed = commanded
+        elif in_loiter and self._px4_cruise_mps is not None:
+            speed = self._px4_cruise_mps
+        else:
+            speed = float(self.params["MPC_XY_CRUISE"])
+        return min(speed, float(self.params["MPC_XY_VEL_MAX"]))
+
+    def _cmd_change_speed(self, p) -> int:
+        """MAV_CMD_DO_CHANGE_SPEED outside a mission (param1 speed type, param2 m/s).
+
+        PX4 (``navigator_main.cpp``): always ACCEPTED; param2 > 0 sets the navigator's cruising
+        speed, anything else resets it to the default; the next reposition made in Hold uses it
+        (a goto under way keeps its speed). ArduCopter (``GCS_MAVLINK_Copter::
+        handle_MAV_CMD_DO_CHANGE_SPEED``): param2 <= 0 or an unknown type DENIED; air/ground speed
+        goes to the mode's ``set_speed_NE_ms``: GUIDED (the position controller's horizontal limit
+        until the next submode change) and RTL (the waypoint leg) ACCEPTED, modes without it
+        FAILED; climb / descent speed types are answered the same way."""
+        kind, speed = p[0], p[1]
+        if self.px4:
+            self._px4_cruise_mps = float(speed) if math.isfinite(speed) and speed > 1e-6 else None
+            self._event(f"cruising speed {'default' if self._px4_cruise_mps is None else f'{speed:.2f} m/s'}")
+            return _M.MAV_RESULT_ACCEPTED
+        if not (math.isfinite(speed) and speed > 0):
+            return _M.MAV_RESULT_DENIED
+        if not (math.isfinite(kind) and 0 <= int(kind) <= _M.SPEED_TYPE_DESCENT_SPEED):
+            return _M.MAV_RESULT_DENIED
+        if self.custom_mode not in (ARDUCOPTER_MODE["guided"], ARDUCOPTER_MODE["rtl"], ARDUCOPTER_MODE["auto"]):
+            return _M.MAV_RESULT_FAILED  # Mode::set_speed_NE_ms / set_speed_up_ms / set_speed_down_ms: false
+        if int(kind) in (_M.SPEED_TYPE_AIRSPEED, _M.SPEED_TYPE_GROUNDSPEED) and self.custom_mode != ARDUCOPTER_MODE["auto"]:
+            self._ardu_speed_ne_mps = float(speed)
+            self._event(f"horizontal speed {speed:.2f} m/s")
+        return _M.MAV_RESULT_ACCEPTED
+
+    def _ardu_limit(self, target: _Target) -> _Target:
+        """A GUIDED position target under the DO_CHANGE_SPEED horizontal speed, if one is set."""
+        if self._ardu_speed_ne_mps is None or target.kind != "position" or target.p is None:
+            return target
+        limit = self._ardu_speed_ne_mps if target.v_limit_mps is None else min(target.v_limit_mps, self._ardu_speed_ne_mps)
+        return _Target(p=target.p, v=target.v, a=target.a, yaw=target.yaw, v_limit_mps=limit, kind=target.kind,
+                       yaw_rate_limit_radps=target.yaw_rate_limit_radps)
+
+    def _cmd_condition_yaw(self, p) -> int:
+        """ArduCopter MAV_CMD_CONDITION_YAW (MAVProxy ``setyaw``): param1 heading 0..360 deg
+        (compass, clockwise from north, in the estimator's heading frame), param2 deg/s (<= 0:
+        ATC_SLEW_YAW), param3 direction (-1 ccw, +1 cw; 0 = cw for a relative angle), param4 0
+        absolute / 1 relative, else FAILED (``GCS_MAVLINK_Copter::handle_MAV_CMD_CONDITION_YAW``
+        -> ``AutoYaw::set_fixed_yaw_rad``). ACCEPTED in every mode; GUIDED turns to it and holds
+        it until the next position/velocity target resets the yaw mode (``set_yaw_state_rad``).
+        An absolute heading is turned the short way (the turn direction is not modelled)."""
+        angle, rate, direction, relative = p[0], p[1], p[2], p[3]
+        if not (math.isfinite(angle) and 0.0 <= angle <= 360.0 and math.isfinite(relative) and relative in (0.0, 1.0)):
+            return _M.MAV_RESULT_FAILED
+        slew = math.radians(float(self.params["ATC_SLEW_YAW"]) / 100.0)
+        rate_rad = min(slew, math.radians(rate)) if math.isfinite(rate) and rate > 0 else slew
+        m = self.model
+        if relative == 1.0:
+            sign = -1.0 if math.isfinite(direction) and int(direction) < 0 else 1.0
+            base = self._target.yaw if self._target is not None and self._target.yaw is not None else m.yaw
+            yaw = wrap_angle(base - sign * math.radians(angle))  # clockwise (NED) is negative ENU
+        else:
+            yaw = wrap_angle(float(frames.yaw_enu_from_ned(math.radians(angle))) + self.c.estimator_yaw_rad)
+        self._event(f"condition yaw to {math.degrees(yaw):.1f} deg ENU at {math.degrees(rate_rad):.1f} deg/s")
+        if self.custom_mode != ARDUCOPTER_MODE["guided"] or not self.armed:
+            return _M.MAV_RESULT_ACCEPTED  # auto_yaw is set; only GUIDED flies it in this model
+        base = self._setpoint if self._setpoint is not None else self._target
+        if base is None:
+            base = self._hold_here()
+        turned = _Target(p=base.p, v=base.v, a=base.a, yaw=yaw, v_limit_mps=base.v_limit_mps, kind=base.kind,
+                         yaw_rate_limit_radps=rate_rad)
+        if self._setpoint is not None:
+            self._setpoint = turned
+        else:
+            self._target = turned
+        return _M.MAV_RESULT_ACCEPTED
+
+    @property
+    def rebooting(self) -> bool:
+        """The autopilot is rebooting after an accepted MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN: it
+        neither sends nor hears anything."""
+        return self._reboot_at is not None and self.clock() >= self._reboot_at
+
+    def _cmd_reboot(self, p) -> int:
+        """MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN for the autopilot (param1).
+
+        PX4 (``Commander.cpp``): 0 ACCEPTED (nothing); 1 reboots after the ACK (400 ms) unless
+        ``shutdown_if_allowed`` refuses it armed: DENIED; anything else DENIED (2 and 3 need a
+        board with power control / a bootloader hold: not modelled). ArduPilot
+        (``GCS_MAVLINK::handle_preflight_reboot``): armed FAILED ("refuse reboot when armed");
+        param1 other than 1 or 3 UNSUPPORTED; 1 ACCEPTED, reboot 200 ms later (3 holds in the
+        bootloader: the vehicle stays silent). The reboot: :attr:`SimVehicleConfig.reboot_time_s`
+        of silence, then a fresh boot (see :meth:`_reboot_tick`)."""
+        cmd = int(round(p[0])) if math.isfinite(p[0]) else -1
+        if self.px4:
+            if cmd == 0:
+                return _M.MAV_RESULT_ACCEPTED
+            if cmd != 1 or self.armed:
+                return _M.MAV_RESULT_DENIED
+            delay = 0.4
+        else:
+            if self.armed:
+                return _M.MAV_RESULT_FAILED
+            if cmd not in (1, 3):
+                return _M.MAV_RESULT_UNSUPPORTED
+            delay = 0.2
+        now = self.clock()
+        self._reboot_at = now + delay
+        self._back_at = math.inf if cmd == 3 else self._reboot_at + float(self.c.reboot_time_s)
+        self._event("reboot commanded")
+        return _M.MAV_RESULT_ACCEPTED
+
+    def _reboot_tick(self) -> None:
+        """Finish a reboot: a new boot with parameters and the stored mission kept (both
+        autopilots keep them in storage); time since boot from 0, the boot mode, disarmed, no
+        home, setpoints and speed changes forgotten, default stream rates, and the estimator's
+        origin where the vehicle now stands (the estimate restarts there)."""
+        if self._back_at is None or self.clock() < self._back_at:
+            return
+        with self._lock:
+            self._reboot_at = self._back_at = None
+            self._t_boot = self.clock()
+            self._boot_offset_ms = 0.0
+            self.armed = False
+            self._armed_at = None
+            self.custom_mode = px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["loiter"]) if self.px4 else ARDUCOPTER_MODE["stabilize"]
+            self._rtl = None
+            self._home = None
+            self._target = self._setpoint = None
+            self._last_sp_s = None
+            self._takeoff_alt_m = None
+            self._px4_cruise_mps = self._ardu_speed_ne_mps = None
+            self._flying_since_arm = False
+            self._rates_hz = dict(self._default_rates)
+            self._next_send = {}
+            self._origin = np.array(self.model.p, dtype=float)
+        self._event("rebooted")
 
     def _request_data_stream(self, stream_id: int, rate_hz: int, start_stop: int) -> None:
         """ArduPilot's REQUEST_DATA_STREAM (``GCS_MAVLINK::handle_request_data_stream``): every
