@@ -311,7 +311,7 @@ def test_rally_round_trip_on_both_and_the_return_destination_rules():
             v.stop()
 
 
-@pytest.mark.slow  # real time, ~12 s: opt-in (`-m slow`)
+@pytest.mark.slow  # real time, ~20 s: opt-in (`-m slow`)
 def test_px4_return_mode_lands_on_the_closest_rally_point():
     c, v = raw("px4", params=(("RTL_RETURN_ALT", 4.0),))
     try:

@@ -6,8 +6,39 @@ PX4 ``src/modules/mavlink/mavlink_mission.cpp`` / ``.h`` (the mission manager),
 ``src/modules/commander/Commander.cpp``; ArduPilot ``libraries/GCS_MAVLink/MissionItemProtocol.cpp``,
 ``MissionItemProtocol_Waypoints.cpp``, ``GCS_Common.cpp``, ``libraries/AP_Mission/AP_Mission.cpp``
 and ``ArduCopter/mode_auto.cpp``. ``docs/flight.md`` ("Missions") lists them with what is
-simplified. Only ``mission_type`` MISSION holds items: fence and rally answer with a capacity
-of 0 (a simplification: both autopilots store them).
+simplified. ``mission_type`` FENCE and RALLY go through the same transfer state machine into
+their own storage (:attr:`MissionManager.fence`, :attr:`MissionManager.rally`); every
+MISSION_COUNT, MISSION_REQUEST(_INT), MISSION_ITEM(_INT) and MISSION_ACK of a transfer carries
+its mission_type. What the vehicle does with them is :mod:`onfly.mavlink.geofence`.
+
+Fence and rally, PX4 (``mavlink_mission.cpp``, dataman)
+------------------------------------------------------
+- Capacity DM_KEY_FENCE_POINTS_MAX 64 and DM_KEY_SAFE_POINTS_MAX 32 (``dataman.h``); over it
+  NO_SPACE. Like the mission, an upload is written to the inactive storage and made active on
+  the last item (``update_geofence_count`` / ``update_safepoint_count``); COUNT 0 and
+  MISSION_CLEAR_ALL with that type (or ALL) clear it.
+- Items are parsed by ``parse_mavlink_mission_item``: fence commands (polygon vertex, param1 the
+  vertex count rounded; circle, param1 the radius; return point) and NAV_RALLY_POINT in the
+  global frames only. In a FENCE upload a polygon vertex with a count below 3 ("Fence: too few
+  vertices"), and in a MISSION upload any fence or rally command, end the transfer with
+  MISSION_ACK ERROR. A download formats them like positions (frame from the altitude mode and the
+  int mode, param1 back).
+
+Fence and rally, ArduPilot (``MissionItemProtocol_Fence.cpp``, ``MissionItemProtocol_Rally.cpp``)
+-------------------------------------------------------------------------------------------------
+- Fence: up to 84 items (``AC_PolyFence_loader::max_items``, 16 kB storage); global frames
+  (terrain too) else UNSUPPORTED_FRAME, fence commands else UNSUPPORTED. The items are buffered
+  and written at the end (``complete`` -> ``write_fence``): ``validate_fence`` failing (a vertex
+  count below 3 "Invalid vertex count (n)", counts or types that disagree within a polygon, a
+  non-positive radius, two return points, a polygon cut short "Incorrect item count") answers
+  ERROR after "Fence validation failed" and keeps the old fence. Downloaded with frame 0
+  (GLOBAL), param1 the count / radius, z 0. Timeout "Fence upload timeout".
+- Rally: up to 50 (``AP_Rally::get_rally_max``); NAV_RALLY_POINT only (UNSUPPORTED), in
+  GLOBAL_RELATIVE_ALT(_INT) only (UNSUPPORTED_FRAME), the altitude an int16 of metres
+  (INVALID_PARAM7). Truncated at COUNT and written live like the mission; "Rally points
+  received"; downloaded in GLOBAL_RELATIVE_ALT. Timeout "Rally upload timeout".
+- MISSION_CLEAR_ALL with FENCE or RALLY clears that storage (``write_fence(nullptr, 0)``,
+  ``truncate(0)``).
 
 Protocol, PX4 (``MavlinkMissionManager``)
 -----------------------------------------

@@ -47,10 +47,20 @@ ArduCopter (``ArduCopter/mode_rtl.cpp``)
 Both report the land phase as MAV_LANDED_STATE_LANDING (PX4 EXTENDED_SYS_STATE from a LAND
 setpoint; ArduCopter ``ModeRTL::is_landing``).
 
+Rally points: the vehicle picks the destination (:func:`onfly.mavlink.geofence.px4_rally_destination`,
+PX4 ``RTL::findRtlDestination`` with RTL_TYPE 0; :func:`~onfly.mavlink.geofence.ardu_rally_destination`,
+``AP_Rally::calc_best_rally_or_home_location``). PX4 then flies this machine with the safe point in
+place of home: the return altitude is above it and it lands there (``RTL: start return at ... above
+destination``). ArduCopter returns to the rally point, with the target altitude at least the rally
+altitude above home (``compute_return_target``: negative rally altitudes count as 0, the cone is
+measured to the rally point), loiters and lands there.
+
 Simplified: the landing descends at MPC_LAND_SPEED / LAND_SPEED all the way down, as the
 vehicle's LAND mode does (PX4 descends faster above MPC_LAND_ALT1, ArduCopter above
-LAND_ALT_LOW); yaw is held (PX4 turns toward the waypoint, MPC_YAW_MODE 0); no rally points,
-terrain, geofence or mission-landing return types.
+LAND_ALT_LOW); yaw is held (PX4 turns toward the waypoint, MPC_YAW_MODE 0); PX4's RTL_TYPE is
+fixed at its default 0 (no mission-landing or rally-only return types, no VTOL land approaches);
+no terrain following; the return path is straight, not routed around a fence
+(PX4's geofence avoidance planner, ArduPilot's fence avoidance are not modelled).
 """
 
 from __future__ import annotations

@@ -68,7 +68,20 @@ RTL_LAND_DELAY, RTL_MIN_DIST, RTL_CONE_ANG, MPC_XY_CRUISE, MPC_Z_V_AUTO_UP/DN, N
 NAV_MC_ALT_RAD (PX4; a multicopter's ROMFS ``rc.mc_defaults`` values: RTL_RETURN_ALT 30,
 RTL_DESCEND_ALT 10, NAV_ACC_RAD 2); GUID_TIMEOUT, DISARM_DELAY, LAND_SPEED, WPNAV_SPEED_UP and
 RTL_ALT, RTL_CLIMB_MIN, RTL_SPEED, RTL_LOIT_TIME, RTL_ALT_FINAL, RTL_CONE_SLOPE, WPNAV_SPEED,
-WPNAV_SPEED_DN, WPNAV_RADIUS (ArduCopter).
+WPNAV_SPEED_DN, WPNAV_RADIUS (ArduCopter). Geofence and rally: GF_ACTION, GF_MAX_HOR_DIST,
+GF_MAX_VER_DIST, GF_SOURCE (PX4 ``geofence_params.c``); FENCE_ENABLE, FENCE_TYPE, FENCE_ACTION,
+FENCE_ALT_MAX, FENCE_RADIUS, FENCE_MARGIN (``AC_Fence.cpp``, Copter defaults), RALLY_LIMIT_KM,
+RALLY_INCL_HOME (``AP_Rally.cpp``).
+
+Geofence and rally points
+-------------------------
+Uploaded with mission_type FENCE / RALLY (:mod:`onfly.mavlink.mission`), enforced by
+:class:`~onfly.mavlink.geofence.FenceMonitor` every physics step, with a global position only
+(outdoors). PX4: a breach (outside the zones, or beyond GF_MAX_HOR_DIST / GF_MAX_VER_DIST from
+home) refuses arming and, armed, takes GF_ACTION (default 2 Hold; 3 Return, 4 Terminate, 5 Land).
+ArduCopter with FENCE_ENABLE 1: pre-arm "Vehicle breaching ..." / "Fence requires position", and a
+new breach armed disarms on the ground or takes FENCE_ACTION (default 1 RTL, else Land). The Return
+mode flies to the closest rally point where the autopilot's rule picks one over home.
 
 Return mode (PX4 AUTO.RTL, ArduCopter RTL)
 ------------------------------------------
