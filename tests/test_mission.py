@@ -293,13 +293,14 @@ def test_protocol_sequence_frame_space_and_legacy_request_rules():
         # PX4 takes DO_CHANGE_SPEED only in MAV_FRAME_MISSION
         speed_rel = M.MAVLink_mission_item_int_message(1, 1, 0, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, M.MAV_CMD_DO_CHANGE_SPEED, 0, 1, 1, 2, -1, 0, 0, 0, 0, 0)
         assert upload(px, [speed_rel]) == M.MAV_MISSION_UNSUPPORTED
-        # capacity: over the mission storage -> NO_SPACE; fence / rally (not stored here) too
-        for c, cap in ((px, 500), (ap, 724)):
+        # capacity: over the mission storage -> NO_SPACE; over the fence storage too (PX4 dataman
+        # DM_KEY_FENCE_POINTS_MAX 64, ArduPilot AC_PolyFence_loader::max_items 84; tests/test_geofence.py)
+        for c, cap, fence_cap in ((px, 500, 64), (ap, 724, 84)):
             n = len(c.of_type("MISSION_ACK"))
             send(c, c.link.mav.mission_count_encode(1, 1, cap + 1, 0))
             assert wait_msg(c, "MISSION_ACK", n).type == M.MAV_MISSION_NO_SPACE
             n = len(c.of_type("MISSION_ACK"))
-            send(c, c.link.mav.mission_count_encode(1, 1, 3, M.MAV_MISSION_TYPE_FENCE))
+            send(c, c.link.mav.mission_count_encode(1, 1, fence_cap + 1, M.MAV_MISSION_TYPE_FENCE))
             assert wait_msg(c, "MISSION_ACK", n).type == M.MAV_MISSION_NO_SPACE
         # legacy MISSION_REQUEST: both answer with MISSION_ITEM (float lat/lon); ArduPilot warns once
         for c in (px, ap):

@@ -6,8 +6,39 @@ PX4 ``src/modules/mavlink/mavlink_mission.cpp`` / ``.h`` (the mission manager),
 ``src/modules/commander/Commander.cpp``; ArduPilot ``libraries/GCS_MAVLink/MissionItemProtocol.cpp``,
 ``MissionItemProtocol_Waypoints.cpp``, ``GCS_Common.cpp``, ``libraries/AP_Mission/AP_Mission.cpp``
 and ``ArduCopter/mode_auto.cpp``. ``docs/flight.md`` ("Missions") lists them with what is
-simplified. Only ``mission_type`` MISSION holds items: fence and rally answer with a capacity
-of 0 (a simplification: both autopilots store them).
+simplified. ``mission_type`` FENCE and RALLY go through the same transfer state machine into
+their own storage (:attr:`MissionManager.fence`, :attr:`MissionManager.rally`); every
+MISSION_COUNT, MISSION_REQUEST(_INT), MISSION_ITEM(_INT) and MISSION_ACK of a transfer carries
+its mission_type. What the vehicle does with them is :mod:`onfly.mavlink.geofence`.
+
+Fence and rally, PX4 (``mavlink_mission.cpp``, dataman)
+------------------------------------------------------
+- Capacity DM_KEY_FENCE_POINTS_MAX 64 and DM_KEY_SAFE_POINTS_MAX 32 (``dataman.h``); over it
+  NO_SPACE. Like the mission, an upload is written to the inactive storage and made active on
+  the last item (``update_geofence_count`` / ``update_safepoint_count``); COUNT 0 and
+  MISSION_CLEAR_ALL with that type (or ALL) clear it.
+- Items are parsed by ``parse_mavlink_mission_item``: fence commands (polygon vertex, param1 the
+  vertex count rounded; circle, param1 the radius; return point) and NAV_RALLY_POINT in the
+  global frames only. In a FENCE upload a polygon vertex with a count below 3 ("Fence: too few
+  vertices"), and in a MISSION upload any fence or rally command, end the transfer with
+  MISSION_ACK ERROR. A download formats them like positions (frame from the altitude mode and the
+  int mode, param1 back).
+
+Fence and rally, ArduPilot (``MissionItemProtocol_Fence.cpp``, ``MissionItemProtocol_Rally.cpp``)
+-------------------------------------------------------------------------------------------------
+- Fence: up to 84 items (``AC_PolyFence_loader::max_items``, 16 kB storage); global frames
+  (terrain too) else UNSUPPORTED_FRAME, fence commands else UNSUPPORTED. The items are buffered
+  and written at the end (``complete`` -> ``write_fence``): ``validate_fence`` failing (a vertex
+  count below 3 "Invalid vertex count (n)", counts or types that disagree within a polygon, a
+  non-positive radius, two return points, a polygon cut short "Incorrect item count") answers
+  ERROR after "Fence validation failed" and keeps the old fence. Downloaded with frame 0
+  (GLOBAL), param1 the count / radius, z 0. Timeout "Fence upload timeout".
+- Rally: up to 50 (``AP_Rally::get_rally_max``); NAV_RALLY_POINT only (UNSUPPORTED), in
+  GLOBAL_RELATIVE_ALT(_INT) only (UNSUPPORTED_FRAME), the altitude an int16 of metres
+  (INVALID_PARAM7). Truncated at COUNT and written live like the mission; "Rally points
+  received"; downloaded in GLOBAL_RELATIVE_ALT. Timeout "Rally upload timeout".
+- MISSION_CLEAR_ALL with FENCE or RALLY clears that storage (``write_fence(nullptr, 0)``,
+  ``truncate(0)``).
 
 Protocol, PX4 (``MavlinkMissionManager``)
 -----------------------------------------
@@ -84,6 +115,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from onfly.mavlink.autopilot import ARDUCOPTER_MODE, PX4_AUTO_SUB, PX4_MAIN, px4_custom_mode
+from onfly.mavlink.geofence import (ARDUPILOT_FENCE_MAX_ITEMS, ARDUPILOT_RALLY_MAX_ITEMS, CIRCLE_COMMANDS, FENCE_COMMANDS,
+                                    POLYGON_COMMANDS, PX4_FENCE_MAX_ITEMS, PX4_RALLY_MAX_ITEMS, Fence, ardupilot_fence_error,
+                                    fence_from_items)
 from onfly.mavlink.link import mavlink2
 
 __all__ = ["MissionItem", "MissionManager", "PX4_MAX_ITEMS", "ARDUPILOT_MAX_ITEMS", "MISSION_PARAM_SI"]
@@ -115,6 +149,9 @@ _INT_FRAMES = (_M.MAV_FRAME_GLOBAL_INT, _M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT)
 _NAV_POSITION = (_M.MAV_CMD_NAV_WAYPOINT, _M.MAV_CMD_NAV_TAKEOFF, _M.MAV_CMD_NAV_LAND)
 _NAV = _NAV_POSITION + (_M.MAV_CMD_NAV_RETURN_TO_LAUNCH,)
 _SUPPORTED = _NAV + (_M.MAV_CMD_DO_CHANGE_SPEED,)
+_FENCE_RALLY = FENCE_COMMANDS + (_M.MAV_CMD_NAV_RALLY_POINT,)
+_POSITION_LIKE = _NAV_POSITION + _FENCE_RALLY  # items whose x/y are lat/lon (degE7 when stored)
+_MT_MISSION, _MT_FENCE, _MT_RALLY = _M.MAV_MISSION_TYPE_MISSION, _M.MAV_MISSION_TYPE_FENCE, _M.MAV_MISSION_TYPE_RALLY
 _IDLE, _SENDLIST, _GETLIST = "idle", "sendlist", "getlist"
 
 
@@ -139,7 +176,8 @@ class MissionItem:
 
     @property
     def is_position(self) -> bool:
-        return self.command in _NAV_POSITION
+        """x/y are lat/lon in degE7 (a position item, a fence vertex / circle, a rally point)."""
+        return self.command in _POSITION_LIKE
 
 
 class MissionManager:
@@ -150,6 +188,9 @@ class MissionManager:
         self.v = vehicle
         self.px4 = vehicle.px4
         self.items: list[MissionItem] = []
+        self.fence: list[MissionItem] = []  # mission_type FENCE, as stored
+        self.rally: list[MissionItem] = []  # mission_type RALLY, as stored
+        self.fence_zones = Fence()  # the zones the vehicle checks (onfly/mavlink/geofence.py)
         self.reached_log: list[int] = []  # every MISSION_ITEM_REACHED seq sent (tests)
         # protocol
         self._state = _IDLE
@@ -206,8 +247,10 @@ class MissionManager:
     def _max_items(self, mission_type: int) -> int | None:
         if mission_type == _M.MAV_MISSION_TYPE_MISSION:
             return PX4_MAX_ITEMS if self.px4 else ARDUPILOT_MAX_ITEMS
-        if mission_type in (_M.MAV_MISSION_TYPE_FENCE, _M.MAV_MISSION_TYPE_RALLY):
-            return 0  # simplified: no geofence / rally storage in the simulated vehicle
+        if mission_type == _MT_FENCE:
+            return PX4_FENCE_MAX_ITEMS if self.px4 else ARDUPILOT_FENCE_MAX_ITEMS
+        if mission_type == _MT_RALLY:
+            return PX4_RALLY_MAX_ITEMS if self.px4 else ARDUPILOT_RALLY_MAX_ITEMS
         return 0 if self.px4 else None  # PX4: current_max_item_count() of an unknown type is 0
 
     @property
@@ -266,9 +309,8 @@ class MissionManager:
             if msg.count > cap:
                 self._ack(src, _M.MAV_MISSION_NO_SPACE)
                 return
-            if msg.count == 0:
-                if mt == _M.MAV_MISSION_TYPE_MISSION:
-                    self._commit([], 0)
+            if msg.count == 0:  # clears that type (update_geofence_count / update_safepoint_count with 0)
+                self._commit_type(mt, [], 0)
                 self._ack(src, _M.MAV_MISSION_ACCEPTED)
                 return
             self._begin_receive(src, mt, msg.count)
@@ -286,12 +328,14 @@ class MissionManager:
             self._text(_M.MAV_SEVERITY_WARNING, f"Only {cap} items are supported")
             self._state = _IDLE
             return
-        if mt == _M.MAV_MISSION_TYPE_MISSION:
+        if mt == _MT_MISSION:
             del self.items[msg.count:]  # AP_Mission::truncate: the live mission, at once
+        elif mt == _MT_RALLY:
+            del self.rally[msg.count:]  # MissionItemProtocol_Rally::truncate: AP_Rally::truncate, live
+        # fence: MissionItemProtocol_Fence::truncate does nothing; the items are written at the end
         if msg.count == 0:
             self._state = _IDLE
-            self._text(_M.MAV_SEVERITY_INFO, "Flight plan received")
-            self._ack(src, _M.MAV_MISSION_ACCEPTED, mt)
+            self._ap_complete_upload(src, mt, [])
             return
         self._begin_receive(src, mt, msg.count)
 
@@ -343,14 +387,21 @@ class MissionManager:
                 self._ack(src, result)
                 self._state = _IDLE
                 return
+            # handle_mission_item_both: a fence / rally command in a mission, or a polygon of fewer
+            # than 3 vertices in a fence ("Fence: too few vertices"), fail the transfer with ERROR
+            bad_mission = mt == _MT_MISSION and item.command in _FENCE_RALLY
+            bad_polygon = mt == _MT_FENCE and item.command in POLYGON_COMMANDS and item.params[0] < 3
+            if bad_mission or bad_polygon:
+                self._ack(src, _M.MAV_MISSION_ERROR)
+                self._state = _IDLE
+                return
             self._xfer_items.append(item)
             if msg.current:
                 self._xfer_current = msg.seq
             self._xfer_seq = msg.seq + 1
             if self._xfer_seq == self._xfer_count:
                 self._state = _IDLE
-                if self._xfer_type == _M.MAV_MISSION_TYPE_MISSION:
-                    self._commit(self._xfer_items, self._xfer_current)
+                self._commit_type(self._xfer_type, self._xfer_items, self._xfer_current)
                 self._ack(src, _M.MAV_MISSION_ACCEPTED)
             else:
                 self._send_request()
@@ -368,26 +419,45 @@ class MissionManager:
         if src != self._partner:
             self._ack(src, _M.MAV_MISSION_DENIED, mt)
             return
-        result, item = self._parse_ardupilot(msg, is_int)
-        if result == _M.MAV_MISSION_ACCEPTED and msg.seq > len(self.items):
+        parse = {_MT_FENCE: self._parse_ap_fence, _MT_RALLY: self._parse_ap_rally}.get(self._xfer_type, self._parse_ardupilot)
+        result, item = parse(msg, is_int)
+        live = self.rally if self._xfer_type == _MT_RALLY else (None if self._xfer_type == _MT_FENCE else self.items)
+        if result == _M.MAV_MISSION_ACCEPTED and live is not None and msg.seq > len(live):
             result = _M.MAV_MISSION_ERROR
         if result != _M.MAV_MISSION_ACCEPTED:
             self._ack(src, result, mt)
             self._state = _IDLE
             return
-        if msg.seq < len(self.items):
-            self.items[msg.seq] = item  # replace_cmd: live
+        if live is None:
+            self._xfer_items.append(item)  # MissionItemProtocol_Fence: buffered until complete()
+        elif msg.seq < len(live):
+            live[msg.seq] = item  # replace_cmd / set_rally_point_with_index: live
         else:
-            self.items.append(item)  # add_cmd
+            live.append(item)  # add_cmd / AP_Rally::append
         self._t_recv = self._now()
         self._xfer_seq += 1
         if self._xfer_seq >= self._xfer_count:
             self._state = _IDLE
-            self._text(_M.MAV_SEVERITY_INFO, "Flight plan received")
-            self._ack(src, _M.MAV_MISSION_ACCEPTED, mt)
-            self._mission_changed()
+            self._ap_complete_upload(src, self._xfer_type, self._xfer_items)
         else:
             self._send_request()
+
+    def _ap_complete_upload(self, src, mt: int, items: list) -> None:
+        """ArduPilot ``MissionItemProtocol::transfer_is_complete`` -> each type's ``complete()``."""
+        if mt == _MT_FENCE:  # MissionItemProtocol_Fence::complete -> AC_PolyFence_loader::write_fence
+            why = ardupilot_fence_error(items)
+            if why is not None:
+                self._text(_M.MAV_SEVERITY_WARNING, why)
+                self._text(_M.MAV_SEVERITY_WARNING, "Fence validation failed")
+                self._ack(src, _M.MAV_MISSION_ERROR, mt)
+                return
+            self._commit_type(mt, items, 0)
+        elif mt == _MT_RALLY:
+            self._text(_M.MAV_SEVERITY_INFO, "Rally points received")
+        else:
+            self._text(_M.MAV_SEVERITY_INFO, "Flight plan received")
+            self._mission_changed()
+        self._ack(src, _M.MAV_MISSION_ACCEPTED, mt)
 
     def _parse_px4(self, msg, is_int: bool) -> tuple[int, MissionItem | None]:
         """``MavlinkMissionManager::parse_mavlink_mission_item``, limited to the commands the
@@ -395,9 +465,13 @@ class MissionManager:
         frame, cmd = int(msg.frame), int(msg.command)
         p = tuple(_f32(x) for x in (msg.param1, msg.param2, msg.param3, msg.param4))
         if frame in (_M.MAV_FRAME_GLOBAL, _M.MAV_FRAME_GLOBAL_RELATIVE_ALT) or (is_int and frame in _INT_FRAMES):
-            if cmd not in _NAV_POSITION:
+            if cmd not in _NAV_POSITION + _FENCE_RALLY:
                 return _M.MAV_MISSION_UNSUPPORTED, None
             x, y = (int(msg.x), int(msg.y)) if is_int else (int(round(msg.x * 1e7)), int(round(msg.y * 1e7)))
+            if cmd in _FENCE_RALLY:  # vertex_count = (uint16)(param1 + 0.5), circle_radius = param1, else nothing
+                p1 = float(int(p[0] + 0.5)) if cmd in POLYGON_COMMANDS else (p[0] if cmd in CIRCLE_COMMANDS else 0.0)
+                return _M.MAV_MISSION_ACCEPTED, MissionItem(cmd, frame, (p1, 0.0, 0.0, 0.0), x, y, _f32(msg.z),
+                                                            _GLOBAL_FRAMES[frame], int(msg.autocontinue))
             yaw = math.degrees(math.radians(p[3]) % (2 * math.pi)) if math.isfinite(p[3]) else p[3]
             params = {_M.MAV_CMD_NAV_WAYPOINT: (p[0], p[1], 0.0, yaw), _M.MAV_CMD_NAV_TAKEOFF: (0.0, 0.0, 0.0, yaw),
                       _M.MAV_CMD_NAV_LAND: (0.0, p[1], 0.0, yaw)}[cmd]
@@ -454,6 +528,67 @@ class MissionManager:
         return _M.MAV_MISSION_ACCEPTED, MissionItem(cmd, _M.MAV_FRAME_GLOBAL_RELATIVE_ALT if relative else _M.MAV_FRAME_GLOBAL,
                                                     params, x, y, alt_cm / 100.0, relative)
 
+    def _ap_xy(self, msg, is_int: bool) -> tuple[int, int]:
+        return (int(msg.x), int(msg.y)) if is_int else (int(msg.x * 1e7), int(msg.y * 1e7))
+
+    def _parse_ap_fence(self, msg, is_int: bool) -> tuple[int, MissionItem | None]:
+        """``convert_MISSION_ITEM_INT_to_AC_PolyFenceItem`` (MissionItemProtocol_Fence.cpp): global
+        frames (terrain ones too), fence commands; stored as lat/lon and param1 only."""
+        frames = (_M.MAV_FRAME_GLOBAL, _M.MAV_FRAME_GLOBAL_INT, _M.MAV_FRAME_GLOBAL_RELATIVE_ALT,
+                  _M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, _M.MAV_FRAME_GLOBAL_TERRAIN_ALT, _M.MAV_FRAME_GLOBAL_TERRAIN_ALT_INT)
+        if int(msg.frame) not in frames:
+            return _M.MAV_MISSION_UNSUPPORTED_FRAME, None
+        cmd = int(msg.command)
+        if cmd not in FENCE_COMMANDS:
+            return _M.MAV_MISSION_UNSUPPORTED, None
+        p1 = _f32(msg.param1)
+        if cmd in POLYGON_COMMANDS:
+            p1 = float(int(p1) & 0xFF) if math.isfinite(p1) and p1 >= 0 else 0.0  # uint8 vertex_count
+        elif cmd not in CIRCLE_COMMANDS:
+            p1 = 0.0
+        x, y = self._ap_xy(msg, is_int)  # get_item_as_mission_item: frame 0 (GLOBAL), z = 0 on the way back
+        return _M.MAV_MISSION_ACCEPTED, MissionItem(cmd, _M.MAV_FRAME_GLOBAL, (p1, 0.0, 0.0, 0.0), x, y, 0.0, False)
+
+    def _parse_ap_rally(self, msg, is_int: bool) -> tuple[int, MissionItem | None]:
+        """``MissionItemProtocol_Rally::convert_MISSION_ITEM_INT_to_RallyLocation``: NAV_RALLY_POINT in
+        a GLOBAL_RELATIVE_ALT frame, altitude an int16 of metres above home."""
+        if int(msg.command) != _M.MAV_CMD_NAV_RALLY_POINT:
+            return _M.MAV_MISSION_UNSUPPORTED, None
+        if int(msg.frame) not in (_M.MAV_FRAME_GLOBAL_RELATIVE_ALT, _M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT):
+            return _M.MAV_MISSION_UNSUPPORTED_FRAME, None
+        x, y = self._ap_xy(msg, is_int)
+        if abs(x) > 900000000:
+            return _M.MAV_MISSION_INVALID_PARAM5_X, None
+        if abs(y) > 1800000000:
+            return _M.MAV_MISSION_INVALID_PARAM6_Y, None
+        if not (math.isfinite(msg.z) and -32768 <= msg.z <= 32767):
+            return _M.MAV_MISSION_INVALID_PARAM7, None
+        return _M.MAV_MISSION_ACCEPTED, MissionItem(_M.MAV_CMD_NAV_RALLY_POINT, _M.MAV_FRAME_GLOBAL_RELATIVE_ALT,
+                                                    (0.0, 0.0, 0.0, 0.0), x, y, float(int(msg.z)), True)
+
+    def _stored(self, mt: int) -> list[MissionItem]:
+        return {_MT_FENCE: self.fence, _MT_RALLY: self.rally}.get(mt, self.items)
+
+    def _commit_type(self, mt: int, items: list[MissionItem], current: int) -> None:
+        """A completed upload (or a clear) of one mission type becomes the stored one."""
+        if mt == _MT_MISSION:
+            self._commit(items, current)
+        elif mt == _MT_FENCE:
+            self.fence = list(items)
+            self.update_fence()
+        elif mt == _MT_RALLY:
+            self.rally = list(items)
+            self.v._event(f"rally points: {len(items)}")
+
+    def update_fence(self) -> None:
+        """The zones the vehicle checks: PX4 drops the zones ``Geofence::_updateFence`` refuses
+        (home or, flying, the vehicle outside); ArduPilot checked the fence at upload."""
+        zones = fence_from_items(self.fence).zones
+        if self.px4:
+            zones = tuple(z for z in zones if self.v.fence.px4_zone_accepted(z))
+        self.fence_zones = Fence(zones)
+        self.v._event(f"geofence: {len(self.fence)} items, {len(zones)} zones")
+
     def _commit(self, items: list[MissionItem], current: int) -> None:
         """PX4: the received mission becomes active (``update_active_mission``)."""
         self.items = list(items)
@@ -470,7 +605,7 @@ class MissionManager:
 
     # -- download -----------------------------------------------------------------------------
     def _count_for(self, mt: int) -> int:
-        return len(self.items) if mt == _M.MAV_MISSION_TYPE_MISSION else 0
+        return len(self._stored(mt)) if mt in (_MT_MISSION, _MT_FENCE, _MT_RALLY) else 0
 
     def _on_request_list(self, msg) -> None:
         if not self._for_me(msg):
@@ -524,7 +659,7 @@ class MissionManager:
                 self._ack(src, _M.MAV_MISSION_ERROR)
                 return
             self._t_sent = self._now()
-            self._send_item(src, seq, self.items[seq], is_int, mt)
+            self._send_item(src, seq, self._stored(mt)[seq], is_int, mt)
             return
         if self._max_items(mt) is None:
             return
@@ -532,12 +667,12 @@ class MissionManager:
             self._ack(src, _M.MAV_MISSION_DENIED, mt)
             return
         count = self._count_for(mt)
-        if mt != _M.MAV_MISSION_TYPE_MISSION or (seq != 0 and seq >= count):
+        if (mt == _MT_MISSION and seq != 0 and seq >= count) or (mt != _MT_MISSION and seq >= count):
             if is_int:  # educate the GCS about the mission size
                 self._send(self.v.link.mav.mission_count_encode(src[0], src[1], count, mt))
             self._ack(src, _M.MAV_MISSION_INVALID_SEQUENCE, mt)
             return
-        item = self._home_item() if seq == 0 else self.items[seq]
+        item = self._home_item() if (seq == 0 and mt == _MT_MISSION) else self._stored(mt)[seq]
         if item is None:
             self._ack(src, _M.MAV_MISSION_ERROR, mt)
             return
@@ -560,7 +695,7 @@ class MissionManager:
         if self.px4 and item.is_position:  # format_mavlink_mission_item: frame from the altitude mode and int mode
             frame = ((_M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT if as_int else _M.MAV_FRAME_GLOBAL_RELATIVE_ALT) if item.relative
                      else (_M.MAV_FRAME_GLOBAL_INT if as_int else _M.MAV_FRAME_GLOBAL))
-        current = int(seq == self.current) if (self.px4 or seq > 0) else 0
+        current = int(seq == self.current) if (self.px4 or (seq > 0 and mt == _MT_MISSION)) else 0
         autocontinue = item.autocontinue if self.px4 else 1
         if as_int:
             x, y = (int(item.x), int(item.y)) if (item.is_position or not self.px4) else (int(round(item.x)), int(round(item.y)))
@@ -594,8 +729,9 @@ class MissionManager:
                 self._text(_M.MAV_SEVERITY_CRITICAL, "WPM: IGN CLEAR CMD: Busy")
                 return
             self._xfer_type = mt
-            if mt in (_M.MAV_MISSION_TYPE_MISSION, _M.MAV_MISSION_TYPE_ALL):
-                self._commit([], 0)
+            for t in (_MT_MISSION, _MT_FENCE, _MT_RALLY):
+                if mt in (t, _M.MAV_MISSION_TYPE_ALL):
+                    self._commit_type(t, [], 0)
             self._ack(src, _M.MAV_MISSION_ACCEPTED, mt)
             return
         if self._max_items(mt) is None:
@@ -613,7 +749,9 @@ class MissionManager:
                 return
             self.items = []
             self.current = 0
-        self._text(_M.MAV_SEVERITY_INFO, "Flight plan received")
+            self._text(_M.MAV_SEVERITY_INFO, "Flight plan received")
+        else:  # MissionItemProtocol_Fence / _Rally::clear_all_items: write_fence(nullptr, 0), truncate(0)
+            self._commit_type(mt, [], 0)
         self._ack(src, _M.MAV_MISSION_ACCEPTED, mt)
 
     def _on_set_current(self, msg) -> None:
@@ -795,7 +933,8 @@ class MissionManager:
             return
         if t - self._t_recv > AP_TIMEOUT_S:
             self._state = _IDLE
-            self._text(_M.MAV_SEVERITY_WARNING, "Mission upload timeout")
+            self._text(_M.MAV_SEVERITY_WARNING, {_MT_FENCE: "Fence upload timeout", _MT_RALLY: "Rally upload timeout"}.get(
+                self._xfer_type, "Mission upload timeout"))
             self.v._event("mission transfer timed out")
             self._ack(self._partner, _M.MAV_MISSION_OPERATION_CANCELLED)
         elif t - self._t_sent > AP_RESEND_S:

@@ -47,10 +47,20 @@ ArduCopter (``ArduCopter/mode_rtl.cpp``)
 Both report the land phase as MAV_LANDED_STATE_LANDING (PX4 EXTENDED_SYS_STATE from a LAND
 setpoint; ArduCopter ``ModeRTL::is_landing``).
 
+Rally points: the vehicle picks the destination (:func:`onfly.mavlink.geofence.px4_rally_destination`,
+PX4 ``RTL::findRtlDestination`` with RTL_TYPE 0; :func:`~onfly.mavlink.geofence.ardu_rally_destination`,
+``AP_Rally::calc_best_rally_or_home_location``). PX4 then flies this machine with the safe point in
+place of home: the return altitude is above it and it lands there (``RTL: start return at ... above
+destination``). ArduCopter returns to the rally point, with the target altitude at least the rally
+altitude above home (``compute_return_target``: negative rally altitudes count as 0, the cone is
+measured to the rally point), loiters and lands there.
+
 Simplified: the landing descends at MPC_LAND_SPEED / LAND_SPEED all the way down, as the
 vehicle's LAND mode does (PX4 descends faster above MPC_LAND_ALT1, ArduCopter above
-LAND_ALT_LOW); yaw is held (PX4 turns toward the waypoint, MPC_YAW_MODE 0); no rally points,
-terrain, geofence or mission-landing return types.
+LAND_ALT_LOW); yaw is held (PX4 turns toward the waypoint, MPC_YAW_MODE 0); PX4's RTL_TYPE is
+fixed at its default 0 (no mission-landing or rally-only return types, no VTOL land approaches);
+no terrain following; the return path is straight, not routed around a fence
+(PX4's geofence avoidance planner, ArduPilot's fence avoidance are not modelled).
 """
 
 from __future__ import annotations
@@ -105,19 +115,23 @@ def px4_return_altitude(p_m, home_m, params: dict) -> float:
     return max(p[2], min(alt, max_return))  # math::constrain(alt, current, max_return)
 
 
-def ardu_return_altitude_cm(p_m, home_m, params: dict) -> float:
-    """ArduCopter ``ModeRTL::compute_return_target`` (home, alt above home): return altitude, cm.
+def ardu_return_altitude_cm(p_m, home_m, params: dict, dest_m=None) -> float:
+    """ArduCopter ``ModeRTL::compute_return_target`` (alt above home): return altitude, cm.
 
     p_m, home_m : (3,) current and home position, scene ENU, m
     params : the vehicle's ArduCopter parameters (RTL_ALT, RTL_CLIMB_MIN, RTL_CONE_SLOPE; cm)
+    dest_m : (3,) the return target when it is a rally point (its z = home z + the rally
+        altitude), or None for home. The target starts from the rally altitude (negative -> 0) and
+        the cone is measured to the target.
     """
     p, home = np.asarray(p_m, float), np.asarray(home_m, float)
+    dest = home if dest_m is None else np.asarray(dest_m, float)
     curr_cm = (p[2] - home[2]) * 100.0
     min_rtl_cm = max(RTL_ALT_MIN_CM, curr_cm + max(0.0, float(params["RTL_CLIMB_MIN"])))
-    target_cm = max(0.0, float(params["RTL_ALT"]), min_rtl_cm)
+    target_cm = max(max((dest[2] - home[2]) * 100.0, 0.0), float(params["RTL_ALT"]), min_rtl_cm)
     slope = float(params["RTL_CONE_SLOPE"])
     if slope >= RTL_MIN_CONE_SLOPE:
-        dist_cm = float(np.linalg.norm(p[:2] - home[:2])) * 100.0
+        dist_cm = float(np.linalg.norm(p[:2] - dest[:2])) * 100.0
         target_cm = min(target_cm, max(dist_cm * slope, min_rtl_cm))
     return max(target_cm, curr_cm)
 
@@ -143,10 +157,11 @@ class _Return:
         self.phase, self._since_s, self._sp = phase, t_s, sp
         self._event(f"rtl: {phase}", t_s)  # on the physics clock the phases run on
 
-    def _land_setpoint(self, p, speed_mps: float, v_xy_limit_mps: float) -> ReturnSetpoint:
-        """Down at ``speed_mps`` over home: a position target at the current height plus a
-        descent feed-forward, re-made every step so only the horizontal part pulls."""
-        target = np.array([self.home[0], self.home[1], p[2]])
+    def _land_setpoint(self, p, speed_mps: float, v_xy_limit_mps: float, over=None) -> ReturnSetpoint:
+        """Down at ``speed_mps`` over ``over`` (default home): a position target at the current
+        height plus a descent feed-forward, re-made every step so only the horizontal part pulls."""
+        over = self.home if over is None else over
+        target = np.array([over[0], over[1], p[2]])
         return ReturnSetpoint(p=target, v=np.array([0.0, 0.0, -speed_mps]), v_limit_mps=max(v_xy_limit_mps, speed_mps))
 
     @staticmethod
@@ -225,10 +240,13 @@ class Px4Return(_Return):
 class ArduCopterReturn(_Return):
     """ArduCopter RTL: climb, return, loiter at home, final descent or land. See the module docstring."""
 
-    def __init__(self, home_m, p_m, landed: bool, t_s: float, params: dict, event, statustext) -> None:
+    def __init__(self, home_m, p_m, landed: bool, t_s: float, params: dict, event, statustext, dest_m=None) -> None:
         super().__init__(home_m, params, event, statustext)
         p = np.asarray(p_m, float)
-        self.return_z_m = self.home[2] + ardu_return_altitude_cm(p, self.home, params) / 100.0
+        # AP_Rally::calc_best_rally_or_home_location: a rally point replaces home as the target
+        # (return, loiter, land); altitudes stay above home
+        self.dest = self.home.copy() if dest_m is None else np.asarray(dest_m, float).copy()
+        self.return_z_m = self.home[2] + ardu_return_altitude_cm(p, self.home, params, dest_m) / 100.0
         if landed:
             self._enter("idle", t_s, None)  # is_disarmed_or_landed: ground handling
             return
@@ -246,7 +264,7 @@ class ArduCopterReturn(_Return):
 
         if self.phase == "climb" and near(self._sp.p):
             speed = float(P["RTL_SPEED"]) if float(P["RTL_SPEED"]) > 0 else float(P["WPNAV_SPEED"])
-            self._enter("return", t_s, ReturnSetpoint(p=np.array([self.home[0], self.home[1], self.return_z_m]),
+            self._enter("return", t_s, ReturnSetpoint(p=np.array([self.dest[0], self.dest[1], self.return_z_m]),
                                                       v_limit_mps=speed / 100.0))
         elif self.phase == "return" and near(self._sp.p):
             self._enter("loiter", t_s, self._sp)
@@ -258,7 +276,7 @@ class ArduCopterReturn(_Return):
                 target = np.array([p[0], p[1], self.home[2] + final_cm / 100.0])  # holds its stopping point
                 self._enter("final_descent", t_s, ReturnSetpoint(p=target, v_limit_mps=float(P["WPNAV_SPEED_DN"]) / 100.0))
         if self.phase == "land":
-            return self._land_setpoint(p, float(P["LAND_SPEED"]) / 100.0, float(P["WPNAV_SPEED"]) / 100.0)
+            return self._land_setpoint(p, float(P["LAND_SPEED"]) / 100.0, float(P["WPNAV_SPEED"]) / 100.0, self.dest)
         return self._sp
 
     def landed(self, t_s: float) -> None:

@@ -85,7 +85,20 @@ RTL_LAND_DELAY, RTL_MIN_DIST, RTL_CONE_ANG, MPC_XY_CRUISE, MPC_XY_VEL_MAX, MPC_Z
 NAV_MC_ALT_RAD (PX4; a multicopter's ROMFS ``rc.mc_defaults`` values: RTL_RETURN_ALT 30,
 RTL_DESCEND_ALT 10, NAV_ACC_RAD 2); GUID_TIMEOUT, DISARM_DELAY, LAND_SPEED, WPNAV_SPEED_UP and
 RTL_ALT, RTL_CLIMB_MIN, RTL_SPEED, RTL_LOIT_TIME, RTL_ALT_FINAL, RTL_CONE_SLOPE, WPNAV_SPEED,
-WPNAV_SPEED_DN, WPNAV_RADIUS, ATC_SLEW_YAW (ArduCopter).
+WPNAV_SPEED_DN, WPNAV_RADIUS, ATC_SLEW_YAW (ArduCopter). Geofence and rally: GF_ACTION, GF_MAX_HOR_DIST,
+GF_MAX_VER_DIST, GF_SOURCE (PX4 ``geofence_params.c``); FENCE_ENABLE, FENCE_TYPE, FENCE_ACTION,
+FENCE_ALT_MAX, FENCE_RADIUS, FENCE_MARGIN (``AC_Fence.cpp``, Copter defaults), RALLY_LIMIT_KM,
+RALLY_INCL_HOME (``AP_Rally.cpp``).
+
+Geofence and rally points
+-------------------------
+Uploaded with mission_type FENCE / RALLY (:mod:`onfly.mavlink.mission`), enforced by
+:class:`~onfly.mavlink.geofence.FenceMonitor` every physics step, with a global position only
+(outdoors). PX4: a breach (outside the zones, or beyond GF_MAX_HOR_DIST / GF_MAX_VER_DIST from
+home) refuses arming and, armed, takes GF_ACTION (default 2 Hold; 3 Return, 4 Terminate, 5 Land).
+ArduCopter with FENCE_ENABLE 1: pre-arm "Vehicle breaching ..." / "Fence requires position", and a
+new breach armed disarms on the ground or takes FENCE_ACTION (default 1 RTL, else Land). The Return
+mode flies to the closest rally point where the autopilot's rule picks one over home.
 
 Return mode (PX4 AUTO.RTL, ArduCopter RTL)
 ------------------------------------------
@@ -197,6 +210,7 @@ import numpy as np
 from onfly.mavlink import frames, rtl
 from onfly.mavlink.autopilot import ARDUCOPTER_MODE, PX4_AUTO_SUB, PX4_MAIN, px4_custom_mode, px4_main_mode
 from onfly.mavlink.link import Link, LinkError, mavlink2
+from onfly.mavlink.geofence import FenceMonitor, ardu_rally_destination, px4_rally_destination
 from onfly.mavlink.mission import MissionManager
 from planning.frames import wrap_angle
 
@@ -251,6 +265,12 @@ PX4_PARAMS = {
     "MPC_Z_V_AUTO_DN": (1.5, _R32),
     "NAV_ACC_RAD": (2.0, _R32),
     "NAV_MC_ALT_RAD": (0.8, _R32),
+    # geofence (navigator geofence_params.c / geofence_params.yaml): 0 None, 1 Warning, 2 Hold,
+    # 3 Return, 4 Terminate, 5 Land; distances from home in m, 0 = off; source 0 GPOS, 1 GPS
+    "GF_ACTION": (2, _I32),
+    "GF_MAX_HOR_DIST": (0.0, _R32),
+    "GF_MAX_VER_DIST": (0.0, _R32),
+    "GF_SOURCE": (0, _I32),
 }
 #: ArduCopter parameters: name -> (default, MAV_PARAM_TYPE); units as ArduPilot's (cm/s, s).
 ARDUPILOT_PARAMS = {
@@ -273,6 +293,18 @@ ARDUPILOT_PARAMS = {
     "WPNAV_RADIUS": (200.0, _R32),
     # the attitude controller's yaw slew limit (cdeg/s, AC_AttitudeControl.cpp): CONDITION_YAW's rate cap
     "ATC_SLEW_YAW": (6000.0, _R32),
+    # fence (libraries/AC_Fence/AC_Fence.cpp; Copter defaults): FENCE_ENABLE 0, FENCE_TYPE 7 (bit 0
+    # max altitude, 1 circle around home, 2 polygons / uploaded zones), FENCE_ACTION 1 (0 report,
+    # 1 RTL or Land, 2 Land, 3 SmartRTL or RTL or Land, 4 Brake or Land, 5 SmartRTL or Land), m
+    "FENCE_ENABLE": (0, _I8),
+    "FENCE_TYPE": (7, _I8),
+    "FENCE_ACTION": (1, _I8),
+    "FENCE_ALT_MAX": (100.0, _R32),
+    "FENCE_RADIUS": (300.0, _R32),
+    "FENCE_MARGIN": (2.0, _R32),
+    # rally points (libraries/AP_Rally/AP_Rally.cpp, ArduCopter defaults)
+    "RALLY_LIMIT_KM": (0.3, _R32),
+    "RALLY_INCL_HOME": (1, _I8),
 }
 
 _ID = {
@@ -647,6 +679,7 @@ class SimMavlinkVehicle:
             _M.MAVLINK_MSG_ID_TIMESYNC: self._timesync_request,
             _M.MAVLINK_MSG_ID_PING: self._ping_request,
         }
+        self.fence = FenceMonitor(self)  # geofence breach check and action (onfly/mavlink/geofence.py)
         self.mission = MissionManager(self)  # mission protocol and AUTO flight (onfly/mavlink/mission.py)
 
     # -- lifecycle --------------------------------------------------------------------------
@@ -835,6 +868,7 @@ class SimMavlinkVehicle:
         with self._lock:
             self._apply_rules(t)
             self.mission.step(t)
+            self.fence.step(t)
             v0 = np.array(self.model.v, dtype=float)
             self.model.step(dt, self._target, self.armed)
             self._accel_enu = (np.array(self.model.v, dtype=float) - v0) / dt
@@ -986,6 +1020,34 @@ class SimMavlinkVehicle:
         }[mode]
         self._set_mode(cm, why + ("" if mode == wanted else f" -> fallback {mode}"))
 
+    def _mission_landed(self) -> bool:
+        return self.landed_state == _M.MAV_LANDED_STATE_ON_GROUND
+
+    def _px4_failsafe_action(self, wanted: str, why: str) -> None:
+        """A PX4 failsafe action (``failsafe.cpp``): terminate, or a mode with the fallback chain
+        Hold, Land (as for offboard loss)."""
+        if wanted == "terminate":
+            self._disarm(f"{why}: flight termination")
+            return
+        for mode in (wanted, "loiter", "land"):
+            if self._px4_mode_available(mode):
+                break
+        cm = px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB[mode])
+        self._set_mode(cm, why + ("" if mode == wanted else f" -> fallback {mode}"))
+        if mode == "loiter":  # the navigator's breach reposition: hold here (also when already in Hold)
+            self._target = self._hold_here()
+
+    def _ardu_fence_mode(self, mode: str) -> bool:
+        """``Copter::set_mode(..., FENCE_BREACHED)``: False when the mode refuses (RTL without home,
+        a position mode without a position estimate)."""
+        number = ARDUCOPTER_MODE[mode]
+        if mode in ("rtl", "brake") and not self._position_valid:
+            return False
+        if mode == "rtl" and not self._ardu_home_set():
+            return False
+        self._set_mode(number, "fence breached")
+        return True
+
     def _px4_mode_available(self, mode: str) -> bool:
         if mode in ("posctl", "altctl", "stabilized") and not self.c.rc_connected:
             return False
@@ -1040,11 +1102,20 @@ class SimMavlinkVehicle:
         def say(text: str) -> None:
             self._statustext(_M.MAV_SEVERITY_INFO, text)
 
+        dest = None  # the closest rally point, when the autopilot's rule picks one over home
+        if self.c.global_origin is not None and self.mission.rally:
+            if self.px4:
+                dest = px4_rally_destination(self, self.model.p, home, self.mission.rally)
+            else:
+                dest = ardu_rally_destination(self, self.model.p, home, self.mission.rally, self.params)
+            if dest is not None:
+                self._event(f"rtl: to the rally point at {np.round(dest, 2).tolist()}")
         if self.px4:
             amsl = None if self.c.global_origin is None else self.c.global_origin[2]
-            self._rtl = rtl.Px4Return(home, self.model.p, landed, t, self.params, self._event, say, amsl)
+            # RTL::findRtlDestination: the destination replaces home (altitude, return, landing)
+            self._rtl = rtl.Px4Return(home if dest is None else dest, self.model.p, landed, t, self.params, self._event, say, amsl)
         else:
-            self._rtl = rtl.ArduCopterReturn(home, self.model.p, landed, t, self.params, self._event, say)
+            self._rtl = rtl.ArduCopterReturn(home, self.model.p, landed, t, self.params, self._event, say, dest_m=dest)
         self._event(f"rtl: return at {self._rtl.return_z_m:.2f} m (scene z)")
 
     # -- message handling -------------------------------------------------------------------
@@ -1252,10 +1323,10 @@ class SimMavlinkVehicle:
                 return f"Arming denied: {self.mode_name} mode prevents arming"
             if main == PX4_MAIN["offboard"] and not self._recent_setpoint():
                 return "Arming denied: no offboard signal"
-            return None
+            return self.fence.prearm_failure()  # geofenceCheck.cpp: a breach is an arming-check failure
         if self.custom_mode in (ARDUCOPTER_MODE["land"], ARDUCOPTER_MODE["rtl"], ARDUCOPTER_MODE["brake"], ARDUCOPTER_MODE["auto"]):
             return f"Arm: Mode not armable ({self.mode_name.upper()})"
-        return None
+        return self.fence.prearm_failure()  # AP_Arming::fence_checks -> AC_Fence::pre_arm_check
 
     def _cmd_arm(self, arm: bool, force: bool) -> int:
         if arm:
