@@ -711,11 +711,11 @@ def test_ardupilot_global_target_type_mask_frames_and_indoors():
         assert v.first_event("guided: input not valid (no terrain data for an above-terrain target)") is not None
         assert v.first_event("guided: input not valid (pos/vel target above terrain)") is not None
         assert v.setpoints_received == 0 and v._setpoint.kind == "velocity" and not v._setpoint.v.any()
-        # the same point in MAV_FRAME_GLOBAL (AMSL, non-INT: ArduPilot maps it like GLOBAL_INT) is flown
-        global_setpoint(c, 2.0, 0.0, 489.0, M.MAV_FRAME_GLOBAL, yaw=np.pi / 2)  # east (NED yaw)
-        time.sleep(1.2)
+        # a point in MAV_FRAME_GLOBAL (AMSL, non-INT: ArduPilot maps it like GLOBAL_INT) is flown
+        global_setpoint(c, 1.0, 0.0, 489.0, M.MAV_FRAME_GLOBAL, yaw=np.pi / 2)  # east (NED yaw)
+        time.sleep(0.8)
         assert v.setpoints_received == 1
-        np.testing.assert_allclose(v.position_enu(), [0.0, 2.0, 1.0], atol=0.1)
+        np.testing.assert_allclose(v.position_enu(), [0.0, 1.0, 1.0], atol=0.1)
         assert abs(v.model.yaw) < 0.1  # NED 90 deg = ENU 0
     finally:
         c.stop()
@@ -725,13 +725,13 @@ def test_ardupilot_global_target_type_mask_frames_and_indoors():
     try:
         assert c.command(M.MAV_CMD_DO_SET_MODE, 1, ARDUCOPTER_MODE["guided"]) == M.MAV_RESULT_ACCEPTED
         assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
-        assert c.command(M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 1.0) == M.MAV_RESULT_ACCEPTED
-        time.sleep(0.9)
+        assert c.command(M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 0.5) == M.MAV_RESULT_ACCEPTED
+        time.sleep(0.6)
         global_setpoint(c, 2.0, 0.0, 1.0, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT)
-        time.sleep(0.4)
+        time.sleep(0.3)
         assert v.setpoints_received == 0
         assert v.first_event("guided: global target ignored (no vector from the EKF origin)") is not None
-        np.testing.assert_allclose(v.position_enu(), [0.0, 0.0, 1.0], atol=0.1)
+        np.testing.assert_allclose(v.position_enu(), [0.0, 0.0, 0.5], atol=0.1)
     finally:
         c.stop()
         v.stop()
