@@ -130,14 +130,35 @@ Companion loss
   and a position-only target is held for ever (``mode_guided.cpp``
   ``velaccel_control_run`` / ``posvelaccel_control_run`` vs ``pos_control_run``).
 
-Setpoints (SET_POSITION_TARGET_LOCAL_NED, MAV_FRAME_LOCAL_NED)
--------------------------------------------------------------
+Setpoints (SET_POSITION_TARGET_LOCAL_NED in MAV_FRAME_LOCAL_NED, SET_POSITION_TARGET_GLOBAL_INT)
+------------------------------------------------------------------------------------------------
 PX4 reads type_mask per axis: an ignored component is NaN and the controller uses what is
 finite on each axis (``mavlink_receiver.cpp`` ``handle_message_set_position_target_local_ned``;
-e.g. x/y position with z velocity). ArduCopter uses a whole vector or none: position is ignored
-only when all three position bits are set, same for velocity and acceleration
-(``GCS_Mavlink.cpp`` ``handle_set_position_target_local_ned``). Non-finite used fields drop
-the message. ArduCopter accepts targets in GUIDED only.
+e.g. x/y position with z velocity). ArduCopter uses a whole vector or none: any set ignore bit
+of a vector ignores all of it (``GCS_MAVLink_Copter.cpp``
+``handle_message_set_position_target_local_ned``: ``pos_ignore = type_mask & POS_IGNORE``).
+Non-finite used fields drop the message. ArduCopter accepts targets in GUIDED only.
+
+SET_POSITION_TARGET_GLOBAL_INT (lat/lon degE7, alt m, NED velocity / acceleration, NED yaw rad;
+converted with the same :meth:`SimMavlinkVehicle._scene_from_global` as DO_REPOSITION and
+mission items):
+
+- PX4 (``mavlink_receiver.cpp`` ``handle_message_set_position_target_global_int``): position
+  all or nothing, velocity / acceleration per axis; a used position needs a global position
+  estimate (indoors the message is dropped whole: no offboard signal, OFFBOARD refused) and one
+  of the INT frames: GLOBAL_INT AMSL, GLOBAL_RELATIVE_ALT_INT (needs home; local z =
+  (home.alt - alt) - ref_alt as the receiver writes it, the height above home while home is at
+  the EKF origin's altitude), GLOBAL_TERRAIN_ALT_INT (needs a terrain altitude: no distance
+  sensor here, dropped); other frames dropped with "SET_POSITION_TARGET_GLOBAL_INT invalid
+  coordinate frame N", a force setpoint with "... force not supported". Accepted ones are
+  offboard setpoints exactly as LOCAL_NED ones (COM_OF_LOSS_T, arming, entering OFFBOARD).
+- ArduCopter (``GCS_MAVLink_Copter.cpp`` ``handle_message_set_position_target_global_int``,
+  ``mode_guided.cpp``): GUIDED only; whole vectors; GLOBAL(_INT) AMSL, GLOBAL_RELATIVE_ALT(_INT)
+  above home, GLOBAL_TERRAIN_ALT(_INT) above terrain (no terrain data here: stop). Invalid input
+  (force, lat/lon out of range, unknown frame, insane velocity, pos+acc without velocity,
+  nothing used, pos+vel without an EKF origin or above terrain) calls ``ModeGuided::init(true)``:
+  a zero-velocity target, brake and hover. A position-only target without a vector from the EKF
+  origin (indoors) is ignored and the last target kept (``set_destination`` returns first).
 
 Frames and telemetry
 --------------------
