@@ -20,7 +20,7 @@ from onfly.mavlink.sim_vehicle import EARTH_RADIUS_M, SimMavlinkVehicle, SimVehi
 
 from mavsdk import ComponentType, Configuration, Mavsdk  # noqa: E402
 from mavsdk.plugins.action.action import Action, ActionError  # noqa: E402
-from mavsdk.plugins.offboard.offboard import Offboard, PositionNedYaw, VelocityNedYaw  # noqa: E402
+from mavsdk.plugins.offboard.offboard import Offboard, PositionGlobalYaw, PositionNedYaw, VelocityNedYaw  # noqa: E402
 from mavsdk.plugins.param.param import Param  # noqa: E402
 from mavsdk.plugins.telemetry.telemetry import FlightMode, LandedState, Telemetry  # noqa: E402
 
@@ -441,5 +441,83 @@ def test_pymavlink_mavproxy_style_ardupilot_setspeed_setyaw_and_reboot():
         mp.m.mav.param_request_read_send(1, 1, b"WPNAV_SPEED", -1)
         pv = mp.m.recv_match(type="PARAM_VALUE", blocking=True, timeout=2, condition="PARAM_VALUE.param_id=='WPNAV_SPEED'")
         assert pv is not None and pv.param_value == pytest.approx(500.0)  # parameters survive a reboot
+    finally:
+        v.stop()
+
+
+# -- SET_POSITION_TARGET_GLOBAL_INT: MAVSDK's set_position_global, a pymavlink script's GUIDED goto --
+_ORIGIN = (47.397742, 8.545594, 488.0)  # the outdoor profile's global origin (the scene origin)
+
+
+def latlon(north_m, east_m):
+    """Degrees of the point ``north_m`` / ``east_m`` from the outdoor origin."""
+    return (_ORIGIN[0] + math.degrees(north_m / EARTH_RADIUS_M),
+            _ORIGIN[1] + math.degrees(east_m / (EARTH_RADIUS_M * math.cos(math.radians(_ORIGIN[0])))))
+
+
+def settled(v, p_enu, tol_m=0.1):
+    """The vehicle (ground truth) is within ``tol_m`` of ``p_enu`` (scene ENU, m) and still."""
+    return np.linalg.norm(v.position_enu() - p_enu) < tol_m and np.linalg.norm(v.velocity_enu()) < 0.1
+
+
+def test_mavsdk_px4_offboard_set_position_global_relative_and_amsl_and_agl_is_no_setpoint():
+    # stiffer gains than the default: the test is about the rules, its legs stay short in wall time
+    rig = MavsdkRig(autopilot="px4", profile="outdoor", k_pos=3.0, k_vel=6.0)
+    try:
+        act, tel, v = rig.action, rig.telemetry, rig.vehicle
+        wait_until(lambda: tel.health().is_armable, 5.0, "health.is_armable")
+        wait_until(lambda: math.isfinite(tel.position().latitude_deg), 5.0, "a first global position")
+        act.arm()  # home = the arming point: RELATIVE_ALT_INT needs it
+        off = Offboard(rig.system)
+        Alt = PositionGlobalYaw.AltitudeType
+        # REL_HOME -> MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, type_mask: position + yaw (MAVSDK offboard_impl.cpp)
+        off.set_position_global(PositionGlobalYaw(*latlon(2.0, 1.5), 1.5, 90.0, Alt.REL_HOME))
+        off.start()  # one setpoint is enough: it refreshed the offboard signal
+        wait_until(lambda: v.mode_name == "offboard", 2.0, "OFFBOARD")
+        wait_until(lambda: settled(v, [1.5, 2.0, 1.5]), 8.0, "relative-altitude target")
+        pos = tel.position()  # GLOBAL_POSITION_INT, against the target and the ground truth
+        assert (pos.latitude_deg, pos.longitude_deg) == pytest.approx(latlon(2.0, 1.5), abs=2e-6)
+        assert pos.relative_altitude_m == pytest.approx(1.5, abs=0.1)
+        assert abs(v.model.yaw) < 0.05  # yaw 90 deg NED: facing east
+        # AMSL -> MAV_FRAME_GLOBAL_INT
+        off.set_position_global(PositionGlobalYaw(*latlon(0.5, 0.0), 490.5, 90.0, Alt.AMSL))
+        wait_until(lambda: settled(v, [0.0, 0.5, 2.5]), 8.0, "AMSL target")
+        wait_until(lambda: abs(tel.position().absolute_altitude_m - 490.5) < 0.1, 2.0, "AMSL altitude reported")
+        assert tel.position().latitude_deg == pytest.approx(latlon(0.5, 0.0)[0], abs=2e-6)
+        # AGL -> MAV_FRAME_GLOBAL_TERRAIN_ALT_INT: no distance sensor, no terrain altitude: PX4 drops
+        # every one, so the offboard signal is lost after COM_OF_LOSS_T -> COM_OBL_RC_ACT Position,
+        # which needs RC -> Hold, where the vehicle stands
+        off.set_position_global(PositionGlobalYaw(*latlon(2.0, 1.5), 1.0, 90.0, Alt.AGL))
+        wait_until(lambda: v.mode_name == "auto.loiter", 3.0, "offboard lost -> Hold")
+        assert np.linalg.norm(v.position_enu() - [0.0, 0.5, 2.5]) < 0.15 and v.armed
+        assert v.first_event("mode auto.loiter: offboard lost") is not None
+    finally:
+        rig.close()
+
+
+def test_pymavlink_ardupilot_guided_set_position_target_global_int_relative_alt_and_a_bad_type_mask():
+    port = free_udp_port()
+    cfg = SimVehicleConfig(autopilot="ardupilot", profile="outdoor", k_pos=3.0, k_vel=6.0)
+    v = SimMavlinkVehicle(MavlinkLink(f"udpout:127.0.0.1:{port}", 1, 1), cfg).start()
+    try:
+        mp = MavproxyStyle(port)
+        mp.guided_takeoff(v, 1.0)
+        # the usual script: RELATIVE_ALT_INT, position only (0b0000111111111000: yaw and rates ignored)
+        lat, lon = latlon(3.0, 0.0)
+        mp.m.mav.set_position_target_global_int_send(0, 1, 1, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, 0x0FF8,
+                                                     int(round(lat * 1e7)), int(round(lon * 1e7)), 1.5, 0, 0, 0, 0, 0, 0, 0, 0)
+        wait_until(lambda: settled(v, [0.0, 3.0, 1.5]), 8.0, "guided global target")
+        mp.drain()
+        gp = mp.latest("GLOBAL_POSITION_INT", lambda m: abs(m.relative_alt - 1500) < 100)  # mm above home
+        assert abs(gp.lat - lat * 1e7) < 20 and abs(gp.lon - lon * 1e7) < 20  # degE7: 20 is ~2 cm
+        # position + acceleration without velocity: not a combination ArduCopter flies ->
+        # ModeGuided::init(true): brake and hover where it is, not 3 m further north
+        lat2, _ = latlon(6.0, 0.0)
+        mp.m.mav.set_position_target_global_int_send(0, 1, 1, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, 0x0C38,
+                                                     int(round(lat2 * 1e7)), int(round(lon * 1e7)), 1.5, 0, 0, 0, 0, 0, 0, 0, 0)
+        wait_until(lambda: v.first_event("guided: input not valid (unsupported type_mask combination): stop") is not None,
+                   2.0, "the stop")
+        time.sleep(0.5)
+        assert np.linalg.norm(v.position_enu() - [0.0, 3.0, 1.5]) < 0.15 and v.mode_name == "guided"
     finally:
         v.stop()

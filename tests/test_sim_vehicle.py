@@ -618,3 +618,120 @@ def test_return_climb_into_a_ceiling_is_a_crash_in_the_embedded_world():
     finally:
         c.stop()
         v.stop()
+
+
+# -- SET_POSITION_TARGET_GLOBAL_INT rules (the flights with real clients: test_mavlink_clients.py) --
+_ORIGIN = (47.397742, 8.545594, 488.0)  # the outdoor profile's global origin
+_POS_ONLY = 0x0DF8  # position + yaw used (velocity, acceleration, yaw rate ignored)
+
+
+def global_setpoint(c, north_m, east_m, alt_m, frame, mask=_POS_ONLY, yaw=0.0, vel_ned=(0.0, 0.0, 0.0)):
+    """Send SET_POSITION_TARGET_GLOBAL_INT for a point ``north_m`` / ``east_m`` from the outdoor origin."""
+    lat = _ORIGIN[0] + np.degrees(north_m / 6371000.0)
+    lon = _ORIGIN[1] + np.degrees(east_m / (6371000.0 * np.cos(np.radians(_ORIGIN[0]))))
+    c.link.send(c.link.mav.set_position_target_global_int_encode(
+        0, 1, 1, frame, mask, int(round(lat * 1e7)), int(round(lon * 1e7)), alt_m, *vel_ned, 0, 0, 0, yaw, 0))
+
+
+def test_px4_global_setpoint_frames_indoors_and_the_relative_altitude_as_the_receiver_computes_it():
+    # estimator origin 1 m below the ground: ref_alt 487 m, home (the arming point) 488 m AMSL
+    c, v = rig(autopilot="px4", profile="outdoor", estimator_origin_m=(0.0, 0.0, -1.0))
+    try:
+        global_setpoint(c, 2.0, 1.0, 2.0, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT)  # disarmed: no home yet
+        time.sleep(0.1)
+        assert v.setpoints_received == 0  # "home altitude required": dropped
+        assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+        global_setpoint(c, 2.0, 1.0, 490.5, M.MAV_FRAME_GLOBAL_INT)  # AMSL
+        time.sleep(0.1)
+        assert v.setpoints_received == 1
+        np.testing.assert_allclose(v._setpoint.p, [1.0, 2.0, 2.5], atol=0.02)
+        # z_ned = (home.alt - alt) - ref_alt: 2 m "above home" lands 1 m above the ground here
+        global_setpoint(c, 2.0, 1.0, 2.0, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT)
+        time.sleep(0.1)
+        assert v.setpoints_received == 2
+        np.testing.assert_allclose(v._setpoint.p, [1.0, 2.0, 0.0], atol=0.02)
+        # above terrain: no distance sensor, so no terrain altitude: dropped silently (no offboard signal)
+        global_setpoint(c, 2.0, 1.0, 2.0, M.MAV_FRAME_GLOBAL_TERRAIN_ALT_INT)
+        # the non-INT global frames are not among the receiver's frames: dropped with a message
+        global_setpoint(c, 2.0, 1.0, 490.5, M.MAV_FRAME_GLOBAL)
+        # a force setpoint
+        c.link.send(c.link.mav.set_position_target_global_int_encode(
+            0, 1, 1, M.MAV_FRAME_GLOBAL_INT, 0x0E3F, 0, 0, 0, 0, 0, 0, 0, 0, 1.0, 0, 0))
+        time.sleep(0.15)
+        assert v.setpoints_received == 2
+        texts = [t for _, t in v.statustexts]
+        assert "SET_POSITION_TARGET_GLOBAL_INT invalid coordinate frame 0" in texts
+        assert "SET_POSITION_TARGET_GLOBAL_INT force not supported" in texts
+        # velocity only (the position bits set): no global reference needed, per axis as LOCAL_NED
+        global_setpoint(c, 0.0, 0.0, 0.0, M.MAV_FRAME_GLOBAL_INT, mask=0x0DC7, vel_ned=(0.5, 0.0, 0.0))
+        time.sleep(0.1)
+        assert v.setpoints_received == 3 and v._setpoint.kind == "velocity"
+        np.testing.assert_allclose(v._setpoint.v, [0.0, 0.5, 0.0], atol=1e-9)
+    finally:
+        c.stop()
+        v.stop()
+    # indoors (no global origin): a position setpoint cannot be converted: dropped, so it is no
+    # offboard signal and OFFBOARD is refused
+    c, v = rig(autopilot="px4")
+    try:
+        assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+        for _ in range(4):
+            global_setpoint(c, 1.0, 0.0, 1.0, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT)
+            time.sleep(0.02)
+        px4_offboard = (M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, PX4_MAIN["offboard"])
+        assert c.command(M.MAV_CMD_DO_SET_MODE, *px4_offboard) == M.MAV_RESULT_TEMPORARILY_REJECTED
+        assert v.setpoints_received == 0 and v.mode_name != "offboard"
+    finally:
+        c.stop()
+        v.stop()
+
+
+def test_ardupilot_global_target_type_mask_frames_and_indoors():
+    c, v = rig(autopilot="ardupilot", profile="outdoor")
+    try:
+        global_setpoint(c, 2.0, 0.0, 1.0, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT)  # not GUIDED: ignored
+        assert c.command(M.MAV_CMD_DO_SET_MODE, 1, ARDUCOPTER_MODE["guided"]) == M.MAV_RESULT_ACCEPTED
+        assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+        assert c.command(M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 1.0) == M.MAV_RESULT_ACCEPTED
+        wait = time.monotonic() + 3.0
+        while v.first_event("takeoff complete") is None and time.monotonic() < wait:
+            time.sleep(0.02)
+        assert v.setpoints_received == 0
+        # x/y used but z ignored: ArduCopter ignores the whole position vector -> nothing used -> stop
+        global_setpoint(c, 2.0, 0.0, 1.0, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, mask=_POS_ONLY | M.POSITION_TARGET_TYPEMASK_Z_IGNORE)
+        time.sleep(0.05)
+        assert v.first_event("guided: input not valid (unsupported type_mask combination)") is not None
+        # an unknown frame (LOCAL_NED in a global message) stops; above terrain without terrain data stops
+        global_setpoint(c, 2.0, 0.0, 1.0, M.MAV_FRAME_LOCAL_NED)
+        global_setpoint(c, 2.0, 0.0, 1.0, M.MAV_FRAME_GLOBAL_TERRAIN_ALT_INT)
+        # position + velocity above terrain: the pos/vel controller has no terrain frame
+        global_setpoint(c, 2.0, 0.0, 1.0, M.MAV_FRAME_GLOBAL_TERRAIN_ALT_INT, mask=0x0DC0)
+        time.sleep(0.1)
+        assert v.first_event("guided: input not valid (unknown coordinate frame 1)") is not None
+        assert v.first_event("guided: input not valid (no terrain data for an above-terrain target)") is not None
+        assert v.first_event("guided: input not valid (pos/vel target above terrain)") is not None
+        assert v.setpoints_received == 0 and v._setpoint.kind == "velocity" and not v._setpoint.v.any()
+        # a point in MAV_FRAME_GLOBAL (AMSL, non-INT: ArduPilot maps it like GLOBAL_INT) is flown
+        global_setpoint(c, 1.0, 0.0, 489.0, M.MAV_FRAME_GLOBAL, yaw=np.pi / 2)  # east (NED yaw)
+        time.sleep(0.8)
+        assert v.setpoints_received == 1
+        np.testing.assert_allclose(v.position_enu(), [0.0, 1.0, 1.0], atol=0.1)
+        assert abs(v.model.yaw) < 0.1  # NED 90 deg = ENU 0
+    finally:
+        c.stop()
+        v.stop()
+    # indoors: no EKF origin: set_destination returns before changing anything: ignored, target kept
+    c, v = rig(autopilot="ardupilot")
+    try:
+        assert c.command(M.MAV_CMD_DO_SET_MODE, 1, ARDUCOPTER_MODE["guided"]) == M.MAV_RESULT_ACCEPTED
+        assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+        assert c.command(M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 0.5) == M.MAV_RESULT_ACCEPTED
+        time.sleep(0.6)
+        global_setpoint(c, 2.0, 0.0, 1.0, M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT)
+        time.sleep(0.3)
+        assert v.setpoints_received == 0
+        assert v.first_event("guided: global target ignored (no vector from the EKF origin)") is not None
+        np.testing.assert_allclose(v.position_enu(), [0.0, 0.0, 0.5], atol=0.1)
+    finally:
+        c.stop()
+        v.stop()

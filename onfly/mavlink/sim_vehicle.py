@@ -143,14 +143,35 @@ Companion loss
   and a position-only target is held for ever (``mode_guided.cpp``
   ``velaccel_control_run`` / ``posvelaccel_control_run`` vs ``pos_control_run``).
 
-Setpoints (SET_POSITION_TARGET_LOCAL_NED, MAV_FRAME_LOCAL_NED)
--------------------------------------------------------------
+Setpoints (SET_POSITION_TARGET_LOCAL_NED in MAV_FRAME_LOCAL_NED, SET_POSITION_TARGET_GLOBAL_INT)
+------------------------------------------------------------------------------------------------
 PX4 reads type_mask per axis: an ignored component is NaN and the controller uses what is
 finite on each axis (``mavlink_receiver.cpp`` ``handle_message_set_position_target_local_ned``;
-e.g. x/y position with z velocity). ArduCopter uses a whole vector or none: position is ignored
-only when all three position bits are set, same for velocity and acceleration
-(``GCS_Mavlink.cpp`` ``handle_set_position_target_local_ned``). Non-finite used fields drop
-the message. ArduCopter accepts targets in GUIDED only.
+e.g. x/y position with z velocity). ArduCopter uses a whole vector or none: any set ignore bit
+of a vector ignores all of it (``GCS_MAVLink_Copter.cpp``
+``handle_message_set_position_target_local_ned``: ``pos_ignore = type_mask & POS_IGNORE``).
+Non-finite used fields drop the message. ArduCopter accepts targets in GUIDED only.
+
+SET_POSITION_TARGET_GLOBAL_INT (lat/lon degE7, alt m, NED velocity / acceleration, NED yaw rad;
+converted with the same :meth:`SimMavlinkVehicle._scene_from_global` as DO_REPOSITION and
+mission items):
+
+- PX4 (``mavlink_receiver.cpp`` ``handle_message_set_position_target_global_int``): position
+  all or nothing, velocity / acceleration per axis; a used position needs a global position
+  estimate (indoors the message is dropped whole: no offboard signal, OFFBOARD refused) and one
+  of the INT frames: GLOBAL_INT AMSL, GLOBAL_RELATIVE_ALT_INT (needs home; local z =
+  (home.alt - alt) - ref_alt as the receiver writes it, the height above home while home is at
+  the EKF origin's altitude), GLOBAL_TERRAIN_ALT_INT (needs a terrain altitude: no distance
+  sensor here, dropped); other frames dropped with "SET_POSITION_TARGET_GLOBAL_INT invalid
+  coordinate frame N", a force setpoint with "... force not supported". Accepted ones are
+  offboard setpoints exactly as LOCAL_NED ones (COM_OF_LOSS_T, arming, entering OFFBOARD).
+- ArduCopter (``GCS_MAVLink_Copter.cpp`` ``handle_message_set_position_target_global_int``,
+  ``mode_guided.cpp``): GUIDED only; whole vectors; GLOBAL(_INT) AMSL, GLOBAL_RELATIVE_ALT(_INT)
+  above home, GLOBAL_TERRAIN_ALT(_INT) above terrain (no terrain data here: stop). Invalid input
+  (force, lat/lon out of range, unknown frame, insane velocity, pos+acc without velocity,
+  nothing used, pos+vel without an EKF origin or above terrain) calls ``ModeGuided::init(true)``:
+  a zero-velocity target, brake and hover. A position-only target without a vector from the EKF
+  origin (indoors) is ignored and the last target kept (``set_destination`` returns first).
 
 Frames and telemetry
 --------------------
@@ -230,6 +251,32 @@ EARTH_RADIUS_M = 6371000.0  # PX4 lib/geo CONSTANTS_RADIUS_OF_EARTH
 
 log = logging.getLogger(__name__)
 _M = mavlink2
+
+#: type_mask ignore bits per setpoint row (position, velocity, acceleration; NED axes)
+_AXIS_BITS = (
+    (_M.POSITION_TARGET_TYPEMASK_X_IGNORE, _M.POSITION_TARGET_TYPEMASK_Y_IGNORE, _M.POSITION_TARGET_TYPEMASK_Z_IGNORE),
+    (_M.POSITION_TARGET_TYPEMASK_VX_IGNORE, _M.POSITION_TARGET_TYPEMASK_VY_IGNORE, _M.POSITION_TARGET_TYPEMASK_VZ_IGNORE),
+    (_M.POSITION_TARGET_TYPEMASK_AX_IGNORE, _M.POSITION_TARGET_TYPEMASK_AY_IGNORE, _M.POSITION_TARGET_TYPEMASK_AZ_IGNORE),
+)
+_POS_BITS = _AXIS_BITS[0][0] | _AXIS_BITS[0][1] | _AXIS_BITS[0][2]
+
+#: ArduPilot ``mavlink_coordinate_frame_to_location_alt_frame`` (GCS_Common.cpp): the global
+#: frames and the Location altitude frame each means; any other frame is unknown
+_ARDU_ALT_FRAME = {
+    _M.MAV_FRAME_GLOBAL: "absolute", _M.MAV_FRAME_GLOBAL_INT: "absolute",
+    _M.MAV_FRAME_GLOBAL_RELATIVE_ALT: "above_home", _M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT: "above_home",
+    _M.MAV_FRAME_GLOBAL_TERRAIN_ALT: "terrain", _M.MAV_FRAME_GLOBAL_TERRAIN_ALT_INT: "terrain",
+}
+
+
+def _ardu_vectors_used(mask: int) -> tuple[bool, bool, bool]:
+    """ArduCopter's reading of a SET_POSITION_TARGET type_mask: position, velocity and
+    acceleration are each used whole or not at all, and any one set ignore bit of a vector
+    ignores all of it (``bool pos_ignore = type_mask & MAVLINK_SET_POS_TYPE_MASK_POS_IGNORE``
+    with the mask covering its three bits; ``GCS_MAVLINK_Copter``, ArduCopter ``defines.h``)."""
+    return tuple(not mask & (row[0] | row[1] | row[2]) for row in _AXIS_BITS)
+
+
 _R32 = _M.MAV_PARAM_TYPE_REAL32
 _I32 = _M.MAV_PARAM_TYPE_INT32
 _I16 = _M.MAV_PARAM_TYPE_INT16
@@ -1147,6 +1194,8 @@ class SimMavlinkVehicle:
             return
         if mtype == "SET_POSITION_TARGET_LOCAL_NED":
             self._on_setpoint(msg)
+        elif mtype == "SET_POSITION_TARGET_GLOBAL_INT":
+            self._on_global_setpoint(msg)
         elif mtype in ("COMMAND_LONG", "COMMAND_INT"):
             if not self._for_me(msg.target_system, msg.target_component):
                 return
@@ -1205,40 +1254,50 @@ class SimMavlinkVehicle:
         return int(round(wire)) if math.isfinite(wire) else None
 
     def _on_setpoint(self, msg) -> None:
+        """SET_POSITION_TARGET_LOCAL_NED in MAV_FRAME_LOCAL_NED (the estimator's frame)."""
         if not self._for_me(msg.target_system, msg.target_component):
             self.foreign_setpoints += 1
             return
         if msg.coordinate_frame != _M.MAV_FRAME_LOCAL_NED:
             return
         mask = int(msg.type_mask)
-        bits = [
-            (_M.POSITION_TARGET_TYPEMASK_X_IGNORE, _M.POSITION_TARGET_TYPEMASK_Y_IGNORE, _M.POSITION_TARGET_TYPEMASK_Z_IGNORE),
-            (_M.POSITION_TARGET_TYPEMASK_VX_IGNORE, _M.POSITION_TARGET_TYPEMASK_VY_IGNORE, _M.POSITION_TARGET_TYPEMASK_VZ_IGNORE),
-            (_M.POSITION_TARGET_TYPEMASK_AX_IGNORE, _M.POSITION_TARGET_TYPEMASK_AY_IGNORE, _M.POSITION_TARGET_TYPEMASK_AZ_IGNORE),
-        ]
         ned = np.array([[msg.x, msg.y, msg.z], [msg.vx, msg.vy, msg.vz], [msg.afx, msg.afy, msg.afz]], dtype=float)
         # which NED components are used (rows: p, v, a; columns: N, E, D)
         if self.px4:
-            used = np.array([[not mask & b for b in row] for row in bits])
-        else:  # ArduCopter: a vector is ignored only when all three of its bits are set
-            used = np.array([[not all(mask & b for b in row)] * 3 for row in bits])
+            used = np.array([[not mask & b for b in row] for row in _AXIS_BITS])
+        else:  # ArduCopter: any set bit of a vector ignores the whole vector (``pos_ignore = type_mask & POS_IGNORE``)
+            used = np.array([[u] * 3 for u in _ardu_vectors_used(mask)])
         use_yaw = not mask & _M.POSITION_TARGET_TYPEMASK_YAW_IGNORE
         if not used.any() or not np.all(np.isfinite(ned[used])) or (use_yaw and not math.isfinite(msg.yaw)):
             return  # PX4 and ArduPilot drop setpoints they cannot use
-        # NED column order (N, E, D) -> ENU (E, N, U) per row, with the estimator rotation
-        used_enu = used[:, [1, 0, 2]]
+        rows, used_enu = self._setpoint_rows(ned, used)
+        rows[0] = None if rows[0] is None else self.scene_from_local(rows[0])
+        self._accept_setpoint(rows, used_enu, self._setpoint_yaw(msg.yaw) if use_yaw else None)
+
+    def _setpoint_rows(self, ned: np.ndarray, used: np.ndarray):
+        """The used rows of a setpoint (rows p, v, a; NED columns) as ENU vectors, and which ENU
+        axes are used. Velocity and acceleration rows come out in scene axes (they are in the
+        estimator's NED frame in both SET_POSITION_TARGET messages); the position row stays in
+        the estimator's local ENU frame (the caller places it). A partial x/y selection under a
+        rotated estimator frame keeps both horizontal axes."""
+        used_enu = used[:, [1, 0, 2]]  # NED column order (N, E, D) -> ENU (E, N, U)
         vals = frames.enu_from_ned(np.where(used, ned, 0.0))
         rows = []
         for k in range(3):
             if not used_enu[k].any():
                 rows.append(None)
-                continue
-            # a partial x/y selection under a rotated estimator frame keeps both horizontal axes
-            r = vals[k]
-            rows.append(self.scene_from_local(r) if k == 0 else r @ self._R_scene_est.T)
-        yaw = None
-        if use_yaw:
-            yaw = wrap_angle(float(frames.yaw_enu_from_ned(msg.yaw)) + self.c.estimator_yaw_rad)
+            else:
+                rows.append(vals[k] if k == 0 else vals[k] @ self._R_scene_est.T)
+        return rows, used_enu
+
+    def _setpoint_yaw(self, yaw_ned: float) -> float:
+        """A setpoint's yaw (radians, NED heading in the estimator frame) as the scene's ENU yaw."""
+        return wrap_angle(float(frames.yaw_enu_from_ned(yaw_ned)) + self.c.estimator_yaw_rad)
+
+    def _accept_setpoint(self, rows, used_enu, yaw) -> None:
+        """A setpoint the autopilot takes. PX4: an offboard setpoint (it refreshes the
+        COM_OF_LOSS_T signal, allows arming and entering OFFBOARD, and is flown in OFFBOARD).
+        ArduCopter: the GUIDED target when armed and not taking off."""
         t = self.clock()
         with self._lock:
             target = self._resolve(rows, used_enu, yaw)
@@ -1252,6 +1311,157 @@ class SimMavlinkVehicle:
                     self._ardu_speed_ne_mps = None  # a new submode: pva_control_start restores WPNAV_SPEED
                 self._setpoint = target
                 self._guided_timed_out = False
+
+    # -- SET_POSITION_TARGET_GLOBAL_INT ------------------------------------------------------
+    def _on_global_setpoint(self, msg) -> None:
+        """SET_POSITION_TARGET_GLOBAL_INT: lat/lon in degE7, alt in metres in the message's
+        frame, velocity / acceleration in NED (m/s, m/s^2), yaw in radians (NED)."""
+        if not self._for_me(msg.target_system, msg.target_component):
+            self.foreign_setpoints += 1
+            return
+        if self.px4:
+            self._px4_global_setpoint(msg)
+        else:
+            self._ardu_global_setpoint(msg)
+
+    def _px4_global_setpoint(self, msg) -> None:
+        """PX4 ``mavlink_receiver.cpp`` ``handle_message_set_position_target_global_int``.
+
+        Position is all or nothing (any of the x/y/z ignore bits drops it); velocity and
+        acceleration are per axis (NaN when ignored), as for LOCAL_NED. A used position needs a
+        global position estimate (``local_pos.xy_global && z_global``), else the message is
+        dropped whole, so it is no offboard signal either. Frames: GLOBAL_INT = AMSL;
+        GLOBAL_RELATIVE_ALT_INT needs a home altitude and computes the local down coordinate as
+        ``(home.alt - alt) - ref_alt`` (written so in the source: the altitude above home when
+        home is at the estimator origin's altitude, as here unless they differ);
+        GLOBAL_TERRAIN_ALT_INT needs ``terrain_alt_valid`` (a distance sensor: none here ->
+        dropped); any other frame (the non-INT GLOBAL frames too) is dropped with "invalid
+        coordinate frame". A force setpoint is dropped with "force not supported"."""
+        mask = int(msg.type_mask)
+        p_scene = None
+        if not mask & _POS_BITS:
+            if self.c.global_origin is None or not self._position_valid:
+                return  # no global reference: the setpoint cannot be converted
+            frame = int(msg.coordinate_frame)
+            alt = float(msg.alt)
+            ref_amsl = self._global_from_scene(self._origin)[2]  # local_pos.ref_alt: the estimator origin
+            if frame == _M.MAV_FRAME_GLOBAL_INT:
+                amsl = alt
+            elif frame == _M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT:
+                if self._home is None:
+                    return  # home altitude required
+                home_amsl = self._global_from_scene(self._home)[2]
+                amsl = ref_amsl - ((home_amsl - alt) - ref_amsl)  # up = -z, z = (home - alt) - ref
+            elif frame == _M.MAV_FRAME_GLOBAL_TERRAIN_ALT_INT:
+                return  # valid terrain altitude required: no distance sensor in this model
+            else:
+                self._statustext(_M.MAV_SEVERITY_CRITICAL, f"SET_POSITION_TARGET_GLOBAL_INT invalid coordinate frame {frame}")
+                return
+            if not math.isfinite(amsl):
+                return
+            p_scene = self._scene_from_global(msg.lat_int * 1e-7, msg.lon_int * 1e-7, amsl)
+        ned = np.array([[0.0, 0.0, 0.0], [msg.vx, msg.vy, msg.vz], [msg.afx, msg.afy, msg.afz]], dtype=float)
+        used = np.array([[not mask & b for b in row] for row in _AXIS_BITS])
+        used[0, :] = p_scene is not None
+        use_yaw = not mask & _M.POSITION_TARGET_TYPEMASK_YAW_IGNORE
+        if used[2].any() and mask & _M.POSITION_TARGET_TYPEMASK_FORCE_SET:
+            self._statustext(_M.MAV_SEVERITY_CRITICAL, "SET_POSITION_TARGET_GLOBAL_INT force not supported")
+            return
+        if not used.any() or not np.all(np.isfinite(ned[1:][used[1:]])) or (use_yaw and not math.isfinite(msg.yaw)):
+            return
+        rows, used_enu = self._setpoint_rows(ned, used)
+        rows[0] = p_scene
+        self._accept_setpoint(rows, used_enu, self._setpoint_yaw(msg.yaw) if use_yaw else None)
+
+    def _ardu_global_setpoint(self, msg) -> None:
+        """ArduCopter ``GCS_MAVLINK_Copter::handle_message_set_position_target_global_int``.
+
+        Ignored outside GUIDED. Whole vectors (any set bit ignores the vector). Refusals that
+        "stop" call ``ModeGuided::init(true)``: velocity control with a zero target (the vehicle
+        brakes and hovers): a force setpoint, lat/lon out of range (``check_latlng``), a frame
+        ``mavlink_coordinate_frame_to_location_alt_frame`` does not know (GLOBAL / GLOBAL_INT
+        AMSL, GLOBAL_RELATIVE_ALT(_INT) above home, GLOBAL_TERRAIN_ALT(_INT) above terrain), an
+        insane velocity (``sane_vel_or_acc_vector``: non-finite or > 1000 m/s), position +
+        velocity above terrain or without an EKF origin, position + acceleration without
+        velocity, nothing used. Position + velocity: a pos/vel target (the acceleration is not
+        passed on). Position only: ``ModeGuided::set_destination(Location)``, which returns
+        before changing anything when the location has no vector from the EKF origin (no origin,
+        or above home without home): the message is ignored and the last target kept; above
+        terrain it enters the position submode and, without terrain data (no rangefinder or
+        terrain database here), stops."""
+        if self.custom_mode != ARDUCOPTER_MODE["guided"]:
+            return  # in_guided_mode(): GUIDED (AUTO's NAV_GUIDED items are not modelled)
+        mask = int(msg.type_mask)
+        pos_used, vel_used, acc_used = _ardu_vectors_used(mask)
+        use_yaw = not mask & _M.POSITION_TARGET_TYPEMASK_YAW_IGNORE
+        if mask & _M.POSITION_TARGET_TYPEMASK_FORCE_SET and acc_used:
+            return self._ardu_stop("force setpoint")
+        frame = int(msg.coordinate_frame)
+        alt_frame = _ARDU_ALT_FRAME.get(frame)
+        if pos_used:
+            if not (abs(int(msg.lat_int)) <= 900000000 and abs(int(msg.lon_int)) <= 1800000000):
+                return self._ardu_stop("lat/lon out of range")
+            if alt_frame is None:
+                return self._ardu_stop(f"unknown coordinate frame {frame}")
+        v_ned = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
+        if vel_used and not (np.all(np.isfinite(v_ned)) and np.all(np.abs(v_ned) <= 1000.0)):
+            return self._ardu_stop("velocity not sane")
+        a_ned = np.array([msg.afx, msg.afy, msg.afz], dtype=float)
+        if (acc_used and not np.all(np.isfinite(a_ned))) or (use_yaw and not math.isfinite(msg.yaw)):
+            return  # non-finite values the model cannot fly: dropped (as for LOCAL_NED)
+        yaw = self._setpoint_yaw(msg.yaw) if use_yaw else None
+        v = frames.enu_from_ned(v_ned) @ self._R_scene_est.T
+        a = frames.enu_from_ned(a_ned) @ self._R_scene_est.T
+        every = np.ones(3, dtype=bool)
+        none = np.zeros(3, dtype=bool)
+        if pos_used and vel_used:
+            if alt_frame == "terrain":
+                return self._ardu_stop("pos/vel target above terrain")
+            p = self._ardu_location_scene(msg.lat_int, msg.lon_int, msg.alt, alt_frame)
+            if p is None:
+                return self._ardu_stop("no vector from the EKF origin")
+            self._accept_setpoint([p, v, None], np.array([every, every, none]), yaw)
+        elif vel_used:
+            self._accept_setpoint([None, v, a if acc_used else None], np.array([none, every, every if acc_used else none]), yaw)
+        elif acc_used and not pos_used:
+            self._accept_setpoint([None, None, a], np.array([none, none, every]), yaw)
+        elif pos_used and not acc_used:
+            if alt_frame == "terrain":
+                if self._ardu_location_scene(msg.lat_int, msg.lon_int, 0.0, "absolute") is None:
+                    return  # get_vector_NEU_cm: no EKF origin -> set_destination returns, nothing changes
+                return self._ardu_stop("no terrain data for an above-terrain target")
+            p = self._ardu_location_scene(msg.lat_int, msg.lon_int, msg.alt, alt_frame)
+            if p is None:
+                self._event("guided: global target ignored (no vector from the EKF origin)")
+                return
+            self._accept_setpoint([p, None, None], np.array([every, none, none]), yaw)
+        else:
+            self._ardu_stop("unsupported type_mask combination")
+
+    def _ardu_location_scene(self, lat_int: int, lon_int: int, alt_m: float, alt_frame: str) -> np.ndarray | None:
+        """An ArduPilot ``Location`` (degE7, altitude in cm after ``int32_t(alt*100)``) as a scene
+        point, or None when it has no vector from the EKF origin (no global origin or no position
+        estimate; above home without home: ``Location::get_alt_cm``)."""
+        if self.c.global_origin is None or not self._position_valid or not math.isfinite(alt_m):
+            return None
+        alt = int(alt_m * 100) / 100.0  # C cast: truncation toward zero, whole cm
+        if alt_frame == "above_home":
+            if not self._ardu_home_set():
+                return None
+            alt += self._global_from_scene(self._home)[2]
+        return self._scene_from_global(int(lat_int) * 1e-7, int(lon_int) * 1e-7, alt)
+
+    def _ardu_stop(self, why: str) -> None:
+        """``ModeGuided::init(true)``: velocity control with a zero target (brake and hover), the
+        speeds back at their defaults (``pva_control_start``). Applied where the model flies
+        GUIDED targets (armed, take-off complete)."""
+        self._event(f"guided: input not valid ({why}): stop")
+        with self._lock:
+            if self.armed and self._takeoff_alt_m is None:
+                stop = _Target(v=np.zeros(3), yaw=self.model.yaw, kind="velocity")
+                self._setpoint = self._target = stop
+                self._ardu_speed_ne_mps = None
+                self._guided_timed_out = True  # already stopped: no separate GUID_TIMEOUT event
 
     def _resolve(self, rows, used_enu, yaw) -> _Target:
         """A setpoint's used rows as a controller target; mixed per-axis PX4 setpoints become
