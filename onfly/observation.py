@@ -23,7 +23,10 @@ class Observation:
     ----------
     t_s : float, seconds on the pilot's clock (or the log's clock)
     rgb : uint8 array (H, W, 3)
-    depth_m : float32 array (H, W), z-depth in metres; 0 / NaN / inf mean no reading
+    depth_m : float32 array (H, W), z-depth in metres; 0 / NaN / inf / negative mean no reading.
+        Checked by :meth:`PinholeCamera.check_depth`: a float dtype (an integer frame is raw
+        counts: convert with :func:`planning.camera.depth_from_counts`), not mostly beyond
+        65.5 m (millimetres given as metres)
     T_world_cam : array (4, 4), camera optical frame -> world (ENU for the drone)
     camera : PinholeCamera with ``shape == depth_m.shape``
     frame_id : str, unique per frame (the vision-feature cache keys on it)
@@ -45,13 +48,10 @@ class Observation:
         if not np.isfinite(self.t_s):
             raise ValueError(f"t_s must be finite, got {self.t_s}")
         rgb = np.asarray(self.rgb)
-        depth = np.asarray(self.depth_m, dtype=np.float32)
         self.camera.check_image(rgb, "rgb")
-        self.camera.check_image(depth, "depth_m")
         if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
             raise ValueError(f"rgb must be uint8 (H, W, 3), got {rgb.dtype} {rgb.shape}")
-        if depth.ndim != 2:
-            raise ValueError(f"depth_m must be (H, W), got {depth.shape}")
+        depth = self.camera.check_depth(self.depth_m, "depth_m")  # float metres; counts are refused
         object.__setattr__(self, "depth_m", depth)
         object.__setattr__(self, "T_world_cam", check_transform(self.T_world_cam, "T_world_cam"))
         object.__setattr__(self, "T_body_cam", check_transform(self.T_body_cam, "T_body_cam"))

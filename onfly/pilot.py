@@ -101,6 +101,14 @@ _ROUTE_SECTOR_RAD = np.pi / 4
 #: how often a leg's sides are checked for an opening to glance into, seconds (a frame's period)
 _GLANCE_CHECK_PERIOD_S = 0.5
 
+#: An odometry reset: consecutive frames whose camera moved farther than this many metres per
+#: second of their time apart (and at least ``_ODOMETRY_RESET_MIN_M``). No multicopter flown
+#: here does 10 m/s (the planner's limit is 0.6 m/s; the gust runaway of docs/robustness.md
+#: peaked at 3.9 m/s); a VIO/LIO estimator re-initialising or an EKF's position reset
+#: (PX4's ``xy_reset_counter``) does, in one step.
+_ODOMETRY_RESET_SPEED_MPS = 10.0
+_ODOMETRY_RESET_MIN_M = 1.0
+
 DECISION = "decision"
 MONITORING = "monitoring"
 SINGLE = "single"
@@ -422,6 +430,8 @@ class OnFlyPilot:
         self._last_plan: PlanResult | None = None
         self._straight_ref: Trajectory | None = None  # the last straight-line plan (use_planner=False)
         self.planner_fallbacks: dict[str, int] = {}
+        self.frames_stale = 0  # frames not newer than the last one taken (skipped, _on_frame)
+        self.odometry_resets = 0  # pose jumps no flight makes (map forgotten, _on_frame)
         self.events: list[PilotEvent] = []
         self.volume = volume
         self.search = Search(config.search)
@@ -507,6 +517,42 @@ class OnFlyPilot:
         return self._control(t_s, state)
 
     def _on_frame(self, obs: Observation) -> None:
+        """Take one camera frame into the map, the mover tracker and the monitor's memory.
+
+        Two bad inputs of a real camera and odometry are refused here (docs/robustness.md,
+        "Constructed sensor cases"):
+
+        - a frame not newer than the last one taken (timestamps duplicated or going back: a
+          driver's reordering, a recording's clock) is stale: skipped, counted in
+          ``frames_stale`` and logged (``stale_frame`` event); the map, the memory and the
+          latest frame stay as they were;
+        - a camera position that jumped farther than ``_ODOMETRY_RESET_SPEED_MPS`` times the
+          frames' time apart (at least ``_ODOMETRY_RESET_MIN_M``) since the last frame is an
+          odometry reset: what the map holds is in the old frame, so the map, the planner's
+          reference and the mover tracks are forgotten (unknown is an obstacle, so the vehicle
+          holds where its body sphere lets it), the goal is dropped (``HOLDING`` until the next
+          decision), counted in ``odometry_resets`` (``odometry_reset`` event); the frame is
+          then taken into the fresh map.
+        """
+        prev = self.latest
+        if prev is not None and not obs.t_s > prev.t_s:
+            self.frames_stale += 1
+            self._event(obs.t_s, "stale_frame", {"t_s": obs.t_s, "latest_t_s": prev.t_s, "frame_id": obs.frame_id})
+            return
+        if prev is not None:
+            jump = float(np.linalg.norm(obs.T_world_cam[:3, 3] - prev.T_world_cam[:3, 3]))
+            if jump > max(_ODOMETRY_RESET_MIN_M, _ODOMETRY_RESET_SPEED_MPS * (obs.t_s - prev.t_s)):
+                self.odometry_resets += 1
+                self._event(obs.t_s, "odometry_reset", {"jump_m": jump, "dt_s": obs.t_s - prev.t_s, "frame_id": obs.frame_id})
+                self.esdf.reset()
+                self.planner.reset()
+                self.movers = MoverTracker(self.config.movers)
+                self._last_plan = None
+                self._hold_p = None
+                self._turn_p = None
+                self.goal_world = None
+                if self.mode is PilotMode.NAVIGATING:
+                    self.mode = PilotMode.HOLDING
         moving = self.movers.observe(obs.t_s, obs.depth_m, obs.camera, obs.T_world_cam, self.esdf)  # before the map has the frame
         if moving:
             if obs.t_s - self._movers_seen_s > (self.config.above_movers_s or 0.0):

@@ -11,11 +11,51 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["PinholeCamera", "CameraError"]
+__all__ = ["PinholeCamera", "CameraError", "depth_from_counts", "DEPTH_COUNTS_SATURATED", "DEPTH_IMPLAUSIBLE_M"]
 
 
 class CameraError(ValueError):
     """Invalid intrinsics or arrays of the wrong shape for this camera."""
+
+
+#: The largest 16-bit depth count: the encoding's ceiling, not a measurement (no reading).
+DEPTH_COUNTS_SATURATED = 65535
+
+#: Farther than any 16-bit millimetre depth image can say (65535 mm, REP 118's ``16UC1``) and
+#: than the RGB-D cameras this toolkit reads (D435: 10 m, Kinect: ~10 m). A metres frame whose
+#: readings are mostly beyond it was given in millimetres (or another wrong scale).
+DEPTH_IMPLAUSIBLE_M = 65.535
+
+
+def depth_from_counts(counts, counts_per_m: float) -> np.ndarray:
+    """Raw 16-bit depth counts -> float32 z-depth in metres, the one conversion every reader uses.
+
+    ``depth_m = counts / counts_per_m``: 5000 per metre for TUM RGB-D PNGs (TUM's "file
+    formats" page), 1000 (millimetres) for ROS ``16UC1`` images (REP 118) and a RealSense's
+    z16 stream at the D400's default depth unit of 1 mm (librealsense ``get_depth_scale``).
+    Count 0 is *no reading* in all three conventions (TUM: "a pixel value of 0 means missing
+    value/no data"; librealsense and REP 118 alike) and stays 0. Count 65535, the encoding's
+    ceiling, is a saturated or invalid value (OpenNI/Kinect drivers report it for pixels they
+    cannot measure; no D435 or Kinect reads 65 m), so it is no reading too (0), never a far
+    reading that would clear free space along its ray.
+
+    Raises
+    ------
+    CameraError
+        ``counts`` not an unsigned or signed integer array (a float frame is already metres:
+        dividing it again would be a unit mistake), or ``counts_per_m`` not finite and > 0.
+    """
+    counts = np.asarray(counts)
+    if not np.issubdtype(counts.dtype, np.integer):
+        raise CameraError(f"depth counts must be an integer array (16-bit sensor counts), got {counts.dtype}")
+    scale = float(counts_per_m)
+    if not (np.isfinite(scale) and scale > 0):
+        raise CameraError(f"depth counts per metre must be finite and > 0, got {counts_per_m}")
+    depth = counts.astype(np.float32) / np.float32(scale)
+    bad = (counts < 0) | (counts >= DEPTH_COUNTS_SATURATED)
+    if bad.any():
+        depth[bad] = 0.0
+    return depth
 
 
 @dataclass(frozen=True)
@@ -44,6 +84,14 @@ class PinholeCamera:
             raise CameraError(f"intrinsics must be finite, got fx={self.fx} fy={self.fy} cx={self.cx} cy={self.cy}")
         if self.fx <= 0 or self.fy <= 0:
             raise CameraError(f"focal lengths must be positive, got fx={self.fx} fy={self.fy}")
+        # The principal point lies on the image (pixel-centre extents, +- 0.5 px): an RGB-D
+        # camera's optical axis meets its own sensor. Outside it, the intrinsics belong to
+        # another resolution (a 640 x 480 calibration on a 320 x 240 image) or are swapped.
+        if not (-0.5 <= self.cx <= int(self.width) - 0.5 and -0.5 <= self.cy <= int(self.height) - 0.5):
+            raise CameraError(
+                f"principal point ({self.cx}, {self.cy}) lies outside the {int(self.width)} x {int(self.height)} image "
+                "(intrinsics of another resolution?)"
+            )
         object.__setattr__(self, "width", int(self.width))
         object.__setattr__(self, "height", int(self.height))
 
@@ -208,6 +256,52 @@ class PinholeCamera:
         rays = self.rays()[::stride, ::stride]
         P = rays[valid] * d[valid][:, None]
         return P, valid
+
+    def check_depth(self, depth, name: str = "depth_m") -> np.ndarray:
+        """Check a z-depth image in metres for this camera; return it as float32 (H, W).
+
+        The one depth-validation rule of the toolkit (Observation, ``EsdfMap.integrate`` and
+        the verifier's ``CandidateGoal`` call it):
+
+        - shape ``(height, width)``, 2-D;
+        - a floating dtype. An integer frame (``uint16``) is raw sensor counts, not metres:
+          a 1.5 m wall in millimetres would read 1500 m, beyond range, and clear free space
+          through the wall. Convert with :func:`depth_from_counts` and the source's scale;
+        - not mostly beyond :data:`DEPTH_IMPLAUSIBLE_M`: a float frame in millimetres (REP 118
+          says ``32FC1`` is metres) has its readings 1000 times too far and the same effect;
+          a few far or garbage readings (1e6 m) are readings beyond the map's range and are
+          kept (they clear at most ``max_range_m``, as the map documents).
+
+        Values 0, NaN, +-inf and negatives are *no reading* (RealSense, TUM and REP 118 give 0;
+        ZED gives NaN / inf) and are left as they are: every consumer drops them.
+
+        Raises
+        ------
+        CameraError
+            Naming the array, with what is wrong and the conversion to use.
+        """
+        arr = np.asarray(depth)
+        if arr.ndim != 2:
+            raise CameraError(f"{name} must be a 2-D ({self.height}, {self.width}) depth image, got shape {arr.shape}")
+        self.check_image(arr, name)
+        if np.issubdtype(arr.dtype, np.integer) or arr.dtype == np.bool_:
+            raise CameraError(
+                f"{name} is {arr.dtype}: raw sensor counts, not metres; convert with "
+                "planning.camera.depth_from_counts(counts, counts_per_m) (1000 for millimetres, 5000 for TUM)"
+            )
+        if not np.issubdtype(arr.dtype, np.floating):
+            raise CameraError(f"{name} must be a float z-depth image in metres, got dtype {arr.dtype}")
+        d = arr if arr.dtype == np.float32 else arr.astype(np.float32)
+        with np.errstate(invalid="ignore"):
+            valid = np.isfinite(d) & (d > 0)
+            n_valid = int(np.count_nonzero(valid))
+            n_far = int(np.count_nonzero(valid & (d > np.float32(DEPTH_IMPLAUSIBLE_M))))
+        if n_valid and 2 * n_far > n_valid:
+            raise CameraError(
+                f"{name}: {n_far} of {n_valid} readings lie beyond {DEPTH_IMPLAUSIBLE_M} m (median "
+                f"{float(np.median(d[valid])):.4g}); depth must be metres, was it given in millimetres?"
+            )
+        return d
 
     def check_image(self, image, name: str = "image") -> np.ndarray:
         """Check that an image's first two dimensions match ``(height, width)``."""

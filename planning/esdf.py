@@ -70,7 +70,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.ndimage as ndi
 
-from planning.camera import PinholeCamera
+from planning.camera import CameraError, PinholeCamera
 from planning.esdf_config import EsdfConfig
 from planning.esdf_edt import truncated_squared_edt
 from planning.esdf_occupancy import IndexBox, RollingOccupancy, shift_array
@@ -238,8 +238,10 @@ class EsdfMap:
 
         Parameters
         ----------
-        depth_m : array, shape (camera.height, camera.width), z-depth in metres (float32
-            preferred). 0, NaN, inf, negative values and readings below ``min_range_m`` are no
+        depth_m : array, shape (camera.height, camera.width), z-depth in metres, a float dtype
+            (float32 preferred; :meth:`PinholeCamera.check_depth`: an integer frame is raw
+            counts and a frame mostly beyond 65.5 m is millimetres, both ``EsdfError``).
+            0, NaN, inf, negative values and readings below ``min_range_m`` are no
             reading and ignored; readings beyond ``max_range_m`` only clear free space.
         camera : PinholeCamera of the depth image
         T_world_cam : (4, 4) rigid transform camera optical -> world. Checked with
@@ -269,10 +271,10 @@ class EsdfMap:
         if depth.ndim != 2:
             raise EsdfError(f"depth_m must be a 2-D (height, width) array, got shape {depth.shape}")
         camera.check_image(depth, "depth_m")
-        if depth.dtype != np.float32:
-            if not np.issubdtype(depth.dtype, np.number):
-                raise EsdfError(f"depth_m must be numeric metres, got dtype {depth.dtype}")
-            depth = depth.astype(np.float32)
+        try:
+            depth = camera.check_depth(depth, "depth_m")  # float metres: counts and millimetres refused
+        except CameraError as exc:
+            raise EsdfError(str(exc)) from None
         center = T[:3, 3] if center_world is None else center_world
         if body_world is not None:
             body_world = np.asarray(body_world, dtype=float)

@@ -60,7 +60,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from planning.camera import PinholeCamera
+from planning.camera import CameraError, PinholeCamera
 from planning.frames import FrameError, check_transform, transform_points
 from planning.verifier_config import VerifierConfig, VerifierConfigError
 
@@ -135,8 +135,9 @@ class CandidateGoal:
         Target pixel ``(u, v)`` in the depth image, pixels (may be anywhere; outside the image
         gives a rejection, not an error).
     depth_m : array, shape (H, W), float32
-        Z-depth in metres, camera optical frame; 0, NaN, inf mean no reading. Coerced to a
-        C-contiguous float32 array on construction.
+        Z-depth in metres, camera optical frame; 0, NaN, inf mean no reading. A float dtype
+        (:meth:`PinholeCamera.check_depth`: integer counts and millimetre frames are refused).
+        Coerced to a C-contiguous float32 array on construction.
     features : array, shape (Hp, Wp, C), or None
         Per-patch vision features (any real dtype); None selects the geometric-only mode.
     patch_px : float
@@ -174,8 +175,10 @@ class CandidateGoal:
         depth = np.asarray(self.depth_m)
         if depth.ndim != 2 or depth.shape != self.camera.shape:
             raise VerifierInputError(f"depth_m must have shape {self.camera.shape} (camera.shape), got {depth.shape}")
-        if not (np.issubdtype(depth.dtype, np.floating) or np.issubdtype(depth.dtype, np.integer)):
-            raise VerifierInputError(f"depth_m must be a real array, got dtype {depth.dtype}")
+        try:  # float metres: an integer frame (counts) or a millimetre frame would put goals through walls
+            depth = self.camera.check_depth(depth, "depth_m")
+        except CameraError as exc:
+            raise VerifierInputError(str(exc)) from None
         object.__setattr__(self, "depth_m", np.ascontiguousarray(depth, dtype=np.float32))
 
         try:

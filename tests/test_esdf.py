@@ -382,7 +382,7 @@ def test_bad_shapes_and_types_raise():
         esdf.integrate(np.ones((*CAMERA.shape, 3), np.float32), CAMERA, T)
     with pytest.raises(EsdfError, match="PinholeCamera"):
         esdf.integrate(np.ones(CAMERA.shape, np.float32), "cam", T)
-    with pytest.raises(EsdfError, match="numeric"):
+    with pytest.raises(EsdfError, match="float z-depth image in metres"):
         esdf.integrate(np.full(CAMERA.shape, "x"), CAMERA, T)
     with pytest.raises(EsdfError, match="center_world"):
         esdf.integrate(np.ones(CAMERA.shape, np.float32), CAMERA, T, center_world=[0.0, np.nan, 0.0])

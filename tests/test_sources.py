@@ -176,11 +176,12 @@ def test_observation_from_realsense_scales_depth_and_places_the_frame_with_the_v
     rgb = np.zeros((480, 640, 3), np.uint8)
     depth = np.zeros((480, 640), np.uint16)
     depth[242, 325] = 2000  # 2 m at (about) the principal point
-    depth[0, 0] = 65535
+    depth[0, 0] = 65534  # the largest count that is a reading
+    depth[0, 1] = 65535  # the 16-bit ceiling: saturated, no reading (planning.camera.depth_from_counts)
     T_world_body = body_transform([1.0, 2.0, 1.5], np.pi / 2)
     obs = observation_from_realsense(rgb, depth, 0.001, cam, T_world_body, 12.5, "rs/1")
     assert obs.depth_m.dtype == np.float32 and obs.depth_m[242, 325] == np.float32(2.0) and obs.depth_m[1, 1] == 0.0
-    assert obs.depth_m[0, 0] == pytest.approx(65.535)
+    assert obs.depth_m[0, 0] == pytest.approx(65.534) and obs.depth_m[0, 1] == 0.0
     np.testing.assert_allclose(obs.T_world_cam, T_world_body @ T_BODY_CAM)
     # the principal ray at 2 m lands 2 m ahead of the body: +y in the world for yaw = 90 deg
     p_cam = cam.back_project(np.array([cam.cx, cam.cy]), 2.0)

@@ -3,7 +3,8 @@
 Messages understood
 -------------------
 - depth: ``sensor_msgs/Image`` with encoding ``16UC1`` / ``mono16`` (millimetres by REP 118;
-  ``BagConfig.depth_scale_16u`` values per metre) or ``32FC1`` (metres); 0 / NaN = no reading.
+  ``BagConfig.depth_scale_16u`` values per metre) or ``32FC1`` (metres); 0 / NaN = no reading,
+  and a 16-bit 65535 (saturated) too (:func:`planning.camera.depth_from_counts`).
 - colour: ``sensor_msgs/Image`` with encoding ``rgb8``, ``bgr8``, ``rgba8`` or ``bgra8``.
 - intrinsics: ``sensor_msgs/CameraInfo`` (first message; ``K`` / ``k``; distortion is
   ignored with a warning when non-zero), or ``BagConfig.intrinsics``.
@@ -39,7 +40,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from onfly.observation import Observation
 from onfly.readers.poses import PoseTrack, associate
-from planning.camera import PinholeCamera
+from planning.camera import PinholeCamera, depth_from_counts
 from planning.frames import T_BODY_CAM, check_transform, invert_transform, make_transform, matrix_from_quat, quat_from_matrix
 
 __all__ = [
@@ -259,7 +260,7 @@ def image_to_array(msg: Any, topic: str, allowed: tuple[str, ...]) -> np.ndarray
 def _depth_m(arr: np.ndarray, encoding: str, scale_16u: float) -> np.ndarray:
     if encoding == "32FC1":
         return arr.astype(np.float32, copy=False)
-    return arr.astype(np.float32) / np.float32(scale_16u)
+    return depth_from_counts(arr, scale_16u)  # 0 and 65535: no reading
 
 
 def _rgb(arr: np.ndarray, encoding: str) -> np.ndarray:
@@ -428,7 +429,10 @@ class BagReader:
         h, w = size
         if self.config.intrinsics is not None:
             fx, fy, cx, cy = self.config.intrinsics
-            return PinholeCamera(w, h, fx, fy, cx, cy)
+            try:
+                return PinholeCamera(w, h, fx, fy, cx, cy)
+            except ValueError as exc:
+                raise self._fail(f"BagConfig.intrinsics {self.config.intrinsics} do not fit the {w}x{h} images: {exc}") from None
         topic = self.topics["camera_info"]
         for _, msg in self._messages(topic):
             K = np.asarray(msg.K if hasattr(msg, "K") else msg.k, dtype=float).reshape(-1)
@@ -439,7 +443,10 @@ class BagReader:
                 raise self._fail(f"topic {topic}: CameraInfo is {msg.width}x{msg.height} but images are {w}x{h}")
             if D.size and np.any(D != 0):
                 log.warning("%s: %s has distortion %s; images are used as if undistorted", self.path, topic, D.tolist())
-            return PinholeCamera(w, h, K[0], K[4], K[2], K[5])
+            try:
+                return PinholeCamera(w, h, K[0], K[4], K[2], K[5])
+            except ValueError as exc:  # a principal point off the image
+                raise self._fail(f"topic {topic}: CameraInfo does not fit the {w}x{h} images: {exc}") from None
         raise self._fail(f"topic {topic} has no messages")
 
     def _read_poses(self, topic: str) -> PoseTrack:

@@ -4,7 +4,7 @@ A folder holds ``rgb.txt`` and ``depth.txt`` (lines ``timestamp filename``),
 ``groundtruth.txt`` (lines ``timestamp tx ty tz qx qy qz qw``: the camera pose, camera optical
 frame -> world, metres, scalar-last quaternion), the images those files name (colour images
 of any format OpenCV reads; depth as 16-bit PNG, ``depth_m = value / depth_scale`` with scale
-5000 by default, 0 = no reading), and optionally ``intrinsics.txt`` holding ``fx fy cx cy``
+5000 by default, 0 = no reading, 65535 = saturated, no reading: :func:`planning.camera.depth_from_counts`), and optionally ``intrinsics.txt`` holding ``fx fy cx cy``
 (pixels) on its first non-comment line. Lines starting with ``#`` and blank lines are
 ignored; fields may be separated by spaces, tabs or commas, as TUM's tools accept.
 
@@ -35,7 +35,7 @@ import numpy as np
 
 from onfly.observation import Observation
 from onfly.readers.poses import PoseTrack, associate
-from planning.camera import PinholeCamera
+from planning.camera import CameraError, PinholeCamera, depth_from_counts
 from planning.frames import T_BODY_CAM, check_transform, quat_wxyz_from_xyzw
 
 __all__ = ["TumFormatError", "TumConfig", "TumReader", "TUM_DEFAULT_INTRINSICS", "is_tum_dir", "parse_intrinsics"]
@@ -227,7 +227,15 @@ class TumReader:
         self._frames = frames
         h, w = self._read_depth_png(frames[0].depth_path).shape
         fx, fy, cx, cy = intrinsics
-        self.camera = PinholeCamera(w, h, fx, fy, cx, cy)
+        try:
+            self.camera = PinholeCamera(w, h, fx, fy, cx, cy)
+        except CameraError as exc:  # fx <= 0, a principal point off this image: fail before the first frame
+            raise TumFormatError(f"{self.path}: intrinsics {intrinsics} ({self._intrinsics_origin()}) do not fit its {w} x {h} depth images: {exc}") from None
+
+    def _intrinsics_origin(self) -> str:
+        if self.config.intrinsics is not None:
+            return "TumConfig.intrinsics"
+        return str(self.path / INTRINSICS) if (self.path / INTRINSICS).is_file() else "TUM's default"
 
     def _intrinsics(self) -> tuple[float, float, float, float]:
         if self.config.intrinsics is not None:
@@ -277,7 +285,7 @@ class TumReader:
 
     def _load(self, frame: _Frame) -> Observation:
         raw = self._read_depth_png(frame.depth_path)
-        depth_m = raw.astype(np.float32) / np.float32(self.config.depth_scale)
+        depth_m = depth_from_counts(raw, self.config.depth_scale)  # 0 and 65535: no reading
         bgr = cv2.imread(str(frame.rgb_path), cv2.IMREAD_COLOR)
         if bgr is None:
             raise TumFormatError(f"{frame.rgb_path}: cannot read colour image")

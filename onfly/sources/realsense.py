@@ -7,7 +7,8 @@ source raises :class:`RealSenseUnavailableError` naming the extra.
 Streams: colour ``rgb8`` and depth ``z16`` at the same resolution and rate, depth aligned to
 colour (``rs.align(rs.stream.color)``), so one :class:`~planning.camera.PinholeCamera` (the
 colour intrinsics) serves both images. Depth is converted to float32 metres along the optical
-axis with the device's depth unit (D435: 1 mm); 0 stays 0 (no reading).
+axis with the device's depth unit (D435: 1 mm); 0 stays 0 (no reading), and so does 65535
+(saturated: :func:`planning.camera.depth_from_counts`).
 
 A RealSense knows no pose. Each frame is placed with the vehicle pose at arrival, from
 ``pose_source() -> T_world_body (4, 4)`` (the MAVLink bridge's state), and the camera mount
@@ -33,7 +34,7 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 from onfly.observation import Observation
-from planning.camera import PinholeCamera
+from planning.camera import PinholeCamera, depth_from_counts
 from planning.frames import T_BODY_CAM, check_transform
 
 __all__ = [
@@ -142,7 +143,7 @@ def observation_from_realsense(
         raise ValueError(f"depth_counts must be uint16 (z16), got {depth_counts.dtype}")
     if not (np.isfinite(depth_unit_m) and depth_unit_m > 0):
         raise ValueError(f"depth_unit_m must be positive, got {depth_unit_m}")
-    depth_m = depth_counts.astype(np.float32) * np.float32(depth_unit_m)
+    depth_m = depth_from_counts(depth_counts, 1.0 / depth_unit_m)  # 0 and 65535: no reading
     T_world_body = check_transform(T_world_body, "T_world_body")
     T_body_cam = check_transform(T_body_cam, "T_body_cam")
     return Observation(
