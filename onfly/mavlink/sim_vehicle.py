@@ -702,6 +702,7 @@ class SimMavlinkVehicle:
         self._origin = np.array(origin, dtype=float)
         self._R_scene_est = _rot_z(config.estimator_yaw_rad)
         self._home: np.ndarray | None = None  # scene ENU, set at arming
+        self._home_manual = False  # home set by DO_SET_HOME (kept at arming)
         self._flying_since_arm = False
         self._armed_at: float | None = None
         self._still_since: float | None = None
@@ -1169,6 +1170,27 @@ class SimMavlinkVehicle:
     def _for_me(self, target_system: int, target_component: int) -> bool:
         return target_system in (0, self.c.system_id) and target_component in (0, self.c.component_id)
 
+    def _command_for_me(self, command: int, target_system: int, target_component: int) -> bool:
+        """Whether a COMMAND_LONG / COMMAND_INT is this autopilot's to answer.
+
+        PX4 ``MavlinkReceiver::evaluate_target_ok``: REQUEST_AUTOPILOT_CAPABILITIES and
+        REQUEST_PROTOCOL_VERSION are taken for target system 0 or ours, any component; every other
+        command only for our system and our component or MAV_COMP_ID_ALL (0), so a broadcast
+        target system 0 is not ours. Another target is not answered
+        (``handle_message_command_both``: ``PX4_INFO("Ignore command ...")`` and return; it is
+        forwarded when forwarding is on and the component was seen on another link; PX4 up to
+        v1.13 answered it FAILED instead). ArduPilot ``MAVLink_routing::check_and_forward``:
+        target system 0 or ours is processed locally whatever the component unless a route to
+        that component is known on another channel (``!forwarded && match_system``: one link here,
+        and nothing is forwarded back on the channel it came in on), so a command for
+        another component of this system is answered as the autopilot's own; another system's is
+        forwarded or dropped, never answered."""
+        if not self.px4:
+            return target_system in (0, self.c.system_id)
+        if command in (_M.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, _M.MAV_CMD_REQUEST_PROTOCOL_VERSION):
+            return target_system in (0, self.c.system_id)
+        return target_system == self.c.system_id and target_component in (0, self.c.component_id)
+
     def _handle(self, msg) -> None:
         mtype = msg.get_type()
         if mtype.startswith("MISSION_") and self.mission.handle(msg):
@@ -1197,7 +1219,8 @@ class SimMavlinkVehicle:
         elif mtype == "SET_POSITION_TARGET_GLOBAL_INT":
             self._on_global_setpoint(msg)
         elif mtype in ("COMMAND_LONG", "COMMAND_INT"):
-            if not self._for_me(msg.target_system, msg.target_component):
+            if not self._command_for_me(int(msg.command), int(msg.target_system), int(msg.target_component)):
+                self._event(f"command {int(msg.command)} for {msg.target_system}/{msg.target_component} ignored")
                 return
             with self._lock:
                 self._pending = []
@@ -1509,6 +1532,8 @@ class SimMavlinkVehicle:
             return self._cmd_reposition(p, x, y, z, frame)
         if cmd == _M.MAV_CMD_DO_CHANGE_SPEED:
             return self._cmd_change_speed(p)
+        if cmd == _M.MAV_CMD_DO_SET_HOME:
+            return self._cmd_set_home(p, msg, is_int)
         if cmd == _M.MAV_CMD_CONDITION_YAW and not self.px4:  # PX4: no handler outside missions (Commander: UNSUPPORTED)
             return self._cmd_condition_yaw(p)
         if cmd == _M.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN:
@@ -1550,7 +1575,8 @@ class SimMavlinkVehicle:
             self.armed = True
             self._armed_at = self.clock()
             self._flying_since_arm = not self.model.on_ground
-            self._home = self.model.p.copy()
+            if not self._home_manual:  # a DO_SET_HOME home is kept (PX4 manual_home, ArduPilot locked)
+                self._home = self.model.p.copy()
             self._event("armed")
             self._statustext(_M.MAV_SEVERITY_INFO, "Armed")
             takeoff = self.px4 and self.custom_mode == px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["takeoff"])
@@ -1720,6 +1746,73 @@ class SimMavlinkVehicle:
         self._event(f"reposition to scene ({target[0]:.2f}, {target[1]:.2f}, {target[2]:.2f})")
         return _M.MAV_RESULT_ACCEPTED
 
+    # -- home ---------------------------------------------------------------------------------
+    def _cmd_set_home(self, p, msg, is_int: bool) -> int:
+        """MAV_CMD_DO_SET_HOME (param1 1: here; else lat/lon/alt in param5-7 or COMMAND_INT x/y/z).
+
+        PX4 (``Commander::handle_command`` VEHICLE_CMD_DO_SET_HOME, COM_HOME_EN 1): param1 > 0.5
+        sets home here (``HomePosition::setHomePosition(true)``: needs a position estimate, else
+        TEMPORARILY_REJECTED); otherwise lat, lon and alt must be finite (else DENIED; the receiver
+        turns COMMAND_INT x/y = INT32_MAX into NaN and divides by 1e7; the altitude is AMSL, the
+        frame is not read) and ``setManually`` needs a global position reference (``xy_global``
+        and ``z_global``; indoors TEMPORARILY_REJECTED). ArduPilot
+        (``GCS_MAVLINK::handle_command_do_set_home``): param1 1 or lat and lon both 0 sets home
+        here (``set_home_to_current_location``: needs a location, else FAILED); otherwise
+        ``location_from_command_t`` (a COMMAND_LONG is converted with MAV_FRAME_GLOBAL, AMSL,
+        by ``try_command_long_as_command_int``; an unknown frame or NaN altitude DENIED) and
+        ``set_home`` (no EKF origin, an above-home altitude without home, an above-terrain one
+        without terrain data, lat/lon out of range or more than 50 km from the EKF origin
+        (``far_from_EKF_origin``): FAILED), then HOME_POSITION is sent (MSG_HOME). A home set so
+        is kept at arming (PX4 ``manual_home``; ArduPilot sets it locked) and is what Return,
+        the geofence and GLOBAL_POSITION_INT's relative altitude read."""
+        use_current_req = math.isfinite(p[0]) and p[0] > 0.5 if self.px4 else (math.isfinite(p[0]) and p[0] == 1.0)
+        if is_int:
+            xi, yi, alt = int(msg.x), int(msg.y), float(msg.z)
+            frame = int(msg.frame)
+            lat = lon = math.nan if (xi == 2**31 - 1 and yi == 2**31 - 1) else None
+            if lat is None:
+                lat, lon = xi * 1e-7, yi * 1e-7
+        else:
+            lat, lon, alt = float(msg.param5), float(msg.param6), float(msg.param7)
+            frame = _M.MAV_FRAME_GLOBAL  # try_command_long_as_command_int: DO_SET_HOME is absolute
+            xi = int(lat * 1e7) if math.isfinite(lat) else 0
+            yi = int(lon * 1e7) if math.isfinite(lon) else 0
+        if self.px4:
+            if use_current_req:
+                if not self._position_valid:
+                    return _M.MAV_RESULT_TEMPORARILY_REJECTED
+                home = self.model.p.copy()
+            else:
+                if not (math.isfinite(lat) and math.isfinite(lon) and math.isfinite(alt)):
+                    return _M.MAV_RESULT_DENIED
+                if self.c.global_origin is None or not self._position_valid:
+                    return _M.MAV_RESULT_TEMPORARILY_REJECTED
+                home = self._scene_from_global(lat, lon, alt)
+        else:
+            if use_current_req or (xi == 0 and yi == 0):
+                if self.c.global_origin is None or not self._position_valid:
+                    return _M.MAV_RESULT_FAILED  # ahrs.get_location: no location
+                home = self.model.p.copy()
+            else:
+                alt_frame = _ARDU_ALT_FRAME.get(frame)
+                if alt_frame is None or not math.isfinite(alt):
+                    return _M.MAV_RESULT_DENIED
+                if alt_frame == "terrain" or not (abs(xi) <= 900000000 and abs(yi) <= 1800000000):
+                    return _M.MAV_RESULT_FAILED
+                home = self._ardu_location_scene(xi, yi, alt, alt_frame)
+                if home is None:
+                    return _M.MAV_RESULT_FAILED
+                if float(np.linalg.norm(home[:2] - self._origin[:2])) > 50000.0:
+                    return _M.MAV_RESULT_FAILED  # far_from_EKF_origin (EKF_ORIGIN_MAX_DIST_M)
+        self._home = np.array(home, dtype=float)
+        self._home_manual = True
+        self._event(f"home set to scene ({home[0]:.2f}, {home[1]:.2f}, {home[2]:.2f})")
+        if not self.px4:
+            msg_home = self._telemetry(_M.MAVLINK_MSG_ID_HOME_POSITION, streaming=False)
+            if msg_home is not None:
+                self._pending.append(msg_home)
+        return _M.MAV_RESULT_ACCEPTED
+
     # -- speed, yaw and reboot commands (what MAVSDK's Action plugin and MAVProxy send) --------
     def _px4_goto_speed(self, commanded: float | None, in_loiter: bool) -> float:
         """Horizontal speed (m/s) of a PX4 reposition: its param1 if > 0; else, when the
@@ -1853,6 +1946,7 @@ class SimMavlinkVehicle:
             self.custom_mode = px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["loiter"]) if self.px4 else ARDUCOPTER_MODE["stabilize"]
             self._rtl = None
             self._home = None
+            self._home_manual = False
             self._target = self._setpoint = None
             self._last_sp_s = None
             self._takeoff_alt_m = None
