@@ -312,6 +312,23 @@ PX4_PARAMS = {
     "MPC_Z_V_AUTO_DN": (1.5, _R32),
     "NAV_ACC_RAD": (2.0, _R32),
     "NAV_MC_ALT_RAD": (0.8, _R32),
+    # manual control (a ground station's MANUAL_CONTROL is the stick input; Commander
+    # commander_params.c, navigator_params.c, mc_pos_control multicopter_*_params.c):
+    # COM_RC_IN_MODE 0 RC only, 1 MAVLink only, 2 RC or MAVLink with fallback, 3 RC or MAVLink keep
+    # first, 4 disabled; COM_RC_LOSS_T s; NAV_RCL_ACT 1 Hold, 2 Return, 3 Land, 5 Terminate, 6 Disarm;
+    # COM_RCL_EXCEPT bits 0 Mission, 1 Hold, 2 Offboard; Position-mode stick scaling
+    "COM_RC_IN_MODE": (3, _I32),
+    "COM_RC_LOSS_T": (0.5, _R32),
+    "NAV_RCL_ACT": (2, _I32),
+    "COM_RCL_EXCEPT": (0, _I32),
+    "MPC_VEL_MANUAL": (10.0, _R32),
+    "MPC_Z_VEL_MAX_UP": (3.0, _R32),
+    "MPC_Z_VEL_MAX_DN": (1.5, _R32),
+    "MPC_MAN_Y_MAX": (150.0, _R32),
+    "MPC_HOLD_DZ": (0.1, _R32),
+    "MPC_XY_MAN_EXPO": (0.6, _R32),
+    "MPC_Z_MAN_EXPO": (0.6, _R32),
+    "MPC_YAW_EXPO": (0.6, _R32),
     # geofence (navigator geofence_params.c / geofence_params.yaml): 0 None, 1 Warning, 2 Hold,
     # 3 Return, 4 Terminate, 5 Land; distances from home in m, 0 = off; source 0 GPOS, 1 GPS
     "GF_ACTION": (2, _I32),
@@ -703,6 +720,10 @@ class SimMavlinkVehicle:
         self._R_scene_est = _rot_z(config.estimator_yaw_rad)
         self._home: np.ndarray | None = None  # scene ENU, set at arming
         self._home_manual = False  # home set by DO_SET_HOME (kept at arming)
+        self._sticks: tuple | None = None  # PX4 manual_control_setpoint from MANUAL_CONTROL: pitch, roll, throttle, yaw in [-1, 1]
+        self._sticks_t: float | None = None  # clock time of the last accepted MANUAL_CONTROL
+        self._sticks_lost = False  # the manual-control-loss failsafe has been taken for this loss
+        self._stick_hold: dict = {}  # Position mode's hold points (xy, z, yaw) while the sticks are centred
         self._flying_since_arm = False
         self._armed_at: float | None = None
         self._still_since: float | None = None
@@ -1001,8 +1022,12 @@ class SimMavlinkVehicle:
             return
         since_sp = math.inf if self._last_sp_s is None else t - self._last_sp_s
         if self.px4:
+            if self._manual_control_loss(t):
+                return
             main = px4_main_mode(self.custom_mode)
-            if main == PX4_MAIN["offboard"]:
+            if main in (PX4_MAIN["posctl"], PX4_MAIN["altctl"]) and self.armed:
+                self._fly_sticks(t, hold_xy=main == PX4_MAIN["posctl"])
+            elif main == PX4_MAIN["offboard"]:
                 loss_t = float(self.params["COM_OF_LOSS_T"])
                 if since_sp > loss_t:
                     self._offboard_lost(since_sp)
@@ -1040,6 +1065,111 @@ class SimMavlinkVehicle:
         else:
             self._guided_timed_out = False
             self._target = self._ardu_limit(sp)
+
+    # -- manual control (a ground station's joystick) ----------------------------------------------
+    def _on_manual_control(self, msg) -> None:
+        """MANUAL_CONTROL from a ground station (MAVSDK ManualControl, QGroundControl's virtual
+        joystick). PX4 ``MavlinkReceiver::handle_message_manual_control``: published as a manual
+        control input from MAVLink (x pitch and y roll / 1000, throttle z from [0, 1000] to [-1, 1],
+        r yaw / 1000); the manual control selector takes it unless COM_RC_IN_MODE is 0 (RC only)
+        or 4 (disabled). ArduCopter is not modelled here (see docs/flight.md)."""
+        if not self.px4 or int(msg.target) not in (0, self.c.system_id):
+            return
+        if int(self.params["COM_RC_IN_MODE"]) in (0, 4):
+            return
+        sticks = (msg.x / 1000.0, msg.y / 1000.0, msg.z / 1000.0 * 2.0 - 1.0, msg.r / 1000.0)
+        with self._lock:
+            self._sticks = tuple(float(np.clip(v, -1.0, 1.0)) for v in sticks)
+            first = self._sticks_t is None or self._sticks_lost
+            self._sticks_t = self.clock()
+            if first:
+                self._sticks_lost = False
+                self._event("manual control: MAVLink stick input")
+
+    def _manual_control_present(self) -> bool:
+        """An RC link (``rc_connected``) or a MANUAL_CONTROL within COM_RC_LOSS_T (PX4
+        ``ManualControl``: ``manual_control_signal_lost`` after COM_RC_LOSS_T without input)."""
+        if self.c.rc_connected:
+            return True
+        return self._sticks_t is not None and self.clock() - self._sticks_t <= float(self.params["COM_RC_LOSS_T"])
+
+    def _manual_control_loss(self, t: float) -> bool:
+        """PX4 manual-control loss (``failsafe.cpp`` ``checkStateAndMode``): stick input that was
+        present and stopped for COM_RC_LOSS_T while armed takes NAV_RCL_ACT, unless the mode is
+        excepted by COM_RCL_EXCEPT (bit 0 Mission, 1 Hold and Takeoff, 2 Offboard) or is Return /
+        Land; once per loss. True when it switched modes."""
+        if self._sticks_t is None or self._sticks_lost or not self.armed:
+            return False
+        if t - self._sticks_t <= float(self.params["COM_RC_LOSS_T"]):
+            return False
+        self._sticks_lost = True
+        cm, ex = self.custom_mode, int(self.params["COM_RCL_EXCEPT"])
+        auto = lambda sub: px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB[sub])  # noqa: E731
+        ignored = (cm == auto("mission") and ex & 1) or (cm in (auto("loiter"), auto("takeoff")) and ex & 2) or (
+            px4_main_mode(cm) == PX4_MAIN["offboard"] and ex & 4) or cm in (auto("rtl"), auto("land"))
+        self._event(f"manual control lost ({t - self._sticks_t:.2f} s without input)", t)
+        if ignored:
+            return False
+        self._statustext(_M.MAV_SEVERITY_WARNING, "Failsafe: manual control lost")
+        action = int(self.params["NAV_RCL_ACT"])
+        why = f"manual control lost: NAV_RCL_ACT {action}"
+        if action == 6:
+            self._disarm(why)
+            return True
+        wanted = {1: "loiter", 2: "rtl", 3: "land", 5: "terminate"}.get(action)
+        if wanted is None:
+            return False
+        self._px4_failsafe_action(wanted, why)
+        return True
+
+    @staticmethod
+    def _expo_deadzone(value: float, expo: float, deadzone: float) -> float:
+        """PX4 ``math::expo_deadzone``: the deadzone removed and rescaled, then
+        ``(1 - e) x + e x^3``."""
+        dz = min(max(deadzone, 0.0), 0.99)
+        x = 0.0 if abs(value) <= dz else (value - math.copysign(dz, value)) / (1.0 - dz)
+        e = min(max(expo, 0.0), 1.0)
+        return (1.0 - e) * x + e * x ** 3
+
+    def _fly_sticks(self, t: float, hold_xy: bool) -> None:
+        """PX4 Position mode (``FlightTaskManualPosition`` / ``StickAccelerationXY``, ``StickYaw``,
+        ``FlightTaskManualAltitude``): the pitch / roll sticks are a horizontal velocity in the
+        heading frame up to MPC_VEL_MANUAL, throttle a climb rate up to MPC_Z_VEL_MAX_UP / DN, yaw
+        a rate up to MPC_MAN_Y_MAX deg/s, each through ``expo_deadzone`` (MPC_*_EXPO,
+        MPC_HOLD_DZ); centred sticks hold the position, altitude and heading where the vehicle
+        stopped. Altitude mode (``hold_xy`` False) flies the same sticks without the horizontal
+        position hold (see docs/flight.md for what is simplified). Without input since the mode
+        was entered the sticks count as centred."""
+        P, m = self.params, self.model
+        x, y, thr, r = self._sticks if self._sticks is not None else (0.0, 0.0, 0.0, 0.0)
+        dz = float(P["MPC_HOLD_DZ"])
+        fwd = self._expo_deadzone(x, float(P["MPC_XY_MAN_EXPO"]), dz) * float(P["MPC_VEL_MANUAL"])
+        right = self._expo_deadzone(y, float(P["MPC_XY_MAN_EXPO"]), dz) * float(P["MPC_VEL_MANUAL"])
+        up = self._expo_deadzone(thr, float(P["MPC_Z_MAN_EXPO"]), dz)
+        up *= float(P["MPC_Z_VEL_MAX_UP"]) if up > 0 else float(P["MPC_Z_VEL_MAX_DN"])
+        rate = -self._expo_deadzone(r, float(P["MPC_YAW_EXPO"]), dz) * math.radians(float(P["MPC_MAN_Y_MAX"]))  # r > 0: clockwise
+        c, s_ = math.cos(m.yaw), math.sin(m.yaw)
+        v = np.array([fwd * c + right * s_, fwd * s_ - right * c, up])
+        hold = self._stick_hold
+        if fwd == 0.0 and right == 0.0:
+            if hold_xy:
+                if "xy" not in hold and float(np.linalg.norm(m.v[:2])) < 0.3:
+                    hold["xy"] = m.p[:2].copy()  # brake first, then hold where it stopped
+                if "xy" in hold:
+                    v[:2] = self.c.k_pos * (hold["xy"] - m.p[:2])
+        else:
+            hold.pop("xy", None)
+        if up == 0.0:
+            hold.setdefault("z", float(m.p[2]))
+            v[2] = self.c.k_pos * (hold["z"] - m.p[2])
+        else:
+            hold.pop("z", None)
+        if rate == 0.0:
+            yaw = hold.setdefault("yaw", float(m.yaw))
+        else:
+            hold.pop("yaw", None)
+            yaw = wrap_angle(m.yaw + rate / self.c.k_yaw)
+        self._target = _Target(v=v, yaw=yaw, kind="velocity", yaw_rate_limit_radps=abs(rate) if rate else None)
 
     def _offboard_lost(self, since_sp: float) -> None:
         action = int(self.params["COM_OBL_RC_ACT"])
@@ -1097,7 +1227,7 @@ class SimMavlinkVehicle:
         return True
 
     def _px4_mode_available(self, mode: str) -> bool:
-        if mode in ("posctl", "altctl", "stabilized") and not self.c.rc_connected:
+        if mode in ("posctl", "altctl", "stabilized") and not self._manual_control_present():
             return False
         if mode in ("posctl", "loiter", "land") and not self._position_valid:
             return False
@@ -1111,6 +1241,7 @@ class SimMavlinkVehicle:
             self.custom_mode = int(custom_mode)
             if old != self.custom_mode:
                 self._rtl = None  # leaving (or re-entering) Return stops its state machine
+                self._stick_hold = {}
             hold = self._hold_here()
             if self._landing_mode():
                 speed = float(self.params["MPC_LAND_SPEED"]) if self.px4 else float(self.params["LAND_SPEED"]) / 100.0
@@ -1213,6 +1344,9 @@ class SimMavlinkVehicle:
             # sender with its seq and time_usec; ArduPilot's GCS_MAVLINK has no PING handler
             if self.px4 and msg.target_system == 0 and msg.target_component == 0:
                 self._send(self.link.mav.ping_encode(int(msg.time_usec), int(msg.seq), msg.get_srcSystem(), msg.get_srcComponent()))
+            return
+        if mtype == "MANUAL_CONTROL":
+            self._on_manual_control(msg)
             return
         if mtype == "SET_POSITION_TARGET_LOCAL_NED":
             self._on_setpoint(msg)
@@ -1618,7 +1752,7 @@ class SimMavlinkVehicle:
             if main == PX4_MAIN["auto"] and sub_i == PX4_AUTO_SUB["rtl"] and not self._px4_mode_available("rtl"):
                 self._statustext(_M.MAV_SEVERITY_CRITICAL, "Switching to Return is currently not available")
                 return _M.MAV_RESULT_TEMPORARILY_REJECTED
-            if main in (PX4_MAIN["manual"], PX4_MAIN["altctl"], PX4_MAIN["stabilized"], PX4_MAIN["acro"], PX4_MAIN["posctl"]) and not self.c.rc_connected:
+            if main in (PX4_MAIN["manual"], PX4_MAIN["altctl"], PX4_MAIN["stabilized"], PX4_MAIN["acro"], PX4_MAIN["posctl"]) and not self._manual_control_present():
                 self._statustext(_M.MAV_SEVERITY_CRITICAL, "Mode not available: no manual control")
                 return _M.MAV_RESULT_TEMPORARILY_REJECTED
             refused = self.mission.refuse_mode(px4_custom_mode(main, sub_i if main == PX4_MAIN["auto"] else 0))
