@@ -13,6 +13,12 @@ them with one COMMAND_ACK (MAVLink command protocol; PX4 ``mavlink_receiver.cpp`
 in a parameter the command does not use is ignored, as MAVSDK sends it (PX4 and ArduPilot
 treat NaN as "unchanged / default"). Unknown commands answer UNSUPPORTED.
 
+A command addressed elsewhere (:meth:`SimMavlinkVehicle._command_for_me`): PX4
+(``MavlinkReceiver::evaluate_target_ok``) takes only our system with our component or 0 (target
+system 0 only for REQUEST_AUTOPILOT_CAPABILITIES / REQUEST_PROTOCOL_VERSION) and does not answer
+the rest; ArduPilot (``MAVLink_routing::check_and_forward``) answers anything for system 0 or ours,
+whatever the component, and never another system's.
+
 - COMPONENT_ARM_DISARM: arming runs the pre-arm checks (below); disarming in the air is
   DENIED unless param2 = 21196 (PX4 Commander ``disarm`` with ``forced``; ArduCopter
   ``AP_Arming::Method::MAVLINK`` "disarm while flying" needs the magic too).
@@ -55,6 +61,11 @@ treat NaN as "unchanged / default"). Unknown commands answer UNSUPPORTED.
   speed type DENIED, a mode without ``set_speed_NE_ms`` FAILED; GUIDED limits position targets
   until the guided submode changes (``ModeGuided::set_speed_NE_ms``, ``pva_control_start``), RTL
   its return leg (``ModeRTL::set_speed_NE_ms``).
+- DO_SET_HOME: param1 1 (PX4: > 0.5; ArduPilot also lat = lon = 0) sets home here, else at the
+  command's lat/lon/alt (PX4 ``Commander`` VEHICLE_CMD_DO_SET_HOME: AMSL, non-finite DENIED, no
+  global reference TEMPORARILY_REJECTED; ArduPilot ``handle_command_do_set_home``: the command's
+  frame, COMMAND_LONG absolute, bad frame DENIED, ``set_home`` refusals FAILED). That home is kept at
+  arming and read by Return, the geofence and GLOBAL_POSITION_INT.
 - CONDITION_YAW (MAVProxy ``setyaw``): ArduCopter ACCEPTED for a heading in [0, 360] and param4
   0/1 (else FAILED), turning in GUIDED at min(param2, ATC_SLEW_YAW) until the next target
   (``handle_MAV_CMD_CONDITION_YAW``, ``AutoYaw::set_fixed_yaw_rad``); PX4 has no handler outside
@@ -129,11 +140,21 @@ Arming and disarming
   landed; after a flight PX4 then disarms after COM_DISARM_LAND (2 s), ArduCopter at once in
   LAND (``mode_land.cpp``) and after DISARM_DELAY in other modes.
 
+Manual control (PX4)
+--------------------
+MANUAL_CONTROL from a ground station (MAVSDK ManualControl, QGroundControl's virtual joystick) is
+PX4's MAVLink manual control input (``handle_message_manual_control``; COM_RC_IN_MODE 0 and 4 ignore
+it). While it lasts (COM_RC_LOSS_T) Position / Altitude / Stabilized / Manual are available;
+Position mode flies the sticks as velocities (MPC_VEL_MANUAL, MPC_Z_VEL_MAX_UP/DN, MPC_MAN_Y_MAX,
+``expo_deadzone``) and holds at centre; its loss while armed takes NAV_RCL_ACT (``failsafe.cpp``,
+COM_RCL_EXCEPT). ArduCopter's RC override by MANUAL_CONTROL is not modelled (ignored).
+
 Companion loss
 --------------
 - PX4 OFFBOARD: no setpoint for COM_OF_LOSS_T (1 s) -> the COM_OBL_RC_ACT action (0 Position,
   1 Altitude, 2 Manual, 3 Return, 4 Land, 5 Hold, 6 Terminate, 7 Disarm; PX4 parameter
-  reference). Position/Altitude/Manual need an RC link (``rc_connected``), Position and
+  reference). Position/Altitude/Manual need manual control (``rc_connected`` or recent
+  MANUAL_CONTROL), Position and
   Hold a position estimate, Return a global origin and home (and then flies the Return mode
   home); an action that cannot run
   falls back to Hold, then to Land, then to Descend (PX4 ``failsafe.cpp`` mode fallback).
