@@ -554,14 +554,14 @@ def test_mavsdk_px4_manual_control_position_mode_flies_the_sticks_home_and_input
         act.arm()
         sticks[2] = 1.0  # full throttle: climb at MPC_Z_VEL_MAX_UP
         wait_until(lambda: v.position_enu()[2] > 1.0, 4.0, "climb")
-        assert v.velocity_enu()[2] == pytest.approx(1.5, abs=0.1)
+        assert v.velocity_enu()[2] == pytest.approx(1.5, abs=0.15)
         sticks[2] = 0.5
         time.sleep(0.4)
         z_hold = v.position_enu()[2]
         sticks[0] = 1.0  # full forward: heading east (yaw 0) at MPC_VEL_MANUAL
         time.sleep(1.2)
         vel = v.velocity_enu()
-        assert vel[0] == pytest.approx(2.0, abs=0.1) and abs(vel[1]) < 0.1 and abs(v.position_enu()[2] - z_hold) < 0.1
+        assert vel[0] == pytest.approx(2.0, abs=0.15) and abs(vel[1]) < 0.15 and abs(v.position_enu()[2] - z_hold) < 0.1
         sticks[0] = 0.0  # centred: brake and hold
         time.sleep(1.0)
         p_hold = v.position_enu()
@@ -577,7 +577,7 @@ def test_mavsdk_px4_manual_control_position_mode_flies_the_sticks_home_and_input
         stick_thread.join(1.0)
         wait_until(lambda: v.mode_name == "auto.rtl", 2.0, "RC loss -> NAV_RCL_ACT Return")
         lost = v.first_event("manual control lost")
-        assert lost is not None and 0.5 <= lost - v._sticks_t <= 0.5 + 0.15  # COM_RC_LOSS_T after the last input
+        assert lost is not None and 0.5 <= lost - v._sticks_t <= 0.5 + 0.3  # COM_RC_LOSS_T after the last input (slack: a loaded machine)
         wait_until(lambda: np.linalg.norm(v.position_enu()[:2] - [0.0, 4.0]) < 0.3, 8.0, "Return to the new home")
     finally:
         stop.set()
