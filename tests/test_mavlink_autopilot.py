@@ -184,3 +184,38 @@ def test_pilot_takeover_stops_companion_commands(autopilot):
     finally:
         bridge.stop()
         vehicle.stop()
+
+
+def test_px4_joystick_takeover_releases_the_companion_like_an_rc_switch():
+    """A ground station (system 255) starts MANUAL_CONTROL and switches to Position mode while the
+    companion flies OFFBOARD: the bridge sees the mode change as a pilot takeover, stops
+    commanding for good, and the vehicle flies the joystick (forward stick: it moves)."""
+    bridge, vehicle = make_rig("px4")
+    gcs = M.MAVLink(None, srcSystem=255, srcComponent=190)
+
+    def send(msg):
+        vehicle.link.inject_bytes(msg.pack(gcs))
+
+    try:
+        session = make_session("px4", bridge, FAST)
+        session.engage()
+        time.sleep(0.3)
+        send(gcs.manual_control_encode(1, 0, 0, 500, 0, 0))
+        send(gcs.command_long_encode(1, 1, M.MAV_CMD_DO_SET_MODE, 0, 1, PX4_MAIN["posctl"], 0, 0, 0, 0, 0))
+        deadline = time.monotonic() + 1.5
+        while not bridge.released and time.monotonic() < deadline:
+            send(gcs.manual_control_encode(1, 0, 0, 500, 0, 0))
+            time.sleep(0.05)
+        assert vehicle.mode_name == "posctl" and bridge.released
+        ev = bridge.failsafe.first_event(FailsafeCause.PILOT_TAKEOVER)
+        assert ev is not None and "left OFFBOARD" in ev.detail
+        t_release = time.monotonic()
+        p0 = vehicle.position_enu()
+        for _ in range(16):  # 0.8 s of full forward stick (heading east)
+            send(gcs.manual_control_encode(1, 1000, 0, 500, 0, 0))
+            time.sleep(0.05)
+        assert vehicle.position_enu()[0] - p0[0] > 0.5 and vehicle.mode_name == "posctl"
+        assert [t for t in vehicle.setpoint_times if t > t_release + 0.06] == []
+    finally:
+        bridge.stop()
+        vehicle.stop()

@@ -8,6 +8,7 @@ both sides: what the client reports and the vehicle's ground truth."""
 
 import math
 import socket
+import threading
 import time
 
 import numpy as np
@@ -20,6 +21,7 @@ from onfly.mavlink.sim_vehicle import EARTH_RADIUS_M, SimMavlinkVehicle, SimVehi
 
 from mavsdk import ComponentType, Configuration, Mavsdk  # noqa: E402
 from mavsdk.plugins.action.action import Action, ActionError  # noqa: E402
+from mavsdk.plugins.manual_control.manual_control import ManualControl  # noqa: E402
 from mavsdk.plugins.offboard.offboard import Offboard, PositionGlobalYaw, PositionNedYaw, VelocityNedYaw  # noqa: E402
 from mavsdk.plugins.param.param import Param  # noqa: E402
 from mavsdk.plugins.telemetry.telemetry import FlightMode, LandedState, Telemetry  # noqa: E402
@@ -521,3 +523,62 @@ def test_pymavlink_ardupilot_guided_set_position_target_global_int_relative_alt_
         assert np.linalg.norm(v.position_enu() - [0.0, 3.0, 1.5]) < 0.15 and v.mode_name == "guided"
     finally:
         v.stop()
+
+
+def test_mavsdk_px4_manual_control_position_mode_flies_the_sticks_home_and_input_loss_is_rc_loss():
+    """MAVSDK's ManualControl as a ground station's joystick: stick input makes Position mode
+    available, the sticks fly as velocities (MPC_Z_VEL_MAX_UP, MPC_VEL_MANUAL at full stick),
+    centred sticks hold; DO_SET_HOME (MAVSDK ``set_home``) moves home; stopping the input is
+    PX4's RC loss after COM_RC_LOSS_T: NAV_RCL_ACT 2 Return, which flies to the new home."""
+    rig = MavsdkRig(autopilot="px4", profile="outdoor", k_pos=4.0, k_vel=8.0, a_max_mps2=8.0,
+                    params=(("MPC_VEL_MANUAL", 2.0), ("MPC_Z_VEL_MAX_UP", 1.5), ("RTL_RETURN_ALT", 3.0)))
+    v, act, tel = rig.vehicle, rig.action, rig.telemetry
+    man = ManualControl(rig.system)
+    sticks = [0.0, 0.0, 0.5, 0.0]  # x forward, y right, z throttle (0.5 centre), r yaw
+    stop = threading.Event()
+
+    def joystick():
+        while not stop.is_set():
+            man.set_manual_control_input(*sticks)
+            time.sleep(0.05)
+
+    stick_thread = threading.Thread(target=joystick, daemon=True)
+    try:
+        wait_until(lambda: tel.health().is_armable, 5.0, "health.is_armable")
+        # no stick input yet: Position mode needs manual control (the setting has no RC)
+        assert v._cmd_set_mode(1.0, 3.0, 0.0) == M.MAV_RESULT_TEMPORARILY_REJECTED
+        stick_thread.start()
+        wait_until(lambda: v.first_event("manual control: MAVLink stick input") is not None, 2.0, "stick input")
+        man.start_position_control()  # DO_SET_MODE POSCTL
+        wait_until(lambda: v.mode_name == "posctl", 2.0, "Position mode")
+        act.arm()
+        sticks[2] = 1.0  # full throttle: climb at MPC_Z_VEL_MAX_UP
+        wait_until(lambda: v.position_enu()[2] > 1.0, 4.0, "climb")
+        assert v.velocity_enu()[2] == pytest.approx(1.5, abs=0.15)
+        sticks[2] = 0.5
+        time.sleep(0.4)
+        z_hold = v.position_enu()[2]
+        sticks[0] = 1.0  # full forward: heading east (yaw 0) at MPC_VEL_MANUAL
+        time.sleep(1.2)
+        vel = v.velocity_enu()
+        assert vel[0] == pytest.approx(2.0, abs=0.15) and abs(vel[1]) < 0.15 and abs(v.position_enu()[2] - z_hold) < 0.1
+        sticks[0] = 0.0  # centred: brake and hold
+        time.sleep(1.0)
+        p_hold = v.position_enu()
+        time.sleep(0.5)
+        assert np.linalg.norm(v.position_enu() - p_hold) < 0.05 and np.linalg.norm(v.velocity_enu()) < 0.1
+        # set_home: COMMAND_INT DO_SET_HOME 4 m north of the origin, AMSL
+        lat0, lon0, alt0 = 47.397742, 8.545594, 488.0
+        act.set_home(False, lat0 + math.degrees(4.0 / EARTH_RADIUS_M), lon0, alt0)
+        np.testing.assert_allclose(v._home, [0.0, 4.0, 0.0], atol=0.05)
+        wait_until(lambda: tel.home().latitude_deg == pytest.approx(lat0 + math.degrees(4.0 / EARTH_RADIUS_M), abs=1e-7), 5.0,
+                   "HOME_POSITION with the new home")
+        stop.set()  # the joystick goes silent
+        stick_thread.join(1.0)
+        wait_until(lambda: v.mode_name == "auto.rtl", 2.0, "RC loss -> NAV_RCL_ACT Return")
+        lost = v.first_event("manual control lost")
+        assert lost is not None and 0.5 <= lost - v._sticks_t <= 0.5 + 0.3  # COM_RC_LOSS_T after the last input (slack: a loaded machine)
+        wait_until(lambda: np.linalg.norm(v.position_enu()[:2] - [0.0, 4.0]) < 0.3, 8.0, "Return to the new home")
+    finally:
+        stop.set()
+        rig.close()

@@ -735,3 +735,88 @@ def test_ardupilot_global_target_type_mask_frames_and_indoors():
     finally:
         c.stop()
         v.stop()
+
+
+def _command_to(c, target_system, target_component, cmd, *params, timeout_s=0.4):
+    """A COMMAND_LONG to the given target; its ACK result, or None when none comes."""
+    n0 = len(c.of_type("COMMAND_ACK"))
+    p = list(params) + [0.0] * (7 - len(params))
+    c.link.send(c.link.mav.command_long_encode(target_system, target_component, cmd, 0, *p))
+    if _wait(lambda: any(a.command == cmd for _, a in c.of_type("COMMAND_ACK")[n0:]), timeout_s):
+        return next(a.result for _, a in c.of_type("COMMAND_ACK")[n0:] if a.command == cmd)
+    return None
+
+
+def _home_int(c, x, y, z, frame=M.MAV_FRAME_GLOBAL_INT, param1=0.0):
+    n0 = len(c.of_type("COMMAND_ACK"))
+    c.link.send(c.link.mav.command_int_encode(1, 1, frame, M.MAV_CMD_DO_SET_HOME, 0, 0, param1, 0, 0, 0, x, y, z))
+    assert _wait(lambda: any(a.command == M.MAV_CMD_DO_SET_HOME for _, a in c.of_type("COMMAND_ACK")[n0:]), 1.0)
+    return next(a.result for _, a in c.of_type("COMMAND_ACK")[n0:] if a.command == M.MAV_CMD_DO_SET_HOME)
+
+
+def test_commands_for_another_target_and_do_set_home_rules_px4_and_ardupilot():
+    nan = float("nan")
+    lat0, lon0, alt0 = 47.397742, 8.545594, 488.0
+    dlat = float(np.degrees(10.0 / 6371000.0))  # 10 m north
+    c, v = rig(autopilot="px4", profile="outdoor")
+    try:
+        # evaluate_target_ok: another component, another system and the broadcast system are not answered
+        assert _command_to(c, 1, 2, M.MAV_CMD_COMPONENT_ARM_DISARM, 1) is None and not v.armed
+        assert _command_to(c, 2, 1, M.MAV_CMD_COMPONENT_ARM_DISARM, 1) is None
+        assert _command_to(c, 0, 0, M.MAV_CMD_COMPONENT_ARM_DISARM, 1) is None and not v.armed
+        assert _command_to(c, 0, 0, M.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, 1) == M.MAV_RESULT_ACCEPTED  # broadcast case
+        assert _command_to(c, 1, 0, M.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, 1) == M.MAV_RESULT_ACCEPTED
+        assert v.first_event("command 400 for 1/2 ignored") is not None
+        # DO_SET_HOME: NaN lat/lon DENIED, param1 1 = here, else lat/lon/alt (AMSL)
+        assert c.command(M.MAV_CMD_DO_SET_HOME, 0, 0, 0, 0, nan, nan, nan) == M.MAV_RESULT_DENIED
+        assert c.command(M.MAV_CMD_DO_SET_HOME, 0, 0, 0, 0, lat0 + dlat, lon0, alt0 + 1.0) == M.MAV_RESULT_ACCEPTED
+        np.testing.assert_allclose(v._home, [0.0, 10.0, 1.0], atol=0.25)  # float32 param5/6: ~0.1 m
+        assert _home_int(c, int(round((lat0 + 2 * dlat) * 1e7)), int(round(lon0 * 1e7)), alt0,
+                         frame=M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT) == M.MAV_RESULT_ACCEPTED  # frame not read: AMSL
+        np.testing.assert_allclose(v._home, [0.0, 20.0, 0.0], atol=0.02)
+        assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+        np.testing.assert_allclose(v._home, [0.0, 20.0, 0.0], atol=0.02)  # manual_home: kept at arming
+        assert c.command(M.MAV_CMD_GET_HOME_POSITION) == M.MAV_RESULT_ACCEPTED
+        assert _wait(lambda: any(abs(h.latitude - (lat0 + 2 * dlat) * 1e7) < 2 for _, h in c.of_type("HOME_POSITION")))
+        assert c.command(M.MAV_CMD_DO_SET_HOME, 1) == M.MAV_RESULT_ACCEPTED
+        np.testing.assert_allclose(v._home, v.position_enu(), atol=0.01)
+    finally:
+        c.stop()
+        v.stop()
+    c, v = rig(autopilot="px4")  # indoors: here works, a lat/lon home needs a global reference
+    try:
+        assert c.command(M.MAV_CMD_DO_SET_HOME, 0, 0, 0, 0, lat0, lon0, alt0) == M.MAV_RESULT_TEMPORARILY_REJECTED
+        assert c.command(M.MAV_CMD_DO_SET_HOME, 1) == M.MAV_RESULT_ACCEPTED
+    finally:
+        c.stop()
+        v.stop()
+    c, v = rig(autopilot="ardupilot", profile="outdoor")
+    try:
+        # MAVLink_routing: our system, any component, is processed here; another system is not answered
+        assert _command_to(c, 1, 2, M.MAV_CMD_DO_SET_MODE, 1, ARDUCOPTER_MODE["guided"]) == M.MAV_RESULT_ACCEPTED
+        assert v.mode_name == "guided"
+        assert _command_to(c, 0, 0, M.MAV_CMD_DO_CHANGE_SPEED, 1, 2.0) == M.MAV_RESULT_ACCEPTED
+        assert _command_to(c, 2, 1, M.MAV_CMD_COMPONENT_ARM_DISARM, 1) is None and not v.armed
+        # DO_SET_HOME: lat and lon 0 = here (HOME_POSITION sent at once), COMMAND_LONG altitude AMSL,
+        # COMMAND_INT in its frame, an unknown frame DENIED
+        n_home = len(c.of_type("HOME_POSITION"))
+        assert c.command(M.MAV_CMD_DO_SET_HOME, 0, 0, 0, 0, 0.0, 0.0, 0.0) == M.MAV_RESULT_ACCEPTED
+        assert _wait(lambda: len(c.of_type("HOME_POSITION")) > n_home)
+        assert c.command(M.MAV_CMD_DO_SET_HOME, 0, 0, 0, 0, lat0 + dlat, lon0, alt0 + 2.0) == M.MAV_RESULT_ACCEPTED
+        np.testing.assert_allclose(v._home, [0.0, 10.0, 2.0], atol=0.25)  # float32 param5/6
+        assert _home_int(c, int(round((lat0 + 2 * dlat) * 1e7)), int(round(lon0 * 1e7)), 1.0,
+                         frame=M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT) == M.MAV_RESULT_ACCEPTED  # 1 m above the old home
+        np.testing.assert_allclose(v._home, [0.0, 20.0, 3.0], atol=0.02)
+        assert _home_int(c, int(round(lat0 * 1e7)), int(round(lon0 * 1e7)), 0.0, frame=M.MAV_FRAME_LOCAL_NED) == M.MAV_RESULT_DENIED
+        h = c.of_type("HOME_POSITION")[-1][1]
+        assert abs(h.latitude - (lat0 + 2 * dlat) * 1e7) < 2 and h.altitude == pytest.approx((alt0 + 3.0) * 1000, abs=20)
+    finally:
+        c.stop()
+        v.stop()
+    c, v = rig(autopilot="ardupilot")  # indoors: no location, no EKF origin
+    try:
+        assert c.command(M.MAV_CMD_DO_SET_HOME, 1) == M.MAV_RESULT_FAILED
+        assert c.command(M.MAV_CMD_DO_SET_HOME, 0, 0, 0, 0, lat0, lon0, alt0) == M.MAV_RESULT_FAILED
+    finally:
+        c.stop()
+        v.stop()

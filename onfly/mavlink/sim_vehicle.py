@@ -13,6 +13,12 @@ them with one COMMAND_ACK (MAVLink command protocol; PX4 ``mavlink_receiver.cpp`
 in a parameter the command does not use is ignored, as MAVSDK sends it (PX4 and ArduPilot
 treat NaN as "unchanged / default"). Unknown commands answer UNSUPPORTED.
 
+A command addressed elsewhere (:meth:`SimMavlinkVehicle._command_for_me`): PX4
+(``MavlinkReceiver::evaluate_target_ok``) takes only our system with our component or 0 (target
+system 0 only for REQUEST_AUTOPILOT_CAPABILITIES / REQUEST_PROTOCOL_VERSION) and does not answer
+the rest; ArduPilot (``MAVLink_routing::check_and_forward``) answers anything for system 0 or ours,
+whatever the component, and never another system's.
+
 - COMPONENT_ARM_DISARM: arming runs the pre-arm checks (below); disarming in the air is
   DENIED unless param2 = 21196 (PX4 Commander ``disarm`` with ``forced``; ArduCopter
   ``AP_Arming::Method::MAVLINK`` "disarm while flying" needs the magic too).
@@ -55,6 +61,11 @@ treat NaN as "unchanged / default"). Unknown commands answer UNSUPPORTED.
   speed type DENIED, a mode without ``set_speed_NE_ms`` FAILED; GUIDED limits position targets
   until the guided submode changes (``ModeGuided::set_speed_NE_ms``, ``pva_control_start``), RTL
   its return leg (``ModeRTL::set_speed_NE_ms``).
+- DO_SET_HOME: param1 1 (PX4: > 0.5; ArduPilot also lat = lon = 0) sets home here, else at the
+  command's lat/lon/alt (PX4 ``Commander`` VEHICLE_CMD_DO_SET_HOME: AMSL, non-finite DENIED, no
+  global reference TEMPORARILY_REJECTED; ArduPilot ``handle_command_do_set_home``: the command's
+  frame, COMMAND_LONG absolute, bad frame DENIED, ``set_home`` refusals FAILED). That home is kept at
+  arming and read by Return, the geofence and GLOBAL_POSITION_INT.
 - CONDITION_YAW (MAVProxy ``setyaw``): ArduCopter ACCEPTED for a heading in [0, 360] and param4
   0/1 (else FAILED), turning in GUIDED at min(param2, ATC_SLEW_YAW) until the next target
   (``handle_MAV_CMD_CONDITION_YAW``, ``AutoYaw::set_fixed_yaw_rad``); PX4 has no handler outside
@@ -129,11 +140,21 @@ Arming and disarming
   landed; after a flight PX4 then disarms after COM_DISARM_LAND (2 s), ArduCopter at once in
   LAND (``mode_land.cpp``) and after DISARM_DELAY in other modes.
 
+Manual control (PX4)
+--------------------
+MANUAL_CONTROL from a ground station (MAVSDK ManualControl, QGroundControl's virtual joystick) is
+PX4's MAVLink manual control input (``handle_message_manual_control``; COM_RC_IN_MODE 0 and 4 ignore
+it). While it lasts (COM_RC_LOSS_T) Position / Altitude / Stabilized / Manual are available;
+Position mode flies the sticks as velocities (MPC_VEL_MANUAL, MPC_Z_VEL_MAX_UP/DN, MPC_MAN_Y_MAX,
+``expo_deadzone``) and holds at centre; its loss while armed takes NAV_RCL_ACT (``failsafe.cpp``,
+COM_RCL_EXCEPT). ArduCopter's RC override by MANUAL_CONTROL is not modelled (ignored).
+
 Companion loss
 --------------
 - PX4 OFFBOARD: no setpoint for COM_OF_LOSS_T (1 s) -> the COM_OBL_RC_ACT action (0 Position,
   1 Altitude, 2 Manual, 3 Return, 4 Land, 5 Hold, 6 Terminate, 7 Disarm; PX4 parameter
-  reference). Position/Altitude/Manual need an RC link (``rc_connected``), Position and
+  reference). Position/Altitude/Manual need manual control (``rc_connected`` or recent
+  MANUAL_CONTROL), Position and
   Hold a position estimate, Return a global origin and home (and then flies the Return mode
   home); an action that cannot run
   falls back to Hold, then to Land, then to Descend (PX4 ``failsafe.cpp`` mode fallback).
@@ -312,6 +333,23 @@ PX4_PARAMS = {
     "MPC_Z_V_AUTO_DN": (1.5, _R32),
     "NAV_ACC_RAD": (2.0, _R32),
     "NAV_MC_ALT_RAD": (0.8, _R32),
+    # manual control (a ground station's MANUAL_CONTROL is the stick input; Commander
+    # commander_params.c, navigator_params.c, mc_pos_control multicopter_*_params.c):
+    # COM_RC_IN_MODE 0 RC only, 1 MAVLink only, 2 RC or MAVLink with fallback, 3 RC or MAVLink keep
+    # first, 4 disabled; COM_RC_LOSS_T s; NAV_RCL_ACT 1 Hold, 2 Return, 3 Land, 5 Terminate, 6 Disarm;
+    # COM_RCL_EXCEPT bits 0 Mission, 1 Hold, 2 Offboard; Position-mode stick scaling
+    "COM_RC_IN_MODE": (3, _I32),
+    "COM_RC_LOSS_T": (0.5, _R32),
+    "NAV_RCL_ACT": (2, _I32),
+    "COM_RCL_EXCEPT": (0, _I32),
+    "MPC_VEL_MANUAL": (10.0, _R32),
+    "MPC_Z_VEL_MAX_UP": (3.0, _R32),
+    "MPC_Z_VEL_MAX_DN": (1.5, _R32),
+    "MPC_MAN_Y_MAX": (150.0, _R32),
+    "MPC_HOLD_DZ": (0.1, _R32),
+    "MPC_XY_MAN_EXPO": (0.6, _R32),
+    "MPC_Z_MAN_EXPO": (0.6, _R32),
+    "MPC_YAW_EXPO": (0.6, _R32),
     # geofence (navigator geofence_params.c / geofence_params.yaml): 0 None, 1 Warning, 2 Hold,
     # 3 Return, 4 Terminate, 5 Land; distances from home in m, 0 = off; source 0 GPOS, 1 GPS
     "GF_ACTION": (2, _I32),
@@ -702,6 +740,11 @@ class SimMavlinkVehicle:
         self._origin = np.array(origin, dtype=float)
         self._R_scene_est = _rot_z(config.estimator_yaw_rad)
         self._home: np.ndarray | None = None  # scene ENU, set at arming
+        self._home_manual = False  # home set by DO_SET_HOME (kept at arming)
+        self._sticks: tuple | None = None  # PX4 manual_control_setpoint from MANUAL_CONTROL: pitch, roll, throttle, yaw in [-1, 1]
+        self._sticks_t: float | None = None  # clock time of the last accepted MANUAL_CONTROL
+        self._sticks_lost = False  # the manual-control-loss failsafe has been taken for this loss
+        self._stick_hold: dict = {}  # Position mode's hold points (xy, z, yaw) while the sticks are centred
         self._flying_since_arm = False
         self._armed_at: float | None = None
         self._still_since: float | None = None
@@ -1000,8 +1043,12 @@ class SimMavlinkVehicle:
             return
         since_sp = math.inf if self._last_sp_s is None else t - self._last_sp_s
         if self.px4:
+            if self._manual_control_loss(t):
+                return
             main = px4_main_mode(self.custom_mode)
-            if main == PX4_MAIN["offboard"]:
+            if main in (PX4_MAIN["posctl"], PX4_MAIN["altctl"]) and self.armed:
+                self._fly_sticks(t, hold_xy=main == PX4_MAIN["posctl"])
+            elif main == PX4_MAIN["offboard"]:
                 loss_t = float(self.params["COM_OF_LOSS_T"])
                 if since_sp > loss_t:
                     self._offboard_lost(since_sp)
@@ -1039,6 +1086,111 @@ class SimMavlinkVehicle:
         else:
             self._guided_timed_out = False
             self._target = self._ardu_limit(sp)
+
+    # -- manual control (a ground station's joystick) ----------------------------------------------
+    def _on_manual_control(self, msg) -> None:
+        """MANUAL_CONTROL from a ground station (MAVSDK ManualControl, QGroundControl's virtual
+        joystick). PX4 ``MavlinkReceiver::handle_message_manual_control``: published as a manual
+        control input from MAVLink (x pitch and y roll / 1000, throttle z from [0, 1000] to [-1, 1],
+        r yaw / 1000); the manual control selector takes it unless COM_RC_IN_MODE is 0 (RC only)
+        or 4 (disabled). ArduCopter is not modelled here (see docs/flight.md)."""
+        if not self.px4 or int(msg.target) not in (0, self.c.system_id):
+            return
+        if int(self.params["COM_RC_IN_MODE"]) in (0, 4):
+            return
+        sticks = (msg.x / 1000.0, msg.y / 1000.0, msg.z / 1000.0 * 2.0 - 1.0, msg.r / 1000.0)
+        with self._lock:
+            self._sticks = tuple(float(np.clip(v, -1.0, 1.0)) for v in sticks)
+            first = self._sticks_t is None or self._sticks_lost
+            self._sticks_t = self.clock()
+            if first:
+                self._sticks_lost = False
+                self._event("manual control: MAVLink stick input")
+
+    def _manual_control_present(self) -> bool:
+        """An RC link (``rc_connected``) or a MANUAL_CONTROL within COM_RC_LOSS_T (PX4
+        ``ManualControl``: ``manual_control_signal_lost`` after COM_RC_LOSS_T without input)."""
+        if self.c.rc_connected:
+            return True
+        return self._sticks_t is not None and self.clock() - self._sticks_t <= float(self.params["COM_RC_LOSS_T"])
+
+    def _manual_control_loss(self, t: float) -> bool:
+        """PX4 manual-control loss (``failsafe.cpp`` ``checkStateAndMode``): stick input that was
+        present and stopped for COM_RC_LOSS_T while armed takes NAV_RCL_ACT, unless the mode is
+        excepted by COM_RCL_EXCEPT (bit 0 Mission, 1 Hold and Takeoff, 2 Offboard) or is Return /
+        Land; once per loss. True when it switched modes."""
+        if self._sticks_t is None or self._sticks_lost or not self.armed:
+            return False
+        if t - self._sticks_t <= float(self.params["COM_RC_LOSS_T"]):
+            return False
+        self._sticks_lost = True
+        cm, ex = self.custom_mode, int(self.params["COM_RCL_EXCEPT"])
+        auto = lambda sub: px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB[sub])  # noqa: E731
+        ignored = (cm == auto("mission") and ex & 1) or (cm in (auto("loiter"), auto("takeoff")) and ex & 2) or (
+            px4_main_mode(cm) == PX4_MAIN["offboard"] and ex & 4) or cm in (auto("rtl"), auto("land"))
+        self._event(f"manual control lost ({t - self._sticks_t:.2f} s without input)", t)
+        if ignored:
+            return False
+        self._statustext(_M.MAV_SEVERITY_WARNING, "Failsafe: manual control lost")
+        action = int(self.params["NAV_RCL_ACT"])
+        why = f"manual control lost: NAV_RCL_ACT {action}"
+        if action == 6:
+            self._disarm(why)
+            return True
+        wanted = {1: "loiter", 2: "rtl", 3: "land", 5: "terminate"}.get(action)
+        if wanted is None:
+            return False
+        self._px4_failsafe_action(wanted, why)
+        return True
+
+    @staticmethod
+    def _expo_deadzone(value: float, expo: float, deadzone: float) -> float:
+        """PX4 ``math::expo_deadzone``: the deadzone removed and rescaled, then
+        ``(1 - e) x + e x^3``."""
+        dz = min(max(deadzone, 0.0), 0.99)
+        x = 0.0 if abs(value) <= dz else (value - math.copysign(dz, value)) / (1.0 - dz)
+        e = min(max(expo, 0.0), 1.0)
+        return (1.0 - e) * x + e * x ** 3
+
+    def _fly_sticks(self, t: float, hold_xy: bool) -> None:
+        """PX4 Position mode (``FlightTaskManualPosition`` / ``StickAccelerationXY``, ``StickYaw``,
+        ``FlightTaskManualAltitude``): the pitch / roll sticks are a horizontal velocity in the
+        heading frame up to MPC_VEL_MANUAL, throttle a climb rate up to MPC_Z_VEL_MAX_UP / DN, yaw
+        a rate up to MPC_MAN_Y_MAX deg/s, each through ``expo_deadzone`` (MPC_*_EXPO,
+        MPC_HOLD_DZ); centred sticks hold the position, altitude and heading where the vehicle
+        stopped. Altitude mode (``hold_xy`` False) flies the same sticks without the horizontal
+        position hold (see docs/flight.md for what is simplified). Without input since the mode
+        was entered the sticks count as centred."""
+        P, m = self.params, self.model
+        x, y, thr, r = self._sticks if self._sticks is not None else (0.0, 0.0, 0.0, 0.0)
+        dz = float(P["MPC_HOLD_DZ"])
+        fwd = self._expo_deadzone(x, float(P["MPC_XY_MAN_EXPO"]), dz) * float(P["MPC_VEL_MANUAL"])
+        right = self._expo_deadzone(y, float(P["MPC_XY_MAN_EXPO"]), dz) * float(P["MPC_VEL_MANUAL"])
+        up = self._expo_deadzone(thr, float(P["MPC_Z_MAN_EXPO"]), dz)
+        up *= float(P["MPC_Z_VEL_MAX_UP"]) if up > 0 else float(P["MPC_Z_VEL_MAX_DN"])
+        rate = -self._expo_deadzone(r, float(P["MPC_YAW_EXPO"]), dz) * math.radians(float(P["MPC_MAN_Y_MAX"]))  # r > 0: clockwise
+        c, s_ = math.cos(m.yaw), math.sin(m.yaw)
+        v = np.array([fwd * c + right * s_, fwd * s_ - right * c, up])
+        hold = self._stick_hold
+        if fwd == 0.0 and right == 0.0:
+            if hold_xy:
+                if "xy" not in hold and float(np.linalg.norm(m.v[:2])) < 0.3:
+                    hold["xy"] = m.p[:2].copy()  # brake first, then hold where it stopped
+                if "xy" in hold:
+                    v[:2] = self.c.k_pos * (hold["xy"] - m.p[:2])
+        else:
+            hold.pop("xy", None)
+        if up == 0.0:
+            hold.setdefault("z", float(m.p[2]))
+            v[2] = self.c.k_pos * (hold["z"] - m.p[2])
+        else:
+            hold.pop("z", None)
+        if rate == 0.0:
+            yaw = hold.setdefault("yaw", float(m.yaw))
+        else:
+            hold.pop("yaw", None)
+            yaw = wrap_angle(m.yaw + rate / self.c.k_yaw)
+        self._target = _Target(v=v, yaw=yaw, kind="velocity", yaw_rate_limit_radps=abs(rate) if rate else None)
 
     def _offboard_lost(self, since_sp: float) -> None:
         action = int(self.params["COM_OBL_RC_ACT"])
@@ -1096,7 +1248,7 @@ class SimMavlinkVehicle:
         return True
 
     def _px4_mode_available(self, mode: str) -> bool:
-        if mode in ("posctl", "altctl", "stabilized") and not self.c.rc_connected:
+        if mode in ("posctl", "altctl", "stabilized") and not self._manual_control_present():
             return False
         if mode in ("posctl", "loiter", "land") and not self._position_valid:
             return False
@@ -1110,6 +1262,7 @@ class SimMavlinkVehicle:
             self.custom_mode = int(custom_mode)
             if old != self.custom_mode:
                 self._rtl = None  # leaving (or re-entering) Return stops its state machine
+                self._stick_hold = {}
             hold = self._hold_here()
             if self._landing_mode():
                 speed = float(self.params["MPC_LAND_SPEED"]) if self.px4 else float(self.params["LAND_SPEED"]) / 100.0
@@ -1169,6 +1322,27 @@ class SimMavlinkVehicle:
     def _for_me(self, target_system: int, target_component: int) -> bool:
         return target_system in (0, self.c.system_id) and target_component in (0, self.c.component_id)
 
+    def _command_for_me(self, command: int, target_system: int, target_component: int) -> bool:
+        """Whether a COMMAND_LONG / COMMAND_INT is this autopilot's to answer.
+
+        PX4 ``MavlinkReceiver::evaluate_target_ok``: REQUEST_AUTOPILOT_CAPABILITIES and
+        REQUEST_PROTOCOL_VERSION are taken for target system 0 or ours, any component; every other
+        command only for our system and our component or MAV_COMP_ID_ALL (0), so a broadcast
+        target system 0 is not ours. Another target is not answered
+        (``handle_message_command_both``: ``PX4_INFO("Ignore command ...")`` and return; it is
+        forwarded when forwarding is on and the component was seen on another link; PX4 up to
+        v1.13 answered it FAILED instead). ArduPilot ``MAVLink_routing::check_and_forward``:
+        target system 0 or ours is processed locally whatever the component unless a route to
+        that component is known on another channel (``!forwarded && match_system``: one link here,
+        and nothing is forwarded back on the channel it came in on), so a command for
+        another component of this system is answered as the autopilot's own; another system's is
+        forwarded or dropped, never answered."""
+        if not self.px4:
+            return target_system in (0, self.c.system_id)
+        if command in (_M.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, _M.MAV_CMD_REQUEST_PROTOCOL_VERSION):
+            return target_system in (0, self.c.system_id)
+        return target_system == self.c.system_id and target_component in (0, self.c.component_id)
+
     def _handle(self, msg) -> None:
         mtype = msg.get_type()
         if mtype.startswith("MISSION_") and self.mission.handle(msg):
@@ -1192,12 +1366,16 @@ class SimMavlinkVehicle:
             if self.px4 and msg.target_system == 0 and msg.target_component == 0:
                 self._send(self.link.mav.ping_encode(int(msg.time_usec), int(msg.seq), msg.get_srcSystem(), msg.get_srcComponent()))
             return
+        if mtype == "MANUAL_CONTROL":
+            self._on_manual_control(msg)
+            return
         if mtype == "SET_POSITION_TARGET_LOCAL_NED":
             self._on_setpoint(msg)
         elif mtype == "SET_POSITION_TARGET_GLOBAL_INT":
             self._on_global_setpoint(msg)
         elif mtype in ("COMMAND_LONG", "COMMAND_INT"):
-            if not self._for_me(msg.target_system, msg.target_component):
+            if not self._command_for_me(int(msg.command), int(msg.target_system), int(msg.target_component)):
+                self._event(f"command {int(msg.command)} for {msg.target_system}/{msg.target_component} ignored")
                 return
             with self._lock:
                 self._pending = []
@@ -1509,6 +1687,8 @@ class SimMavlinkVehicle:
             return self._cmd_reposition(p, x, y, z, frame)
         if cmd == _M.MAV_CMD_DO_CHANGE_SPEED:
             return self._cmd_change_speed(p)
+        if cmd == _M.MAV_CMD_DO_SET_HOME:
+            return self._cmd_set_home(p, msg, is_int)
         if cmd == _M.MAV_CMD_CONDITION_YAW and not self.px4:  # PX4: no handler outside missions (Commander: UNSUPPORTED)
             return self._cmd_condition_yaw(p)
         if cmd == _M.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN:
@@ -1550,7 +1730,8 @@ class SimMavlinkVehicle:
             self.armed = True
             self._armed_at = self.clock()
             self._flying_since_arm = not self.model.on_ground
-            self._home = self.model.p.copy()
+            if not self._home_manual:  # a DO_SET_HOME home is kept (PX4 manual_home, ArduPilot locked)
+                self._home = self.model.p.copy()
             self._event("armed")
             self._statustext(_M.MAV_SEVERITY_INFO, "Armed")
             takeoff = self.px4 and self.custom_mode == px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["takeoff"])
@@ -1592,7 +1773,7 @@ class SimMavlinkVehicle:
             if main == PX4_MAIN["auto"] and sub_i == PX4_AUTO_SUB["rtl"] and not self._px4_mode_available("rtl"):
                 self._statustext(_M.MAV_SEVERITY_CRITICAL, "Switching to Return is currently not available")
                 return _M.MAV_RESULT_TEMPORARILY_REJECTED
-            if main in (PX4_MAIN["manual"], PX4_MAIN["altctl"], PX4_MAIN["stabilized"], PX4_MAIN["acro"], PX4_MAIN["posctl"]) and not self.c.rc_connected:
+            if main in (PX4_MAIN["manual"], PX4_MAIN["altctl"], PX4_MAIN["stabilized"], PX4_MAIN["acro"], PX4_MAIN["posctl"]) and not self._manual_control_present():
                 self._statustext(_M.MAV_SEVERITY_CRITICAL, "Mode not available: no manual control")
                 return _M.MAV_RESULT_TEMPORARILY_REJECTED
             refused = self.mission.refuse_mode(px4_custom_mode(main, sub_i if main == PX4_MAIN["auto"] else 0))
@@ -1718,6 +1899,73 @@ class SimMavlinkVehicle:
             self._setpoint = _Target(p=target, yaw=yaw, v_limit_mps=speed)
         self._target = _Target(p=target, yaw=yaw, v_limit_mps=speed)
         self._event(f"reposition to scene ({target[0]:.2f}, {target[1]:.2f}, {target[2]:.2f})")
+        return _M.MAV_RESULT_ACCEPTED
+
+    # -- home ---------------------------------------------------------------------------------
+    def _cmd_set_home(self, p, msg, is_int: bool) -> int:
+        """MAV_CMD_DO_SET_HOME (param1 1: here; else lat/lon/alt in param5-7 or COMMAND_INT x/y/z).
+
+        PX4 (``Commander::handle_command`` VEHICLE_CMD_DO_SET_HOME, COM_HOME_EN 1): param1 > 0.5
+        sets home here (``HomePosition::setHomePosition(true)``: needs a position estimate, else
+        TEMPORARILY_REJECTED); otherwise lat, lon and alt must be finite (else DENIED; the receiver
+        turns COMMAND_INT x/y = INT32_MAX into NaN and divides by 1e7; the altitude is AMSL, the
+        frame is not read) and ``setManually`` needs a global position reference (``xy_global``
+        and ``z_global``; indoors TEMPORARILY_REJECTED). ArduPilot
+        (``GCS_MAVLINK::handle_command_do_set_home``): param1 1 or lat and lon both 0 sets home
+        here (``set_home_to_current_location``: needs a location, else FAILED); otherwise
+        ``location_from_command_t`` (a COMMAND_LONG is converted with MAV_FRAME_GLOBAL, AMSL,
+        by ``try_command_long_as_command_int``; an unknown frame or NaN altitude DENIED) and
+        ``set_home`` (no EKF origin, an above-home altitude without home, an above-terrain one
+        without terrain data, lat/lon out of range or more than 50 km from the EKF origin
+        (``far_from_EKF_origin``): FAILED), then HOME_POSITION is sent (MSG_HOME). A home set so
+        is kept at arming (PX4 ``manual_home``; ArduPilot sets it locked) and is what Return,
+        the geofence and GLOBAL_POSITION_INT's relative altitude read."""
+        use_current_req = math.isfinite(p[0]) and p[0] > 0.5 if self.px4 else (math.isfinite(p[0]) and p[0] == 1.0)
+        if is_int:
+            xi, yi, alt = int(msg.x), int(msg.y), float(msg.z)
+            frame = int(msg.frame)
+            lat = lon = math.nan if (xi == 2**31 - 1 and yi == 2**31 - 1) else None
+            if lat is None:
+                lat, lon = xi * 1e-7, yi * 1e-7
+        else:
+            lat, lon, alt = float(msg.param5), float(msg.param6), float(msg.param7)
+            frame = _M.MAV_FRAME_GLOBAL  # try_command_long_as_command_int: DO_SET_HOME is absolute
+            xi = int(lat * 1e7) if math.isfinite(lat) else 0
+            yi = int(lon * 1e7) if math.isfinite(lon) else 0
+        if self.px4:
+            if use_current_req:
+                if not self._position_valid:
+                    return _M.MAV_RESULT_TEMPORARILY_REJECTED
+                home = self.model.p.copy()
+            else:
+                if not (math.isfinite(lat) and math.isfinite(lon) and math.isfinite(alt)):
+                    return _M.MAV_RESULT_DENIED
+                if self.c.global_origin is None or not self._position_valid:
+                    return _M.MAV_RESULT_TEMPORARILY_REJECTED
+                home = self._scene_from_global(lat, lon, alt)
+        else:
+            if use_current_req or (xi == 0 and yi == 0):
+                if self.c.global_origin is None or not self._position_valid:
+                    return _M.MAV_RESULT_FAILED  # ahrs.get_location: no location
+                home = self.model.p.copy()
+            else:
+                alt_frame = _ARDU_ALT_FRAME.get(frame)
+                if alt_frame is None or not math.isfinite(alt):
+                    return _M.MAV_RESULT_DENIED
+                if alt_frame == "terrain" or not (abs(xi) <= 900000000 and abs(yi) <= 1800000000):
+                    return _M.MAV_RESULT_FAILED
+                home = self._ardu_location_scene(xi, yi, alt, alt_frame)
+                if home is None:
+                    return _M.MAV_RESULT_FAILED
+                if float(np.linalg.norm(home[:2] - self._origin[:2])) > 50000.0:
+                    return _M.MAV_RESULT_FAILED  # far_from_EKF_origin (EKF_ORIGIN_MAX_DIST_M)
+        self._home = np.array(home, dtype=float)
+        self._home_manual = True
+        self._event(f"home set to scene ({home[0]:.2f}, {home[1]:.2f}, {home[2]:.2f})")
+        if not self.px4:
+            msg_home = self._telemetry(_M.MAVLINK_MSG_ID_HOME_POSITION, streaming=False)
+            if msg_home is not None:
+                self._pending.append(msg_home)
         return _M.MAV_RESULT_ACCEPTED
 
     # -- speed, yaw and reboot commands (what MAVSDK's Action plugin and MAVProxy send) --------
@@ -1853,6 +2101,7 @@ class SimMavlinkVehicle:
             self.custom_mode = px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["loiter"]) if self.px4 else ARDUCOPTER_MODE["stabilize"]
             self._rtl = None
             self._home = None
+            self._home_manual = False
             self._target = self._setpoint = None
             self._last_sp_s = None
             self._takeoff_alt_m = None
