@@ -556,12 +556,15 @@ def test_mavsdk_px4_manual_control_position_mode_flies_the_sticks_home_and_input
         wait_until(lambda: v.position_enu()[2] > 1.0, 4.0, "climb")
         assert v.velocity_enu()[2] == pytest.approx(1.5, abs=0.15)
         sticks[2] = 0.5
-        time.sleep(0.4)
+        # centred throttle reaches the vehicle through MAVSDK's queue: hold from when the climb stopped
+        wait_until(lambda: abs(v.velocity_enu()[2]) < 0.05, 2.0, "the climb stopped at centred throttle")
         z_hold = v.position_enu()[2]
         sticks[0] = 1.0  # full forward: heading east (yaw 0) at MPC_VEL_MANUAL
         time.sleep(1.2)
         vel = v.velocity_enu()
-        assert vel[0] == pytest.approx(2.0, abs=0.15) and abs(vel[1]) < 0.15 and abs(v.position_enu()[2] - z_hold) < 0.1
+        assert vel[0] == pytest.approx(2.0, abs=0.15)
+        assert abs(vel[1]) < 0.15
+        assert abs(v.position_enu()[2] - z_hold) < 0.1
         sticks[0] = 0.0  # centred: brake and hold
         time.sleep(1.0)
         p_hold = v.position_enu()

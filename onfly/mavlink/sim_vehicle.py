@@ -347,6 +347,9 @@ PX4_PARAMS = {
     "MPC_Z_VEL_MAX_DN": (1.5, _R32),
     "MPC_MAN_Y_MAX": (150.0, _R32),
     "MPC_HOLD_DZ": (0.1, _R32),
+    # FlightTaskManualAltitude::_updateAltitudeLock: centred throttle brakes, and the altitude is
+    # locked once |vz| is below this (m/s; multicopter_position_control_params.c default 0.6)
+    "MPC_HOLD_MAX_Z": (0.6, _R32),
     "MPC_XY_MAN_EXPO": (0.6, _R32),
     "MPC_Z_MAN_EXPO": (0.6, _R32),
     "MPC_YAW_EXPO": (0.6, _R32),
@@ -1181,8 +1184,10 @@ class SimMavlinkVehicle:
         else:
             hold.pop("xy", None)
         if up == 0.0:
-            hold.setdefault("z", float(m.p[2]))
-            v[2] = self.c.k_pos * (hold["z"] - m.p[2])
+            if "z" not in hold and abs(float(m.v[2])) < float(P["MPC_HOLD_MAX_Z"]):
+                hold["z"] = float(m.p[2])  # brake first, lock once slower than MPC_HOLD_MAX_Z
+            if "z" in hold:
+                v[2] = self.c.k_pos * (hold["z"] - m.p[2])
         else:
             hold.pop("z", None)
         if rate == 0.0:
