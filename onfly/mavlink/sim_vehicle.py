@@ -147,7 +147,11 @@ PX4's MAVLink manual control input (``handle_message_manual_control``; COM_RC_IN
 it). While it lasts (COM_RC_LOSS_T) Position / Altitude / Stabilized / Manual are available;
 Position mode flies the sticks as velocities (MPC_VEL_MANUAL, MPC_Z_VEL_MAX_UP/DN, MPC_MAN_Y_MAX,
 ``expo_deadzone``) and holds at centre; its loss while armed takes NAV_RCL_ACT (``failsafe.cpp``,
-COM_RCL_EXCEPT). ArduCopter's RC override by MANUAL_CONTROL is not modelled (ignored).
+COM_RCL_EXCEPT). ArduCopter takes MANUAL_CONTROL from SYSID_MYGCS as RC overrides
+(``GCS_MAVLINK::handle_manual_control``, ``handle_manual_control_axes``; RC_OVERRIDE_TIME);
+LOITER and ALT_HOLD fly them (THR_DZ, PILOT_SPEED_UP/DN, PILOT_Y_RATE, AC_Loiter's LOIT_SPEED drag
+and braking) and GUIDED ignores them; 1 s without one is the radio failsafe (``read_radio``,
+FS_THR_ENABLE, FS_OPTIONS).
 
 Companion loss
 --------------
