@@ -219,3 +219,39 @@ def test_px4_joystick_takeover_releases_the_companion_like_an_rc_switch():
     finally:
         bridge.stop()
         vehicle.stop()
+
+
+def test_ardupilot_joystick_takeover_releases_the_companion_like_an_rc_switch():
+    """A ground station (SYSID_MYGCS 255) sends MANUAL_CONTROL (RC overrides) and `mode LOITER`
+    while the companion flies GUIDED: the bridge sees it as a pilot takeover, stops commanding,
+    and LOITER flies the overrides (forward stick: it moves forward)."""
+    bridge, vehicle = make_rig("ardupilot")
+    gcs = M.MAVLink(None, srcSystem=255, srcComponent=190)
+
+    def send(msg):
+        vehicle.link.inject_bytes(msg.pack(gcs))
+
+    try:
+        session = make_session("ardupilot", bridge, FAST)
+        session.engage()
+        time.sleep(0.3)
+        send(gcs.manual_control_encode(1, 0, 0, 500, 0, 0))
+        send(gcs.set_mode_encode(1, M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, ARDUCOPTER_MODE["loiter"]))
+        deadline = time.monotonic() + 1.5
+        while not bridge.released and time.monotonic() < deadline:
+            send(gcs.manual_control_encode(1, 0, 0, 500, 0, 0))
+            time.sleep(0.05)
+        assert vehicle.mode_name == "loiter" and bridge.released
+        ev = bridge.failsafe.first_event(FailsafeCause.PILOT_TAKEOVER)
+        assert ev is not None and "left GUIDED" in ev.detail
+        t_release = time.monotonic()
+        p0, yaw = vehicle.position_enu(), vehicle.model.yaw
+        for _ in range(16):  # 0.8 s of full forward stick
+            send(gcs.manual_control_encode(1, 1000, 0, 500, 0, 0))
+            time.sleep(0.05)
+        moved = vehicle.position_enu()[:2] - p0[:2]
+        assert moved @ [np.cos(yaw), np.sin(yaw)] > 0.3 and vehicle.mode_name == "loiter"
+        assert [t for t in vehicle.setpoint_times if t > t_release + 0.06] == []
+    finally:
+        bridge.stop()
+        vehicle.stop()

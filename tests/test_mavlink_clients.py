@@ -585,3 +585,71 @@ def test_mavsdk_px4_manual_control_position_mode_flies_the_sticks_home_and_input
     finally:
         stop.set()
         rig.close()
+
+
+def test_pymavlink_ardupilot_manual_control_is_an_rc_override_loiter_flies_it_and_its_loss_is_radio_failsafe():
+    """A ground station's joystick against ArduCopter: MANUAL_CONTROL at 20 Hz from SYSID_MYGCS
+    (255) becomes RC overrides; `mode LOITER`, arm (refused while the throttle is above the
+    deadband), full throttle climbs at PILOT_SPEED_UP, centred throttle holds, full forward stick
+    settles at LOIT_SPEED, the yaw stick turns at PILOT_Y_RATE; another sender's sticks are
+    ignored; stopping the stream is the radio failsafe 1 s later (FS_THR_ENABLE 1: RTL)."""
+    port = free_udp_port()
+    v = SimMavlinkVehicle(MavlinkLink(f"udpout:127.0.0.1:{port}", 1, 1), SimVehicleConfig(
+        autopilot="ardupilot", profile="outdoor", k_pos=4.0, k_vel=8.0, a_max_mps2=8.0,
+        params=(("LOIT_SPEED", 300.0), ("PILOT_SPEED_UP", 150), ("PILOT_Y_RATE", 45.0)))).start()
+    mp = MavproxyStyle(port)
+    sticks = {"x": 0, "y": 0, "z": 500, "r": 0}
+    stop = threading.Event()
+
+    def joystick():
+        while not stop.is_set():
+            mp.m.mav.manual_control_send(1, sticks["x"], sticks["y"], sticks["z"], sticks["r"], 0)
+            time.sleep(0.05)
+
+    stick_thread = threading.Thread(target=joystick, daemon=True)
+    try:
+        # a sender that is not SYSID_MYGCS: no override at all
+        for _ in range(5):
+            mp.m.mav.srcSystem = 254
+            mp.m.mav.manual_control_send(1, 1000, 0, 1000, 0, 0)
+        mp.m.mav.srcSystem = 255
+        time.sleep(0.3)
+        assert v.first_event("manual control: RC overrides") is None and not v._rc_override
+        sticks["z"] = 1000
+        stick_thread.start()
+        assert mp.mode("LOITER") == M.MAV_RESULT_ACCEPTED
+        wait_until(lambda: v.first_event("manual control: RC overrides") is not None, 2.0, "overrides")
+        assert mp.long(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_FAILED  # "Arm: Throttle too high"
+        sticks["z"] = 500
+        time.sleep(0.2)
+        assert mp.long(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+        time.sleep(0.5)
+        assert v.position_enu()[2] < 0.05  # centred throttle on the ground: no takeoff
+        sticks["z"] = 1000  # full throttle: PILOT_SPEED_UP
+        wait_until(lambda: v.position_enu()[2] > 1.5, 4.0, "climb")
+        assert v.velocity_enu()[2] == pytest.approx(1.5, abs=0.15)
+        sticks["z"] = 550  # inside THR_DZ around mid throttle: hold
+        time.sleep(1.0)
+        z_hold = v.position_enu()[2]
+        time.sleep(0.5)
+        assert abs(v.position_enu()[2] - z_hold) < 0.1 and abs(v.velocity_enu()[2]) < 0.1
+        sticks["x"] = 1000  # full forward (heading east, yaw 0): settles at LOIT_SPEED
+        time.sleep(2.5)
+        assert v.velocity_enu()[0] == pytest.approx(3.0, abs=0.2) and abs(v.velocity_enu()[1]) < 0.1
+        sticks["x"] = 0
+        sticks["r"] = 1000  # full right yaw: clockwise at PILOT_Y_RATE
+        time.sleep(0.5)
+        assert math.degrees(v.model.yaw_rate) == pytest.approx(-45.0, abs=5.0)
+        sticks["r"] = 0
+        assert v.mode_name == "loiter" and v.armed
+        stop.set()  # the joystick goes silent
+        stick_thread.join(1.0)
+        t_last = v._rc_override_t
+        wait_until(lambda: v.mode_name == "rtl", 3.0, "radio failsafe -> RTL")
+        fs = v.first_event("radio failsafe")
+        assert fs is not None and 1.0 <= fs - t_last <= 1.0 + 0.3  # FS_RADIO_RC_OVERRIDE_TIMEOUT_MS
+        wait_until(lambda: not v._ardu_overrides_active(), 3.0, "overrides lapse after RC_OVERRIDE_TIME")
+        assert v.clock() - t_last >= 3.0 - 0.1
+    finally:
+        stop.set()
+        v.stop()

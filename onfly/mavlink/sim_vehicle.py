@@ -147,7 +147,11 @@ PX4's MAVLink manual control input (``handle_message_manual_control``; COM_RC_IN
 it). While it lasts (COM_RC_LOSS_T) Position / Altitude / Stabilized / Manual are available;
 Position mode flies the sticks as velocities (MPC_VEL_MANUAL, MPC_Z_VEL_MAX_UP/DN, MPC_MAN_Y_MAX,
 ``expo_deadzone``) and holds at centre; its loss while armed takes NAV_RCL_ACT (``failsafe.cpp``,
-COM_RCL_EXCEPT). ArduCopter's RC override by MANUAL_CONTROL is not modelled (ignored).
+COM_RCL_EXCEPT). ArduCopter takes MANUAL_CONTROL from SYSID_MYGCS as RC overrides
+(``GCS_MAVLINK::handle_manual_control``, ``handle_manual_control_axes``; RC_OVERRIDE_TIME);
+LOITER and ALT_HOLD fly them (THR_DZ, PILOT_SPEED_UP/DN, PILOT_Y_RATE, AC_Loiter's LOIT_SPEED drag
+and braking) and GUIDED ignores them; 1 s without one is the radio failsafe (``read_radio``,
+FS_THR_ENABLE, FS_OPTIONS).
 
 Companion loss
 --------------
@@ -393,7 +397,38 @@ ARDUPILOT_PARAMS = {
     # rally points (libraries/AP_Rally/AP_Rally.cpp, ArduCopter defaults)
     "RALLY_LIMIT_KM": (0.3, _R32),
     "RALLY_INCL_HOME": (1, _I8),
+    # a ground station's MANUAL_CONTROL as RC overrides (GCS_Common.cpp handle_manual_control: only
+    # from SYSID_MYGCS, newer MAV_GCS_SYSID; RC_Channel.cpp: an override lapses RC_OVERRIDE_TIME s
+    # after the last one) and the radio failsafe (FS_THR_ENABLE 0 off, 1 RTL, 2 RTL (continue in
+    # AUTO), 3 Land, 4/5 SmartRTL (no SmartRTL here: RTL), FS_OPTIONS bit 0 continue in AUTO, 1
+    # continue in GUIDED, 2 continue landing, 4 GCS failsafe continues under pilot control)
+    "SYSID_MYGCS": (255, _I16),
+    "RC_OVERRIDE_TIME": (3.0, _R32),
+    "FS_THR_ENABLE": (1, _I8),
+    "FS_THR_VALUE": (975, _I16),
+    "FS_OPTIONS": (16, _I32),
+    # pilot input (Parameters.cpp; cm/s, cdeg, deg/s): THR_DZ around mid throttle, climb PILOT_SPEED_UP,
+    # descent PILOT_SPEED_DN (0: PILOT_SPEED_UP), yaw rate PILOT_Y_RATE with PILOT_Y_EXPO
+    "THR_DZ": (100, _I16),
+    "PILOT_SPEED_UP": (250, _I16),
+    "PILOT_SPEED_DN": (0, _I16),
+    "PILOT_Y_RATE": (202.5, _R32),
+    "PILOT_Y_EXPO": (0.0, _R32),
+    "ANGLE_MAX": (3000, _I16),
+    # Loiter (AC_Loiter.cpp): max speed cm/s, lean angle deg (0: 2/3 of ANGLE_MAX), braking
+    "LOIT_SPEED": (1250.0, _R32),
+    "LOIT_ANG_MAX": (0.0, _R32),
+    "LOIT_BRK_ACCEL": (250.0, _R32),
+    "LOIT_BRK_DELAY": (1.0, _R32),
+    "LOIT_BRK_JERK": (500.0, _R32),
 }
+
+#: ArduCopter's RC input channel defaults (RC_Channel.cpp RCn_MIN/MAX/TRIM; radio.cpp
+#: ``default_dead_zones``: roll, pitch, yaw 20, throttle 30 PWM) and the radio failsafe's frame
+#: timeouts (radio.cpp ``read_radio``; config.h FS_RADIO_TIMEOUT_MS, FS_RADIO_RC_OVERRIDE_TIMEOUT_MS).
+ARDU_RC_MIN, ARDU_RC_MAX, ARDU_RC_TRIM = 1100, 1900, 1500
+ARDU_RC_DEAD_ZONE = {"roll": 20, "pitch": 20, "throttle": 30, "yaw": 20}
+ARDU_FS_RADIO_TIMEOUT_S, ARDU_FS_RADIO_RC_OVERRIDE_TIMEOUT_S = 0.5, 1.0
 
 _ID = {
     "SYS_STATUS": _M.MAVLINK_MSG_ID_SYS_STATUS,
@@ -748,6 +783,12 @@ class SimMavlinkVehicle:
         self._sticks_t: float | None = None  # clock time of the last accepted MANUAL_CONTROL
         self._sticks_lost = False  # the manual-control-loss failsafe has been taken for this loss
         self._stick_hold: dict = {}  # Position mode's hold points (xy, z, yaw) while the sticks are centred
+        # ArduCopter RC: override PWM per channel (0 = none) and when it came; radio frames
+        self._rc_override: dict[str, int] = {}
+        self._rc_override_t: float | None = None  # clock time of the last accepted MANUAL_CONTROL
+        self._rc_receiver_present = False  # ap.rc_receiver_present: a radio frame (here: an override) was read
+        self._radio_failsafe = False  # failsafe.radio
+        self._loiter: dict = {}  # AC_Loiter state: desired velocity, brake acceleration and timer, target position
         self._flying_since_arm = False
         self._armed_at: float | None = None
         self._still_since: float | None = None
@@ -1063,6 +1104,11 @@ class SimMavlinkVehicle:
                     self._set_mode(px4_custom_mode(PX4_MAIN["auto"], PX4_AUTO_SUB["loiter"]), "takeoff complete")
                     self._target = _Target(p=np.array([*self.model.p[:2], alt]), yaw=self.model.yaw)
             return
+        if self._ardu_radio_check(t):
+            return
+        if self.armed and self.custom_mode in (ARDUCOPTER_MODE["loiter"], ARDUCOPTER_MODE["alt_hold"]):
+            self._ardu_fly_sticks(t, hold_xy=self.custom_mode == ARDUCOPTER_MODE["loiter"])
+            return
         if self.custom_mode != ARDUCOPTER_MODE["guided"] or not self.armed:
             return
         if self._takeoff_alt_m is not None:
@@ -1096,8 +1142,11 @@ class SimMavlinkVehicle:
         joystick). PX4 ``MavlinkReceiver::handle_message_manual_control``: published as a manual
         control input from MAVLink (x pitch and y roll / 1000, throttle z from [0, 1000] to [-1, 1],
         r yaw / 1000); the manual control selector takes it unless COM_RC_IN_MODE is 0 (RC only)
-        or 4 (disabled). ArduCopter is not modelled here (see docs/flight.md)."""
-        if not self.px4 or int(msg.target) not in (0, self.c.system_id):
+        or 4 (disabled). ArduCopter: :meth:`_ardu_manual_control`."""
+        if not self.px4:
+            self._ardu_manual_control(msg)
+            return
+        if int(msg.target) not in (0, self.c.system_id):
             return
         if int(self.params["COM_RC_IN_MODE"]) in (0, 4):
             return
@@ -1197,6 +1246,211 @@ class SimMavlinkVehicle:
             yaw = wrap_angle(m.yaw + rate / self.c.k_yaw)
         self._target = _Target(v=v, yaw=yaw, kind="velocity", yaw_rate_limit_radps=abs(rate) if rate else None)
 
+    # -- ArduCopter: MANUAL_CONTROL as RC overrides ------------------------------------------------
+    def _ardu_manual_control(self, msg) -> None:
+        """``GCS_MAVLINK::handle_manual_control``: only from SYSID_MYGCS and only with target equal
+        to our system id (0 is not accepted); ``GCS_MAVLINK_Copter::handle_manual_control_axes``
+        drops a message with z < 0 and overrides roll from y, pitch from -x, throttle from z in
+        [0, 1000] and yaw from r (``manual_override``: RCn_MIN + (MAX - MIN) (v + offset) / scaler;
+        INT16_MAX releases that channel). Each message is a new radio frame (``read_radio``)."""
+        if msg.get_srcSystem() != int(self.params["SYSID_MYGCS"]) or int(msg.target) != self.c.system_id:
+            return
+        if int(msg.z) < 0:
+            return
+
+        def override(value: int, offset: int, scaler: float, reversed_: bool = False) -> int:
+            if value == 32767:
+                return 0
+            value = -value if reversed_ else value
+            return int(ARDU_RC_MIN + (ARDU_RC_MAX - ARDU_RC_MIN) * (value + offset) / scaler)
+
+        pwm = {"roll": override(int(msg.y), 1000, 2000.0), "pitch": override(int(msg.x), 1000, 2000.0, True),
+               "throttle": override(int(msg.z), 0, 1000.0), "yaw": override(int(msg.r), 1000, 2000.0)}
+        with self._lock:
+            first = not self._rc_receiver_present
+            self._rc_override = pwm
+            self._rc_override_t = self.clock()
+            self._rc_receiver_present = True
+            if first:
+                self._event("manual control: RC overrides from the GCS")
+            if self._radio_failsafe and pwm["throttle"] >= int(self.params["FS_THR_VALUE"]):
+                # set_throttle_and_failsafe: a good throttle frame clears the radio failsafe
+                # (failsafe_radio_off_event: the mode is not changed back)
+                self._radio_failsafe = False
+                self._event("radio failsafe cleared")
+                self._statustext(_M.MAV_SEVERITY_WARNING, "Radio Failsafe Cleared")
+
+    def _ardu_overrides_active(self) -> bool:
+        """``RC_Channel::has_override``: within RC_OVERRIDE_TIME of the last override (< 0: for ever)."""
+        if self._rc_override_t is None or not any(self._rc_override.values()):
+            return False
+        timeout = float(self.params["RC_OVERRIDE_TIME"])
+        return timeout < 0 or self.clock() - self._rc_override_t < timeout
+
+    def _ardu_rc_input(self, channel: str) -> float:
+        """The channel's control input normalised to [-1, 1] (roll, pitch, yaw: ``pwm_to_angle_dz``
+        around RCn_TRIM) or [0, 1] (throttle: ``pwm_to_range_dz`` above RCn_MIN), each with its
+        dead zone. Without an override the last radio input stays (RC_Channel::update runs only on
+        a new frame); before any, centred sticks and zero throttle."""
+        pwm = self._rc_override.get(channel, 0)
+        dz = ARDU_RC_DEAD_ZONE[channel]
+        if channel == "throttle":
+            if not pwm:
+                return 0.0
+            r = min(max(pwm, ARDU_RC_MIN), ARDU_RC_MAX)
+            low = ARDU_RC_MIN + dz
+            return 0.0 if r <= low else (r - low) / (ARDU_RC_MAX - low)
+        if not pwm:
+            return 0.0
+        r = min(max(pwm, ARDU_RC_MIN), ARDU_RC_MAX)
+        if r > ARDU_RC_TRIM + dz:
+            return (r - ARDU_RC_TRIM - dz) / (ARDU_RC_MAX - ARDU_RC_TRIM - dz)
+        if r < ARDU_RC_TRIM - dz:
+            return (r - ARDU_RC_TRIM + dz) / (ARDU_RC_TRIM - dz - ARDU_RC_MIN)
+        return 0.0
+
+    def _ardu_pilot_climb_rate(self) -> float:
+        """``Mode::get_pilot_desired_climb_rate`` (m/s): zero in radio failsafe or without RC; else
+        THR_DZ around mid throttle, PILOT_SPEED_UP above and PILOT_SPEED_DN (0: PILOT_SPEED_UP)
+        below, linear in the throttle control input (0..1000)."""
+        if self._radio_failsafe or not self._rc_receiver_present:
+            return 0.0
+        P = self.params
+        thr = 1000.0 * self._ardu_rc_input("throttle")
+        mid = 1000.0 * (ARDU_RC_TRIM - ARDU_RC_MIN - ARDU_RC_DEAD_ZONE["throttle"]) / (ARDU_RC_MAX - ARDU_RC_MIN - ARDU_RC_DEAD_ZONE["throttle"])
+        dz = min(max(int(P["THR_DZ"]), 0), 400)
+        up = float(P["PILOT_SPEED_UP"])
+        dn = float(P["PILOT_SPEED_DN"]) or up
+        if thr < mid - dz:
+            return dn * (thr - (mid - dz)) / (mid - dz) / 100.0
+        if thr > mid + dz:
+            return up * (thr - (mid + dz)) / (1000.0 - (mid + dz)) / 100.0
+        return 0.0
+
+    @staticmethod
+    def _ardu_input_expo(value: float, expo: float) -> float:
+        """ArduPilot ``input_expo``: ``(1 - e) x / (1 - e |x|)`` for |x| <= 1 (expo capped at 0.95)."""
+        x = min(max(value, -1.0), 1.0)
+        e = min(expo, 0.95)
+        return (1.0 - e) * x / (1.0 - e * abs(x)) if e > 0 else x
+
+    def _ardu_fly_sticks(self, t: float, hold_xy: bool) -> None:
+        """ArduCopter LOITER (``mode_loiter.cpp`` with ``AC_Loiter``) and ALT_HOLD
+        (``mode_althold.cpp``) flown from the RC (override) sticks. The sticks are lean angles up
+        to LOIT_ANG_MAX (0: 2/3 of ANGLE_MAX); LOITER turns them into a desired acceleration
+        g tan(angle) in the heading frame, integrates it into a desired velocity with a drag
+        g tan(angle_max) v / LOIT_SPEED (so full stick settles at LOIT_SPEED) and, sticks centred
+        for LOIT_BRK_DELAY, a braking deceleration ramping at LOIT_BRK_JERK up to LOIT_BRK_ACCEL;
+        the target position follows the desired velocity and is held when it is zero. ALT_HOLD
+        has no horizontal hold: the lean accelerates the point mass (no drag here), level sticks
+        keep its velocity. Both take the climb rate from the throttle
+        (:meth:`_ardu_pilot_climb_rate`, the altitude target integrated from it) and the yaw rate
+        PILOT_Y_RATE ``input_expo`` PILOT_Y_EXPO from the yaw stick. In radio failsafe the pilot
+        input is zero (``clear_pilot_desired_acceleration``)."""
+        P, m, L = self.params, self.model, self._loiter
+        dt = max(t - L.get("t", t), 0.0)
+        L["t"] = t
+        fs = self._radio_failsafe or not self._rc_receiver_present
+        roll = 0.0 if fs else self._ardu_rc_input("roll")
+        pitch = 0.0 if fs else self._ardu_rc_input("pitch")
+        yaw_in = 0.0 if fs else self._ardu_rc_input("yaw")
+        angle_max = float(P["LOIT_ANG_MAX"]) if hold_xy and float(P["LOIT_ANG_MAX"]) > 0 else float(P["ANGLE_MAX"]) / 100.0 * (2.0 / 3.0 if hold_xy else 1.0)
+        th_max = math.radians(angle_max)
+        g = PointMassModel.GRAVITY_MPS2
+        fwd = g * math.tan(-pitch * th_max)  # pitch stick forward: nose down, accelerate forward
+        right = g * math.tan(roll * th_max)
+        c, s_ = math.cos(m.yaw), math.sin(m.yaw)
+        accel = np.array([fwd * c + right * s_, fwd * s_ - right * c])
+        vel = L.setdefault("v", np.array(m.v[:2], dtype=float))
+        if hold_xy:
+            a_max = g * math.tan(th_max)
+            v_lim = max(float(P["LOIT_SPEED"]), 20.0) / 100.0
+            vel = vel + accel * dt
+            speed = float(np.linalg.norm(vel))
+            brake_target = 0.0
+            jerk = float(P["LOIT_BRK_JERK"]) / 100.0
+            if not accel.any():
+                if t - L.setdefault("brake_timer", t) > float(P["LOIT_BRK_DELAY"]):
+                    brake_target = min(self._sqrt_controller(speed, 1.0, jerk, dt), float(P["LOIT_BRK_ACCEL"]) / 100.0)
+            else:
+                L["brake_timer"] = t
+            brake = L.get("brake", 0.0)
+            brake += float(np.clip(brake_target - brake, -jerk * dt, jerk * dt))
+            L["brake"] = brake
+            if speed > 0:
+                new = max(speed - (a_max * speed / v_lim + brake) * dt, 0.0)
+                vel = vel / speed * min(new, v_lim)
+            L["v"] = vel
+            p_xy = L.setdefault("p", m.p[:2].copy()) + vel * dt
+            L["p"] = p_xy
+            v_xy = vel + self.c.k_pos * (p_xy - m.p[:2])
+        else:
+            vel = vel + accel * dt
+            L["v"] = vel
+            v_xy = vel
+        climb = self._ardu_pilot_climb_rate()
+        if self.model.on_ground and climb <= 0.0:
+            L.pop("z", None)
+            self._target = None  # on the ground until the throttle asks for a climb (takeoff)
+            return
+        z = L.setdefault("z", float(m.p[2])) + climb * dt
+        L["z"] = z
+        v_z = climb + self.c.k_pos * (z - m.p[2])
+        rate = math.radians(float(P["PILOT_Y_RATE"])) * self._ardu_input_expo(yaw_in, float(P["PILOT_Y_EXPO"]))
+        if rate == 0.0:
+            yaw = L.setdefault("yaw", float(m.yaw))
+        else:
+            L.pop("yaw", None)
+            yaw = wrap_angle(m.yaw - rate / self.c.k_yaw)  # yaw stick right: clockwise
+        self._target = _Target(v=np.array([*v_xy, v_z]), yaw=yaw, kind="velocity", yaw_rate_limit_radps=abs(rate) if rate else None)
+
+    @staticmethod
+    def _sqrt_controller(error: float, p: float, second_ord_lim: float, dt: float) -> float:
+        """AP_Math ``sqrt_controller``: linear p·error near zero, sqrt(2 a (|e| - a / 2p²)) beyond
+        a / p², and no more than error / dt."""
+        if second_ord_lim <= 0 or p <= 0:
+            out = p * error
+        else:
+            linear = second_ord_lim / (p * p)
+            out = math.sqrt(2.0 * second_ord_lim * (error - linear / 2.0)) if error > linear else p * error
+        return min(out, error / dt) if dt > 0 else out
+
+    def _ardu_radio_check(self, t: float) -> bool:
+        """``Copter::read_radio``: no new radio frame for FS_RADIO_RC_OVERRIDE_TIMEOUT_MS (1 s)
+        while overrides are active, else FS_RADIO_TIMEOUT_MS (0.5 s), with FS_THR_ENABLE set
+        and (armed or RC ever seen) is the radio failsafe. Here the only radio is the GCS's
+        overrides, so it needs RC to have been seen (see docs/flight.md). True when it switched
+        modes."""
+        if self._radio_failsafe or not self._rc_receiver_present or self._rc_override_t is None:
+            return False
+        timeout = ARDU_FS_RADIO_RC_OVERRIDE_TIMEOUT_S if self._ardu_overrides_active() else ARDU_FS_RADIO_TIMEOUT_S
+        elapsed = t - self._rc_override_t
+        if elapsed < timeout or int(self.params["FS_THR_ENABLE"]) == 0:
+            return False
+        self._radio_failsafe = True
+        self._event(f"radio failsafe ({elapsed:.2f} s without a radio frame)", t)
+        return self._ardu_radio_failsafe_action()
+
+    def _ardu_radio_failsafe_action(self) -> bool:
+        """``Copter::failsafe_radio_on_event``: FS_THR_ENABLE 1/2 RTL (or LAND when RTL cannot
+        run), 3 LAND, 4/5 SmartRTL (not modelled: RTL); disarmed or landed: disarm, nothing else;
+        AUTO with FS_OPTIONS bit 0, landing with bit 2, GUIDED with bit 1 continue."""
+        if not self.armed or self.landed_state == _M.MAV_LANDED_STATE_ON_GROUND:
+            if self.armed:
+                self._disarm("radio failsafe on the ground")
+            return False
+        opts, cm = int(self.params["FS_OPTIONS"]), self.custom_mode
+        landing = cm == ARDUCOPTER_MODE["land"] or (cm == ARDUCOPTER_MODE["rtl"] and self._rtl is not None and self._rtl.phase == "land")
+        if (cm == ARDUCOPTER_MODE["auto"] and opts & 1) or (landing and opts & 4) or (cm == ARDUCOPTER_MODE["guided"] and opts & 2):
+            self._statustext(_M.MAV_SEVERITY_WARNING, "Radio Failsafe - Continuing")
+            return False
+        self._statustext(_M.MAV_SEVERITY_WARNING, "Radio Failsafe")
+        action = int(self.params["FS_THR_ENABLE"])
+        if action in (1, 2, 4, 5) and self._ardu_fence_mode("rtl", "radio failsafe"):
+            return True
+        self._ardu_fence_mode("land", "radio failsafe")
+        return True
+
     def _offboard_lost(self, since_sp: float) -> None:
         action = int(self.params["COM_OBL_RC_ACT"])
         names = {0: "Position", 1: "Altitude", 2: "Manual", 3: "Return", 4: "Land", 5: "Hold", 6: "Terminate", 7: "Disarm"}
@@ -1241,15 +1495,15 @@ class SimMavlinkVehicle:
         if mode == "loiter":  # the navigator's breach reposition: hold here (also when already in Hold)
             self._target = self._hold_here()
 
-    def _ardu_fence_mode(self, mode: str) -> bool:
-        """``Copter::set_mode(..., FENCE_BREACHED)``: False when the mode refuses (RTL without home,
+    def _ardu_fence_mode(self, mode: str, why: str = "fence breached") -> bool:
+        """``Copter::set_mode(..., reason)``: False when the mode refuses (RTL without home,
         a position mode without a position estimate)."""
         number = ARDUCOPTER_MODE[mode]
         if mode in ("rtl", "brake") and not self._position_valid:
             return False
         if mode == "rtl" and not self._ardu_home_set():
             return False
-        self._set_mode(number, "fence breached")
+        self._set_mode(number, why)
         return True
 
     def _px4_mode_available(self, mode: str) -> bool:
@@ -1268,6 +1522,7 @@ class SimMavlinkVehicle:
             if old != self.custom_mode:
                 self._rtl = None  # leaving (or re-entering) Return stops its state machine
                 self._stick_hold = {}
+                self._loiter = {}
             hold = self._hold_here()
             if self._landing_mode():
                 speed = float(self.params["MPC_LAND_SPEED"]) if self.px4 else float(self.params["LAND_SPEED"]) / 100.0
@@ -1721,6 +1976,8 @@ class SimMavlinkVehicle:
             return self.fence.prearm_failure()  # geofenceCheck.cpp: a breach is an arming-check failure
         if self.custom_mode in (ARDUCOPTER_MODE["land"], ARDUCOPTER_MODE["rtl"], ARDUCOPTER_MODE["brake"], ARDUCOPTER_MODE["auto"]):
             return f"Arm: Mode not armable ({self.mode_name.upper()})"
+        if self.custom_mode in (ARDUCOPTER_MODE["loiter"], ARDUCOPTER_MODE["alt_hold"]) and self._ardu_pilot_climb_rate() > 0:
+            return "Arm: Throttle too high"  # AP_Arming_Copter::arm_checks: above the deadband is too high
         return self.fence.prearm_failure()  # AP_Arming::fence_checks -> AC_Fence::pre_arm_check
 
     def _cmd_arm(self, arm: bool, force: bool) -> int:
