@@ -421,7 +421,7 @@ def test_pymavlink_mavproxy_style_ardupilot_setspeed_setyaw_and_reboot():
             time.sleep(0.02)
         assert abs(math.degrees(v.model.yaw) - 90.0) <= 0.5  # ENU yaw 90 deg = facing north
         assert rates and 40.0 < math.degrees(max(rates)) <= 45.5 and time.monotonic() - t0 > 1.9
-        hud = mp.latest("VFR_HUD", lambda m: m.heading in (0, 359, 1))  # what a ground station shows
+        mp.latest("VFR_HUD", lambda m: m.heading in (0, 359, 1))  # what a ground station shows
         assert np.linalg.norm(v.position_enu()[:2] - [0.0, 3.0]) < 0.15  # turned in place
 
         # `reboot` armed: FAILED; after landing and disarming it is ACCEPTED and the link goes quiet

@@ -21,11 +21,15 @@ leading dimensions.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from planning.frames import FrameError, quat_from_matrix, wrap_angle
 
 __all__ = [
+    "EARTH_RADIUS_M",
+    "ne_offset_m",
     "R_ENU_NED",
     "R_FLU_FRD",
     "enu_from_ned",
@@ -242,3 +246,17 @@ def quat_ned_frd_from_matrix_enu_flu(R_enu_flu) -> np.ndarray:
     if R.shape != (3, 3):
         raise FrameError(f"R_enu_flu must have shape (3, 3), got {R.shape}")
     return quat_from_matrix(R_ENU_NED @ R @ R_FLU_FRD)
+
+
+#: PX4 ``lib/geo`` CONSTANTS_RADIUS_OF_EARTH (m): the sphere of the flat-earth projection below.
+EARTH_RADIUS_M = 6371000.0
+
+
+def ne_offset_m(lat_deg: float, lon_deg: float, lat0_deg: float, lon0_deg: float) -> tuple[float, float]:
+    """North and east offset (m) of ``(lat, lon)`` from the reference ``(lat0, lon0)`` (degrees)
+    on the plane tangent at the reference, the flat-earth projection of PX4's map projection and
+    ArduPilot's ``Location`` offsets over the few hundred metres a scene spans. The one
+    lat/lon -> metres rule of the simulated autopilot (positions, fences, rally points)."""
+    n = math.radians(lat_deg - lat0_deg) * EARTH_RADIUS_M
+    e = math.radians(lon_deg - lon0_deg) * EARTH_RADIUS_M * math.cos(math.radians(lat0_deg))
+    return n, e

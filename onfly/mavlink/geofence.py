@@ -76,6 +76,7 @@ import math
 from dataclasses import dataclass
 import numpy as np
 
+from onfly.mavlink.frames import ne_offset_m
 from onfly.mavlink.link import mavlink2
 
 __all__ = ["FenceZone", "Fence", "fence_from_items", "ardupilot_fence_error", "px4_rally_destination",
@@ -154,11 +155,7 @@ class Fence:
 
 def _distance_m(lat1: float, lon1: float, lat2: float, lon2: float) -> float:
     """Horizontal distance (m) on a local tangent plane (PX4 map projection / ArduPilot Location)."""
-    from onfly.mavlink.sim_vehicle import EARTH_RADIUS_M
-
-    dn = math.radians(lat1 - lat2) * EARTH_RADIUS_M
-    de = math.radians(lon1 - lon2) * EARTH_RADIUS_M * math.cos(math.radians(lat2))
-    return math.hypot(dn, de)
+    return math.hypot(*ne_offset_m(lat1, lon1, lat2, lon2))
 
 
 def fence_from_items(items) -> Fence:

@@ -272,7 +272,7 @@ __all__ = [
 ]
 
 _FORCE_DISARM_MAGIC = 21196
-EARTH_RADIUS_M = 6371000.0  # PX4 lib/geo CONSTANTS_RADIUS_OF_EARTH
+EARTH_RADIUS_M = frames.EARTH_RADIUS_M  # re-exported: clients' tests convert metres to degrees with it
 
 log = logging.getLogger(__name__)
 _M = mavlink2
@@ -866,8 +866,7 @@ class SimMavlinkVehicle:
 
     def _scene_from_global(self, lat: float, lon: float, alt_amsl: float) -> np.ndarray:
         lat0, lon0, alt0 = self.c.global_origin
-        n = math.radians(lat - lat0) * EARTH_RADIUS_M
-        e = math.radians(lon - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0))
+        n, e = frames.ne_offset_m(lat, lon, lat0, lon0)
         return np.array([e, n, alt_amsl - alt0])
 
     # -- observers and faults ---------------------------------------------------------------
