@@ -50,9 +50,9 @@ def starts_in_view(tasks: Iterable[Task], camera: PinholeCamera) -> dict[str, bo
     out: dict[str, bool] = {}
     worlds: dict[str, World] = {}
     for t in tasks:
-        world = worlds.get(t.scene)
-        if world is None:
-            world = worlds[t.scene] = World.from_scene(t.scene, camera=camera)
+        world = worlds.get(t.scene_ref)
+        if world is None:  # an external scene by its file, a committed one by name
+            world = worlds[t.scene_ref] = World.from_scene(t.scene_ref, camera=camera)
         start = VehicleState(0.0, t.start.position_m.copy(), np.zeros(3), float(t.start.yaw_rad))
         r = world.renderer.render(world.T_world_cam(start), noise_key=0)
         ann = world.renderer.annotate(r)

@@ -113,3 +113,33 @@ def test_writing_references_keeps_the_scene_path_of_an_external_task_file(extern
     assert 'scene = "../world/my_lot.toml"' in path.read_text()
     assert [t.task_id for t in again] == [t.task_id for t in every]
     assert again[0].scene_file == every[0].scene_file and again[0].reference.path_length_m == every[0].reference.path_length_m
+
+
+def test_visibility_split_reads_an_external_scene_from_its_file(external):
+    from experiments.task_visibility import starts_in_view
+    from planning.camera import PinholeCamera
+
+    cam = PinholeCamera.from_fov(160, 107, 90.0, 60.0)
+    mine = load_tasks([external / "tasks" / "mine.toml"])[:4]
+    committed = {t.task_id: t for t in load_tasks() if t.scene == "parking_lot"}
+    flags = starts_in_view(mine, cam)  # the scene is "my_lot": no committed scene of that name
+    assert flags == {t.task_id: v for t, v in zip(mine, starts_in_view([committed[t.task_id.replace("mine-", "parking_lot-")] for t in mine], cam).values())}
+    assert set(flags.values()) == {True, False}  # the four cover both sides, so the test can fail
+
+
+def test_check_write_keeps_the_files_own_header_and_says_what_it_wrote(external, capsys):
+    path = external / "tasks" / "mine.toml"
+    body = path.read_text()
+    body = body[body.index("format = "):]
+    first = body.index("[tasks.reference]")
+    body = body[:first] + body[body.index("[[tasks]]", first):]  # mine-o01 loses its reference
+    path.write_text("# My lot, my tasks.\n#\n# Not the stock header.\n" + body)
+    rc = main(["tasks", "check", "--files", str(path), "--tasks", "mine-o01", "--write"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert "mine-o01               written" in out and "1 tasks: 0 ok, 1 written (were stale or unchecked), 0 failed" in out
+    text = path.read_text()
+    assert text.startswith("# My lot, my tasks.\n#\n# Not the stock header.\nformat = ")
+    assert load_tasks([path])[0].reference is not None
+    assert main(["tasks", "check", "--files", str(path), "--tasks", "mine-o01"]) == 0
+    assert "1 tasks: 1 ok, 0 stale or unchecked, 0 failed" in capsys.readouterr().out

@@ -557,7 +557,7 @@ def check_tasks(tasks: Sequence[Task], config: CheckerConfig | None = None, prog
     cfg = config if config is not None else CheckerConfig()
     by_scene: dict[str, list[int]] = {}
     for i, t in enumerate(tasks):  # an external scene by its file, a committed one by name
-        by_scene.setdefault(str(t.scene_file) if getattr(t, "scene_file", None) is not None else t.scene, []).append(i)
+        by_scene.setdefault(t.scene_ref, []).append(i)
     out: list[CheckResult | None] = [None] * len(tasks)
     for scene_name, idx in by_scene.items():
         checker = TaskChecker(load_scene(resolve_scene(scene_name)), cfg)

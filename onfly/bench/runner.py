@@ -339,8 +339,7 @@ def _scene(name_or_path: str) -> Scene:
 def _task_scene(task: Task) -> Scene:
     """The scene a task flies in: the file its task file named (external scenes), else the
     committed scene of that name."""
-    scene_file = getattr(task, "scene_file", None)
-    return _scene(str(scene_file) if scene_file is not None else task.scene)
+    return _scene(task.scene_ref)
 
 
 def _failure(end_reason: str, m: EpisodeMetrics) -> str:

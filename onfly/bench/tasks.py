@@ -224,12 +224,19 @@ class Task:
     def goal_region(self) -> GoalRegion:
         return self.goal.region
 
+    @property
+    def scene_ref(self) -> str:
+        """What the world loads this task's scene from: the scene file's path for an external
+        scene, else the committed scene's name (:func:`onfly.world.scene.resolve_scene` takes
+        either)."""
+        return str(self.scene_file) if self.scene_file is not None else self.scene
+
     def privileged_goal(self) -> PrivilegedGoal:
         """Ground truth for privileged methods (the oracle): goal box and reference waypoints."""
         wp = self.reference.waypoints_m if self.reference is not None else np.zeros((0, 3))
         motion = None
         if self.track is not None:
-            motion = actor_motion(_scene(str(self.scene_file) if self.scene_file is not None else self.scene), self.track.actor)
+            motion = actor_motion(_scene(self.scene_ref), self.track.actor)
         return PrivilegedGoal(self.goal.center_m.copy(), self.goal.half_extents_m.copy(), wp.copy(), self.track, motion)
 
     def with_reference(self, reference: Reference | None) -> "Task":

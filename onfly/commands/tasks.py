@@ -54,6 +54,17 @@ def _scene_ref(path: Path) -> str | None:
     return value if isinstance(value, str) else None
 
 
+def _header(path: Path) -> str:
+    """The comment block a task file opens with (without the ``#``), kept when references are
+    written; :data:`HEADER` for a file that has none."""
+    lines = []
+    for line in Path(path).read_text(encoding="utf-8").splitlines():
+        if not line.startswith("#"):
+            break
+        lines.append(line[1:].removeprefix(" "))
+    return "\n".join(lines) if lines else HEADER
+
+
 def _selected(args) -> list:
     if args.count is not None and args.count < 1:
         raise CliError(f"--count must be a positive integer, got {args.count}")
@@ -90,7 +101,7 @@ def run(args) -> int:
         if not r.ok:
             status, failed = "FAIL", failed + 1
         elif t.reference is None or abs(t.reference.path_length_m - r.reference.path_length_m) > STALE_LENGTH_M:
-            status, stale = "stale", stale + 1
+            status, stale = "written" if args.write else "stale", stale + 1
         length = r.reference.path_length_m if r.reference else float("nan")
         echo(f"{t.task_id:22s} {status:5s} path {length:5.1f} m  straight {r.straight_distance_m:5.1f} m  {'; '.join(r.problems)}")
         rows.append({"task": t.task_id, "status": status, "problems": list(r.problems), "path_length_m": None if np.isnan(length) else length})
@@ -101,10 +112,11 @@ def run(args) -> int:
                 by_file[t.source][t.task_id] = r.reference
         for path, refs in by_file.items():
             every = load_task_file(path)
-            write_task_file(path, every[0].scene, [t.with_reference(refs.get(t.task_id, t.reference)) for t in every], HEADER,
-                            scene_ref=_scene_ref(path))
+            write_task_file(path, every[0].scene, [t.with_reference(refs.get(t.task_id, t.reference)) for t in every],
+                            _header(path), scene_ref=_scene_ref(path))
         echo(f"wrote references of {sum(len(v) for v in by_file.values())} tasks to {len(by_file)} files")
     if args.json:
         Path(args.json).write_text(json.dumps({"tasks": rows, "failed": failed, "stale": stale}, indent=1))
-    echo(f"{len(tasks)} tasks: {len(tasks) - failed - stale} ok, {stale} stale or unchecked, {failed} failed")
+    fresh = f"{stale} written (were stale or unchecked)" if args.write else f"{stale} stale or unchecked"
+    echo(f"{len(tasks)} tasks: {len(tasks) - failed - stale} ok, {fresh}, {failed} failed")
     return 1 if failed or (stale and not args.write) else 0
