@@ -88,6 +88,19 @@ def test_enclosed_goal_is_unreachable():
     assert any("goal region: the closest reachable free point is" in p for p in r.problems)
 
 
+def test_a_goal_point_behind_the_wall_its_object_stands_against_is_refused():
+    # the gem stands inside a closed cage, against its 0.2 m south wall: the reachable voxel
+    # nearest it is outside, within the goal gap, but the wall is between them
+    cage = _obj("cage", 4, [_box([6, 6, 1.5], [3, 0.2, 3]), _box([6, 9, 1.5], [3, 0.2, 3]), _box([4.5, 7.5, 1.5], [0.2, 3, 3]),
+                            _box([7.5, 7.5, 1.5], [0.2, 3, 3]), _box([6, 7.5, 3.1], [3.2, 3.2, 0.2])], target=False)
+    gem = _obj("green gem", 5, [_box([6, 6.35, 1.5], [0.4, 0.3, 0.4])])
+    scene = _scene([cage, gem])
+    r = TaskChecker(scene).check(_task(scene, _object_goal(scene, "green gem"), ["green gem"]))
+    assert not r.ok and r.reference is None
+    assert r.stats["goal_gap_m"] <= 1.5  # reached, as far as distance goes
+    assert any("has no line of sight to 'green gem'" in p for p in r.problems)
+
+
 def test_target_behind_a_tall_wall_is_not_visible():
     # a 6 m wall (above the 5 m bounds) hides a post; the goal box is reachable in front of the wall
     screen = _obj("screen", 4, [_box([5.5, 7.5, 3], [9, 0.2, 6])], target=False)

@@ -22,6 +22,8 @@ For each task:
 5. **visibility**: every target is seen from some path point: a ray from the point to a sample
    of the target's surface (within ``visibility_range_m``, within the camera's vertical half
    field of view ``vfov_half_deg`` of a level camera; yaw is free) hits that target first;
+   and a goal object is in line of sight (at any elevation) from the goal point, which step 2
+   could otherwise put in the next room, behind a thin wall the object stands against;
 6. the reference is no longer than ``max_path_m`` (0.6 m/s for a 70 s episode), and the goal
    region is at least ``min_goal_distance_m`` from the start.
 
@@ -370,8 +372,9 @@ class TaskChecker:
         centroid = V.mean(axis=1)
         return np.vstack([pts, centroid[: max(1, k // 3)]])
 
-    def visible_mask(self, path_points: np.ndarray, name: str) -> np.ndarray:
-        """bool (n,): from which path points (n, 3) the named object is in view (see step 5)."""
+    def visible_mask(self, path_points: np.ndarray, name: str, level_camera: bool = True) -> np.ndarray:
+        """bool (n,): from which path points (n, 3) the named object is in view (see step 5).
+        ``level_camera=False``: in line of sight at any elevation (a camera free to pitch)."""
         c = self.config
         iid = self.scene.object_by_name(name).instance_id
         Q = self._surface_samples(name)
@@ -380,7 +383,9 @@ class TaskChecker:
         dist = np.linalg.norm(D, axis=2)
         horiz = np.linalg.norm(D[..., :2], axis=2)
         elev = np.degrees(np.arctan2(np.abs(D[..., 2]), horiz))
-        ok = (dist <= c.visibility_range_m) & (elev <= c.vfov_half_deg) & (dist > 1e-6)
+        ok = (dist <= c.visibility_range_m) & (dist > 1e-6)
+        if level_camera:
+            ok &= elev <= c.vfov_half_deg
         vis = np.zeros(len(P), dtype=bool)
         ii, kk = np.nonzero(ok)
         if len(ii) == 0:
@@ -447,6 +452,10 @@ class TaskChecker:
                 problems.append(f"target {name!r} is not visible from any point of the reference path")
             elif name == goal_target(task):
                 visible_from = vis_pts[int(np.argmax(mask))]
+        if task.goal.object and not self.visible_mask(path[-1:], task.goal.object, level_camera=False)[0]:
+            # the goal point is the reachable voxel nearest the object's bounds: through a thin
+            # wall that can be the room next door
+            problems.append(f"goal point {np.round(path[-1], 2).tolist()} has no line of sight to {task.goal.object!r} (a wall between?)")
         ref = None
         if not problems:
             ref = Reference(length, path, path[-1].copy(), visible_from, clear)
