@@ -197,6 +197,28 @@ def test_grounding_on_the_head_of_the_noun_phrase():
     assert best("fly to the red sedan past door 103") == [5, 6]
 
 
+def test_a_name_ending_in_an_identifier_is_one_of_its_kind():
+    """"checkout 2" is a checkout: "the checkouts" names both counters (their label, "checkout
+    counter", never occurs), "the tills" both by their aliases; "checkout 1" and "rack B" name
+    no other one of the kind; a kind word before another word is a modifier as ever."""
+    objs = {
+        1: VisibleObject(1, "checkout 1", "checkout counter", ("till 1", "checkout lane 1")),
+        2: VisibleObject(2, "checkout 2", "checkout counter", ("till 2", "checkout lane 2")),
+        3: VisibleObject(3, "rack A", "shelf"),
+        4: VisibleObject(4, "checkout sign", "sign"),
+    }
+    every = {k: 100 + k for k in objs}
+    best = lambda s, areas=every: [m.instance_id for m in ground(s, objs, areas)]  # noqa: E731
+    assert best("stop in the lane between the two checkouts") == [2, 1]  # look-alikes: the larger first
+    assert best("stop in the lane between the two checkouts", {1: 100, 4: 100}) == [1]
+    assert best("go to the tills", {2: 100}) == [2]
+    assert best("stop at checkout 2") == [2]
+    assert best("stop at checkout 2", {1: 100, 3: 100}) == []  # checkout 1 is not checkout 2
+    assert best("fly to rack B", {3: 100}) == []
+    assert best("fly along the racks") == [3]
+    assert best("hover under the checkout sign", {1: 100, 2: 100, 4: 100}) == [4]
+
+
 def test_past_and_along_govern_the_of_phrase_after_their_noun():
     """``along the row of parked cars``: the cars are the route, not a car to reach. A second
     noun joined by ``and`` keeps its own governor: ``past the red car and the blue car`` ends

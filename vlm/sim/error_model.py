@@ -44,6 +44,12 @@ naive singular) and
   sees the blue car beside it says the target is not visible (a relational referring
   expression, as in RefCOCO below); with both in view the other one is now a look-alike,
   confused at ``confusion_prob`` (rule 2) instead of never;
+- a name or alias that ends in an identifier (a number or a single letter: ``checkout 2``,
+  ``rack A``, ``till 1``) names one of the kind its other words say, so those words name it
+  too, as a label does (``the two checkouts``, ``the tills``, ``the racks``), except when an
+  identifier follows them (``checkout 1`` is not ``checkout 2``). Before, an object named
+  ``checkout 1`` with the label ``checkout counter`` was named by no plural or bare mention, and
+  a model that sees two checkout counters answered that the checkouts were not visible;
 - a contraction is read as its words (``you're``: ``you are``): a clitic is never a noun;
 - the object is a target: scene objects with ``target = false`` (ground, walls, roofs, parked
   cars and street furniture the scene marks as background; :attr:`vlm.types.VisibleObject.target`)

@@ -132,6 +132,12 @@ def _singular(w: str) -> str:
     return w
 
 
+def _is_identifier(word: str) -> bool:
+    """A word that tells one of a kind from the others at the end of a name: a number or a
+    single letter (``checkout 2``, ``rack A``)."""
+    return word.isdigit() or (len(word) == 1 and word.isalpha())
+
+
 def _lower(text: str) -> str:
     """Lower case with contractions spelled out (``you're`` -> ``you are``, ``don't`` -> ``do
     not``): a clitic is a word, never a noun. The possessive ``'s`` stays (its ``s`` ends a
@@ -255,6 +261,11 @@ def ground(subtask: str, objects: Mapping[int, VisibleObject], areas_px: Mapping
         if areas_px.get(iid, 0) <= 0 or not getattr(obj, "target", True):
             continue
         phrases = [(words(obj.name), "name")] + [(words(a), "alias") for a in obj.aliases] + [(words(obj.label), "label")]
+        # a name that ends in an identifier ("checkout 2", "rack A") is one of the kind its
+        # other words name: "the checkouts" names it, "checkout 1" does not
+        kinds = [q[:-1] for q, _ in phrases[:-1] if len(q) > 1 and _is_identifier(q[-1])]
+        phrases += [(q, "kind") for q in dict.fromkeys(map(tuple, kinds)) if list(q) not in (r for r, _ in phrases)]
+        phrases = [(list(q), via) for q, via in phrases]
         own = {w for p, _ in phrases for w in p}
         own_post = [q for p, _ in phrases for k in range(1, len(p)) if (q := _postmodifier(p, [False] * (len(p) - 1) + [True], k))]
         for phrase, via in phrases:
@@ -262,6 +273,8 @@ def ground(subtask: str, objects: Mapping[int, VisibleObject], areas_px: Mapping
                 end = i + len(phrase)
                 if end < len(text) and not breaks[end - 1] and not _ends_phrase(text[end]):
                     continue  # a modifier of a longer noun phrase, not its head
+                if via == "kind" and end < len(text) and not breaks[end - 1] and _is_identifier(text[end]):
+                    continue  # another one of the kind, by its own identifier
                 j = _modifiers_start(text, breaks, i)
                 if any(w not in own for w in text[j:i]):
                     continue  # a modifier says another object of the kind ("stairwell door", "palm tree")
