@@ -53,6 +53,7 @@ from onfly.search import (
     SearchTrigger,
     at_dead_end,
     best_look_target,
+    leg_end_held,
     explore_target,
     frontier_target,
     look_target,
@@ -913,12 +914,7 @@ class OnFlyPilot:
         if plan is not None and search_goal is not None and self.mode is PilotMode.SEARCHING:
             # a leg whose end the goal check holds back where the vehicle already is (behind a
             # wall, inside an obstacle's clearance) is over: the next leg, not a hover to a stall
-            arrive = cfg.search.explore_arrive_m
-            held = (
-                plan.goal_adjusted
-                and float(np.linalg.norm(plan.goal_used[:2] - state.p[:2])) <= arrive
-                and float(np.linalg.norm(search_goal[:2] - state.p[:2])) > arrive + 0.5
-            )
+            held = plan.goal_adjusted and leg_end_held(plan.goal_used, search_goal, state.p, cfg.search.explore_arrive_m)
             # no safe plan toward the leg's end, the vehicle at rest on the last one flown
             unplanned = not plan.ok and _at_rest(state)
             if self.search.leg_blocked(t_s, held or unplanned):

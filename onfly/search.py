@@ -115,6 +115,7 @@ __all__ = [
     "SearchTrigger",
     "Search",
     "at_dead_end",
+    "leg_end_held",
     "best_look_target",
     "explore_target",
     "frontier_target",
@@ -448,6 +449,19 @@ def at_dead_end(dead_ends: np.ndarray | None, point: np.ndarray, radius_m: float
     if not len(ends):
         return False
     return bool(np.min(np.linalg.norm(ends[:, :2] - np.asarray(point, float)[None, :2], axis=1)) <= radius_m)
+
+
+def leg_end_held(goal_used: np.ndarray, leg_end: np.ndarray, position: np.ndarray, arrive_m: float) -> bool:
+    """True when the planner holds a leg's end back where the vehicle already is: the goal it
+    planned to (``goal_used``, after its goal check) lies within ``arrive_m`` of ``position``
+    while the leg's end (``leg_end``) is farther than ``arrive_m`` (not reached). Horizontal
+    distances, metres, world frame. Any distance of the end counts: an end held back 1.1 m off,
+    round a container's corner, left the vehicle hovering until the stall window ended."""
+    p = np.asarray(position, float)[:2]
+    return (
+        float(np.linalg.norm(np.asarray(goal_used, float)[:2] - p)) <= arrive_m
+        and float(np.linalg.norm(np.asarray(leg_end, float)[:2] - p)) > arrive_m
+    )
 
 
 def explore_target(

@@ -24,6 +24,7 @@ from onfly.search import (
     SearchTrigger,
     best_look_target,
     explore_target,
+    leg_end_held,
     look_target,
     open_heading,
     open_ray_target,
@@ -592,6 +593,19 @@ def test_travel_heading_is_the_recent_displacement():
     for k in range(30):
         still.remember(k * 0.2, np.array([0.0, 0.0, 1.0]))
     assert still.travel_heading(5.8) is None
+
+
+def test_a_leg_end_held_back_at_the_vehicle_is_held_at_any_distance_beyond_arrival():
+    p = np.array([-13.21, -6.77, 1.49])
+    at_vehicle = p + [0.05, 0.0, 0.0]
+    # the held-out yard: an end 1.1 m off round a container's corner, the plan held at the
+    # vehicle; before, an end nearer than arrival + 0.5 m was never held, and the vehicle
+    # hovered until the stall window ended
+    assert leg_end_held(at_vehicle, [-14.15, -7.35, 1.5], p, 0.8)
+    assert leg_end_held(at_vehicle, p + [6.0, 0.0, 0.0], p, 0.8)
+    assert not leg_end_held(at_vehicle, p + [0.7, 0.0, 0.0], p, 0.8)  # arrived: the leg ends by arrival
+    assert not leg_end_held(p + [1.5, 0.0, 0.0], p + [3.0, 0.0, 0.0], p, 0.8)  # the plan still leads on
+    assert leg_end_held(at_vehicle, p + [0.0, 0.0, 3.0] + [0.9, 0.0, 0.0], p, 0.8)  # horizontal distances
 
 
 # -- closed loop ------------------------------------------------------------------------------
