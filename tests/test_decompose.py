@@ -114,6 +114,13 @@ def test_r2r_closing_clauses_are_cut():
         ("Fly to the panel, then over to the robot arm, and finally stop at the hydraulic press.",
          ["Fly to the panel", "over to the robot arm", "finally stop at the hydraulic press"]),
         ("Go past the landing and hovering drone.", ["Go past the landing and hovering drone"]),  # whole words only
+        # route verbs of rule 3 beyond go / fly / turn: come, cut, duck, ...
+        ("Go past the cement mixer, fly in under the concrete slab, and come out the other side to the blue container.",
+         ["Go past the cement mixer", "fly in under the concrete slab", "come out the other side to the blue container"]),
+        ("Go around the end of the scaffolding, cut under the concrete slab, and stop at the yellow skip.",
+         ["Go around the end of the scaffolding", "cut under the concrete slab", "stop at the yellow skip"]),
+        ("Go past the wheelchair ramp, duck under the platform to the blue sofa, then stop at the door.",
+         ["Go past the wheelchair ramp", "duck under the platform to the blue sofa", "stop at the door"]),
     ],
 )
 def test_fallback_examples(instruction, expected):

@@ -94,10 +94,11 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 MOVEMENT_VERBS = (
-    "approach", "ascend", "bear", "circle", "climb", "continue", "cross", "descend", "enter",
-    "exit", "face", "fly", "follow", "go", "halt", "head", "hover", "keep", "land", "leave",
-    "make", "move", "navigate", "pass", "proceed", "return", "rise", "rotate", "stand", "step",
-    "stop", "take", "travel", "turn", "veer", "wait", "walk",
+    "approach", "ascend", "bear", "circle", "climb", "come", "continue", "cross", "cut",
+    "descend", "drop", "duck", "enter", "exit", "face", "fly", "follow", "go", "halt", "head",
+    "hover", "keep", "land", "leave", "loop", "make", "move", "navigate", "pass", "proceed",
+    "return", "rise", "rotate", "stand", "step", "stop", "swing", "take", "travel", "turn",
+    "veer", "wait", "walk",
 )  # fmt: skip
 #: Verbs that open a closing clause ("... and stop at the door"); rule 4 of the splitter.
 CLOSING_VERBS = ("stop", "land", "hover", "halt", "wait", "finish", "park", "find")
