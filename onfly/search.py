@@ -65,7 +65,8 @@ Policy (parameters in :class:`SearchConfig`):
    do not re-aim the leg (:meth:`Search.during_glance`): those views are oblique, and their
    deepest directions pull the leg sideways.
 3d. **A leg that cannot be flown ends**: when the planner's goal check holds the leg's end
-   back where the vehicle already is (an end behind a wall), or the planner finds no safe plan
+   back where the vehicle already is (an end behind a wall, round a corner; at any distance
+   beyond arrival: :func:`leg_end_held`), or the planner finds no safe plan
    toward it while the vehicle is at rest (a gap its linearized clearance cannot thread), for
    ``leg_blocked_s``, the leg is over (:meth:`Search.leg_blocked`) and the next one is chosen,
    instead of a hover until the stall window ends. Its end is a dead end (as is the end of a
