@@ -153,7 +153,10 @@ class CheckerConfig:
 
 @dataclass(frozen=True, eq=False)
 class CheckResult:
-    """Outcome for one task: ``ok`` with a Reference, or the problems that make it unsolvable."""
+    """Outcome for one task: ``ok`` with a Reference, or the problems that make it unsolvable.
+    ``straight_distance_m``: the straight line from the start to the goal region's nearest
+    point, metres (the reference path ends within ``max_goal_gap_m`` of the region, so it can
+    be the shorter of the two)."""
 
     task_id: str
     ok: bool
