@@ -78,9 +78,15 @@ def test_detour_through_the_gap_is_found_and_proven_clear(yard):
     assert ref.visible_from_m is not None
 
 
+def _cage():
+    """A closed 3 x 3 x 3 m box of 0.2 m walls and a roof round (6, 7.5), its floor the ground."""
+    walls = [_box([6, 6, 1.5], [3, 0.2, 3]), _box([6, 9, 1.5], [3, 0.2, 3]), _box([4.5, 7.5, 1.5], [0.2, 3, 3]),
+             _box([7.5, 7.5, 1.5], [0.2, 3, 3]), _box([6, 7.5, 3.1], [3.2, 3.2, 0.2])]
+    return _obj("cage", 4, walls, target=False)
+
+
 def test_enclosed_goal_is_unreachable():
-    cage = _obj("cage", 4, [_box([6, 6, 1.5], [3, 0.2, 3]), _box([6, 9, 1.5], [3, 0.2, 3]), _box([4.5, 7.5, 1.5], [0.2, 3, 3]),
-                            _box([7.5, 7.5, 1.5], [0.2, 3, 3]), _box([6, 7.5, 3.1], [3.2, 3.2, 0.2])], target=False)
+    cage = _cage()
     gem = _obj("green gem", 5, [_box([6, 7.5, 0.3], [0.4, 0.4, 0.4])])
     scene = _scene([cage, gem])
     r = TaskChecker(scene).check(_task(scene, _object_goal(scene, "green gem"), ["green gem"]))
@@ -91,8 +97,7 @@ def test_enclosed_goal_is_unreachable():
 def test_a_goal_point_behind_the_wall_its_object_stands_against_is_refused():
     # the gem stands inside a closed cage, against its 0.2 m south wall: the reachable voxel
     # nearest it is outside, within the goal gap, but the wall is between them
-    cage = _obj("cage", 4, [_box([6, 6, 1.5], [3, 0.2, 3]), _box([6, 9, 1.5], [3, 0.2, 3]), _box([4.5, 7.5, 1.5], [0.2, 3, 3]),
-                            _box([7.5, 7.5, 1.5], [0.2, 3, 3]), _box([6, 7.5, 3.1], [3.2, 3.2, 0.2])], target=False)
+    cage = _cage()
     gem = _obj("green gem", 5, [_box([6, 6.35, 1.5], [0.4, 0.3, 0.4])])
     scene = _scene([cage, gem])
     r = TaskChecker(scene).check(_task(scene, _object_goal(scene, "green gem"), ["green gem"]))
