@@ -24,7 +24,8 @@ For each task:
    field of view ``vfov_half_deg`` of a level camera; yaw is free) hits that target first;
    and a goal object is in line of sight (at any elevation) from the goal point, which step 2
    could otherwise put in the next room, behind a thin wall the object stands against;
-6. the reference is no longer than ``max_path_m`` (0.6 m/s for a 70 s episode), and the goal
+6. the reference is no longer than ``max_path_m`` (30 m: 50 s at the paper's 0.6 m/s, leaving
+   20 s of a 70 s episode for turns, decisions and the stop), and the goal
    region is at least ``min_goal_distance_m`` from the start.
 
 The result, a :class:`onfly.bench.tasks.Reference` per task, is written into the task files
@@ -95,7 +96,7 @@ class CheckerConfig:
     path_sample_m : spacing of the exact clearance samples along the path
     visibility_step_m : spacing of the path points used for the visibility test
     min_goal_distance_m : least straight-line distance from the start to the goal region
-    max_path_m : longest admissible reference path
+    max_path_m : longest admissible reference path, metres (step 6)
     seed : seeds the surface samples
     """
 
