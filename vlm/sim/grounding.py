@@ -263,9 +263,9 @@ def ground(subtask: str, objects: Mapping[int, VisibleObject], areas_px: Mapping
         phrases = [(words(obj.name), "name")] + [(words(a), "alias") for a in obj.aliases] + [(words(obj.label), "label")]
         # a name that ends in an identifier ("checkout 2", "rack A") is one of the kind its
         # other words name: "the checkouts" names it, "checkout 1" does not
-        kinds = [q[:-1] for q, _ in phrases[:-1] if len(q) > 1 and _is_identifier(q[-1])]
-        phrases += [(q, "kind") for q in dict.fromkeys(map(tuple, kinds)) if list(q) not in (r for r, _ in phrases)]
-        phrases = [(list(q), via) for q, via in phrases]
+        for q, _ in phrases[:-1]:  # the label names the kind already
+            if len(q) > 1 and _is_identifier(q[-1]) and all(q[:-1] != r for r, _ in phrases):
+                phrases.append((q[:-1], "kind"))
         own = {w for p, _ in phrases for w in p}
         own_post = [q for p, _ in phrases for k in range(1, len(p)) if (q := _postmodifier(p, [False] * (len(p) - 1) + [True], k))]
         for phrase, via in phrases:
