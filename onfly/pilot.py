@@ -77,6 +77,7 @@ from planning.trajectory import Trajectory, VehicleState
 from planning.verifier import Verifier, VerifierConfig
 from planning.volume import FlightVolume
 from vlm.compass import compass_heading
+from vlm.turns import opening_turn
 from vlm.decompose import DecompositionError, count_steps, decompose_detailed
 from vlm.following import follow_intent
 from vlm.feature_cache import FeatureCache
@@ -237,6 +238,20 @@ class PilotConfig:
         of view in gusts and the monitor answered LOST, ``duplex-o05``). None = off
     keep_in_view_max_m : the farthest (horizontal metres from the target) a goal is moved back:
         a target far below (the ground) is not watched from far away; the goal then stops here
+    turn_in_words : an instruction that opens with a turn made where the vehicle is ("turn
+        around and head down to the elevator lobby", "turn left into the kitchen";
+        :func:`vlm.turns.opening_turn`) is begun by turning in place by that angle from the
+        start heading (mode ``TURNING``, ``turn_in_words`` and ``turned`` events; ours). The
+        decision agent answers with a pixel of the frame, and the way the words start on lies
+        behind or beside the camera: the paper's pilot flies whatever the model points at
+        ahead (a held-out hotel's "turn around ...": 12 s down the corridor the wrong way, then
+        a dead end). No decision is asked for or flown during the turn, a STOP is still heard,
+        and the turn ends within ``recovery_yaw_tolerance_rad`` or after
+        ``recovery_timeout_s``. Only the opening words: a later subtask's turn ("..., then turn
+        right into the small meeting room") is relative to a way the vehicle may already have
+        taken, since the decision agent is asked about the next subtask's target too
+        (``subtask_lookahead``) and flies to it once it is in view; turning again there turned
+        the hard set's ``office_floor-l06`` away from its table. False = the paper's pilot
     """
 
     control_period_s: float = 0.1
@@ -270,6 +285,7 @@ class PilotConfig:
     turn_first: bool = True
     keep_in_view_margin_rad: float | None = 0.1
     keep_in_view_max_m: float = 2.5
+    turn_in_words: bool = True
 
     def __post_init__(self) -> None:
         for name in ("control_period_s", "monitor_period_s", "goal_timeout_s", "recovery_timeout_s"):
@@ -346,6 +362,7 @@ class PilotMode(str, Enum):
     RECOVERING = "recovering"  # LOST: stopped, turning to the last normal heading
     CONFIRMING = "confirming"  # a STOP heard, not yet stable: ask again on the next frame
     SEARCHING = "searching"  # the target is not being found: scan in place, then explore
+    TURNING = "turning"  # the words open with a turn: turning in place before asking the way
     FINISHED = "finished"
 
 
@@ -456,6 +473,9 @@ class OnFlyPilot:
         self._pending_decomposition = None  # the decomposition call, until it is submitted
         self._one_step = False  # the instruction has one step: an answer about it is about the first subtask
         self.east_yaw_rad: float | None = 0.0  # where east lies in the world frame (set_east_yaw)
+        self._turn_due: float | None = None  # the turn the instruction opens with, not yet begun (radians, CCW)
+        self._turn_yaw: float | None = None  # the heading the turn in the words ends at (world)
+        self._turn_start_s = 0.0
 
     # -- lifecycle ------------------------------------------------------------------------------
     def set_east_yaw(self, yaw_rad: float | None) -> None:
@@ -476,6 +496,7 @@ class OnFlyPilot:
         latency (about 3 s) before any goal.
         """
         self.instruction = instruction
+        self._turn_due = opening_turn(instruction) if self.config.turn_in_words else None
         try:
             self._one_step = count_steps(instruction) == 1
         except DecompositionError:
@@ -512,6 +533,7 @@ class OnFlyPilot:
             self._on_frame(obs)
         for landed in self.runtime.poll():
             self._apply(landed, state)
+        self._begin_turn(t_s, state)
         if self.mode is not PilotMode.FINISHED:
             self._start_agents(t_s)
         self._submit_decomposition()  # after the first decision (``begin``)
@@ -583,11 +605,13 @@ class OnFlyPilot:
         obs = self.latest
         if obs is None:
             return
+        turning = self.mode in (PilotMode.RECOVERING, PilotMode.TURNING)
         if self.tasks is None:
-            self._start_early_decision(obs)
+            if not turning:
+                self._start_early_decision(obs)
             return
         subtask = self._asked_subtask()
-        recovering = self.mode is PilotMode.RECOVERING
+        recovering = turning
         if not self.config.dual_agent:
             if not self.runtime.busy(SINGLE) and obs.frame_id != self._decision_frame and not recovering:
                 self._decision_frame = obs.frame_id
@@ -673,8 +697,8 @@ class OnFlyPilot:
                 "latency_s": out.latency_s,
             },
         )
-        if self.mode in (PilotMode.FINISHED, PilotMode.RECOVERING):
-            return
+        if self.mode in (PilotMode.FINISHED, PilotMode.RECOVERING, PilotMode.TURNING):
+            return  # a decision on a frame that faced elsewhere
         speculative = same_subtask(out.subtask, self.instruction) and (self.tasks is None or self._speculative)
         if self.tasks is None and not speculative:
             return
@@ -736,7 +760,7 @@ class OnFlyPilot:
             return
         if not same_subtask(out.subtask, self._asked_subtask()):
             return
-        if self.mode is PilotMode.RECOVERING and out.status.value != Status.STOP.value:
+        if self.mode in (PilotMode.RECOVERING, PilotMode.TURNING) and out.status.value != Status.STOP.value:
             return
         if out.status.value == Status.STOP.value and self.follow.ignores_stop(out.subtask):
             self._event(t_s, "stop_ignored", {"reason": "following without an end", "position": state.p})
@@ -850,6 +874,14 @@ class OnFlyPilot:
                 self._start_search(t_s, state, SearchTrigger.STALL, explore_first=True)
             if self.mode is PilotMode.SEARCHING:
                 search_goal, yaw_ref = self._search_control(t_s, state)
+        if self.mode is PilotMode.TURNING:
+            err = abs(wrap_angle(state.yaw - self._turn_yaw))
+            if err <= cfg.recovery_yaw_tolerance_rad or t_s - self._turn_start_s > cfg.recovery_timeout_s:
+                self.mode = PilotMode.HOLDING
+                self.search.reset_stall()  # the hold was on purpose
+                self._event(t_s, "turned", {"yaw": state.yaw, "yaw_error": err})
+            else:
+                yaw_ref = self._turn_yaw
         if self.mode is PilotMode.RECOVERING:
             err = abs(wrap_angle(state.yaw - (self._recovery_yaw or state.yaw)))
             if err <= cfg.recovery_yaw_tolerance_rad or t_s - self._recovery_start_s > cfg.recovery_timeout_s:
@@ -923,6 +955,17 @@ class OnFlyPilot:
             key = plan.fallback.value
             self.planner_fallbacks[key] = self.planner_fallbacks.get(key, 0) + 1
         return PilotTick(traj, self.finished, self.mode, None if self.goal_world is None else self.goal_world.copy(), plan)
+
+    def _begin_turn(self, t_s: float, state: VehicleState) -> None:
+        """Begin the turn the instruction opens with (``turn_in_words``), on the first tick."""
+        if self._turn_due is None:
+            return
+        angle, self._turn_due = self._turn_due, None
+        self._turn_yaw = float(wrap_angle(state.yaw + angle))
+        self._turn_start_s = t_s
+        self._hold_p = state.p.copy()
+        self.mode = PilotMode.TURNING
+        self._event(t_s, "turn_in_words", {"angle": angle, "from_yaw": state.yaw, "yaw": self._turn_yaw, "position": state.p})
 
     # -- search and the flight volume -----------------------------------------------------------
     @property

@@ -18,6 +18,7 @@ from onfly.world.world import World
 from planning.camera import PinholeCamera
 from planning.frames import wrap_angle
 from planning.planner import Planner
+from planning.trajectory import VehicleState
 from vlm_fakes import ScriptedVlm, text, timeout
 
 CAM = PinholeCamera.from_fov(160, 107, 90.0, 60.0)
@@ -602,3 +603,44 @@ def test_a_target_gone_at_the_goal_starts_the_search_without_waiting_for_the_goa
     else:
         assert pilot.mode is PilotMode.NAVIGATING and not pilot.search.active
         assert not any(e.kind == "search_start" for e in pilot.events)
+
+
+def _fly_from_south_facing(planner, instruction, config=None):
+    """The red-van flight started facing away from the van (yaw -90 deg: south), with the
+    pilot's modes and the vehicle's poses recorded each control period."""
+    m = BackendMethod(ScriptedVlm("perfect"), config=config, planner=planner)
+    start = VehicleState(0.0, [0.0, -26.0, 1.5], np.zeros(3), -np.pi / 2)
+    world = World.from_scene("urban_block", camera=CAM, initial_state=start)
+    steps = []
+    r = run_episode(
+        world, m, instruction=instruction, goal=RED_VAN, reference_path_m=10.0, seed=0, error_model="test",
+        config=SHORT, observer=lambda s: steps.append((s.t_s, s.state.p.copy(), s.state.yaw, s.method.pilot.mode)),
+    )  # fmt: skip
+    return m, r, steps
+
+
+def test_an_instruction_that_opens_with_a_turn_is_begun_by_turning_in_place(planner):
+    m, r, steps = _fly_from_south_facing(planner, "Turn around and fly to the red van, and stop right next to it.")
+    ev = [e for e in m.pilot.events]
+    turn = next(e for e in ev if e.kind == "turn_in_words")
+    turned = next(e for e in ev if e.kind == "turned")
+    # the half turn counts from the start heading (the vehicle was not under way)
+    assert turn.t_s == pytest.approx(0.0) and turn.data["yaw"] == pytest.approx(np.pi / 2, abs=1e-9)
+    assert abs(wrap_angle(turned.data["yaw"] - np.pi / 2)) <= PilotConfig().recovery_yaw_tolerance_rad + 1e-9
+    # a half turn at the paper's 0.4 rad/s takes about 8 s, turned in place with no decision asked
+    assert 6.0 < turned.t_s < PilotConfig().recovery_timeout_s
+    during = [(t, p, mode) for t, p, _, mode in steps if t < turned.t_s - 0.05]
+    assert all(mode is PilotMode.TURNING for _, _, mode in during)
+    assert max(np.linalg.norm(p[:2] - np.array([0.0, -26.0])) for _, p, _ in during) < 0.3
+    assert not [e for e in ev if e.kind == "decision" and e.t_s < turned.t_s]
+    assert r.end_reason == "stopped" and r.metrics.success and not r.metrics.collided
+
+
+def test_without_turn_in_words_the_same_flight_asks_the_way_at_once(planner):
+    from dataclasses import replace
+
+    m, r, steps = _fly_from_south_facing(planner, "Turn around and fly to the red van, and stop right next to it.", replace(PilotConfig(), turn_in_words=False))
+    assert not [e for e in m.pilot.events if e.kind == "turn_in_words"]
+    assert next(e for e in m.pilot.events if e.kind == "decision").t_s < 2.0
+    assert all(mode is not PilotMode.TURNING for _, _, _, mode in steps)
+
