@@ -227,6 +227,10 @@ def test_a_subtask_that_only_refers_back_is_joined_to_the_one_before():
     ]
     assert attach_back_references(["fly to the tree", "go to that door"]) == ("fly to the tree", "go to that door")
     assert attach_back_references(["fly to the tree", "land near that, by the bench"]) == ("fly to the tree, land near that, by the bench",)
+    # the speaker is no target: "take me there" points back, "take me to the desk" names a desk
+    assert decompose("Where's the ice machine on this floor? Take me there.") == ["Where's the ice machine on this floor, Take me there"]
+    assert attach_back_references(["find the bench", "take us to it"]) == ("find the bench, take us to it",)
+    assert attach_back_references(["fly to the tree", "take me to the reception desk"]) == ("fly to the tree", "take me to the reception desk")
 
 
 @pytest.mark.parametrize(

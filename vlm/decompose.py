@@ -51,8 +51,9 @@ names nothing the agents can find. :func:`attach_back_references` joins such a s
 one before it (``"..., go to it"``); :func:`decompose_detailed` applies it to every
 decomposition, the model's and the fallback's. A subtask counts as a back-reference when it
 holds one of :data:`BACK_REFERENCE_WORDS` and every other word is a movement verb or a
-function word (:data:`_FILLER_WORDS`): ``go to it``, ``stop there``, ``land right next to
-it``; ``go to that door`` names a door and stays. So does one whose first reference points back
+function word (:data:`_FILLER_WORDS`, the speaker's ``me`` / ``us`` among them): ``go to it``,
+``stop there``, ``land right next to it``, ``take me there``; ``go to that door`` names a door
+and stays. So does one whose first reference points back
 (:func:`opens_with_back_reference`: ``stop beside it, across from office 105``). A subtask that only closes the one before it
 (every word in :data:`CLOSING_ONLY_WORDS`: ``stop``, ``then land``) is joined the same way: on
 its own it names nothing a monitor could judge complete. Likewise a statement that only sets the
@@ -135,7 +136,7 @@ _FILLER_WORDS = frozenset(MOVEMENT_VERBS) | frozenset(
         "a", "about", "above", "all", "and", "around", "at", "away", "back", "behind", "below", "beside",
         "by", "close", "closer", "down", "front", "in", "into", "just", "near", "next", "now", "of", "off",
         "on", "onto", "over", "please", "right", "the", "then", "to", "toward", "towards", "under", "up",
-        "with", "you", "your", "its",
+        "with", "you", "your", "its", "me", "us",
     }
 )  # fmt: skip
 #: openings of a statement that describes the scene instead of asking for a movement
