@@ -795,6 +795,7 @@ class SimMavlinkVehicle:
         self._position_valid = True
         self._accel_enu = np.zeros(3)  # the model's acceleration over the last physics step (scene ENU)
         self._ping_seq = 0
+        self._statustext_id = 0  # the id of the last chunked STATUSTEXT (PX4: of the next text)
         self._t_boot = clock()
         self._target: _Target | None = None
         self._setpoint: _Target | None = None
@@ -1026,9 +1027,24 @@ class SimMavlinkVehicle:
         log.info("sim vehicle t=%.3f: %s", t, text)
 
     def _statustext(self, severity: int, text: str) -> None:
+        """STATUSTEXT: a text longer than the 50-byte field goes out in 50-byte chunks sharing one
+        id, chunk_seq counting up (clients such as MAVSDK and MAVProxy join them). PX4
+        (``streams/STATUSTEXT.hpp``): every text takes the next id (from 0), the last chunk is the
+        rest. ArduPilot (``GCS::send_textv``): id 0 for a text that fits, else the next id (never
+        0), and a text of a multiple of 50 bytes ends with an empty chunk."""
         with self._lock:
             self.statustexts.append((self.clock(), text))
-        self._send(self.link.mav.statustext_encode(severity, text.encode()[:50]))
+            data = text.encode()
+            if self.px4:
+                text_id, self._statustext_id = self._statustext_id, (self._statustext_id + 1) % 2**16
+                chunks = [data[i:i + 50] for i in range(0, max(len(data), 1), 50)]
+            elif len(data) <= 50:
+                text_id, chunks = 0, [data]
+            else:
+                self._statustext_id = self._statustext_id % 0xFFFF + 1
+                text_id, chunks = self._statustext_id, [data[i:i + 50] for i in range(0, len(data) + 1, 50)]
+        for seq, chunk in enumerate(chunks):
+            self._send(self.link.mav.statustext_encode(severity, chunk, text_id, seq))
 
     # -- physics and rules ------------------------------------------------------------------
     def _physics(self, dt: float, t: float) -> None:
