@@ -168,18 +168,60 @@ Companion loss
   and a position-only target is held for ever (``mode_guided.cpp``
   ``velaccel_control_run`` / ``posvelaccel_control_run`` vs ``pos_control_run``).
 
-Setpoints (SET_POSITION_TARGET_LOCAL_NED in MAV_FRAME_LOCAL_NED, SET_POSITION_TARGET_GLOBAL_INT)
-------------------------------------------------------------------------------------------------
-PX4 reads type_mask per axis: an ignored component is NaN and the controller uses what is
-finite on each axis (``mavlink_receiver.cpp`` ``handle_message_set_position_target_local_ned``;
-e.g. x/y position with z velocity). ArduCopter uses a whole vector or none: any set ignore bit
-of a vector ignores all of it (``GCS_MAVLink_Copter.cpp``
-``handle_message_set_position_target_local_ned``: ``pos_ignore = type_mask & POS_IGNORE``).
-Non-finite used fields drop the message. ArduCopter accepts targets in GUIDED only.
+Setpoints (SET_POSITION_TARGET_LOCAL_NED, SET_POSITION_TARGET_GLOBAL_INT)
+------------------------------------------------------------------------
+In MAV_FRAME_LOCAL_NED (the estimator's frame) PX4 reads type_mask per axis: an ignored
+component is NaN and the controller uses what is finite on each axis (``mavlink_receiver.cpp``
+``handle_message_set_position_target_local_ned``; e.g. x/y position with z velocity).
+ArduCopter uses a whole vector or none: any set ignore bit of a vector ignores all of it
+(``GCS_MAVLink_Copter.cpp`` ``handle_message_set_position_target_local_ned``: ``pos_ignore =
+type_mask & POS_IGNORE``). Non-finite used fields drop the message. ArduCopter takes targets in
+GUIDED only (ignored in any other mode).
 
-SET_POSITION_TARGET_GLOBAL_INT (lat/lon degE7, alt m, NED velocity / acceleration, NED yaw rad;
-converted with the same :meth:`SimMavlinkVehicle._scene_from_global` as DO_REPOSITION and
-mission items):
+The other frames of SET_POSITION_TARGET_LOCAL_NED. The body frames' vectors are in the heading
+frame (x forward, y right, z down) and turned by the vehicle's heading in the estimator frame
+(:meth:`SimMavlinkVehicle._local_ned_from_heading_frame`), so a body-frame target means the same
+in the scene whatever the estimator frame's rotation:
+
+- PX4 (``handle_message_set_position_target_local_ned``): LOCAL_NED and BODY_NED only. In
+  BODY_NED the position is never used (NaN whatever the mask), velocity and acceleration are
+  each used whole or not at all (any of their three ignore bits drops the vector), the
+  velocity's x/y are rotated by the heading (``Eulerf(R)(2)``) and its z kept, the acceleration
+  by the whole attitude (``R * acceleration_body_sp``); the yaw stays absolute. Any other frame
+  (LOCAL_OFFSET_NED, BODY_OFFSET_NED, BODY_FRD, ...) is dropped with "SET_POSITION_TARGET_LOCAL_NED
+  coordinate frame N unsupported"; a used acceleration with the force bit with "... force not
+  supported"; a message with nothing used (a BODY_NED position alone) with "... invalid". A
+  dropped message is no offboard signal (OFFBOARD refused, offboard lost in it).
+- ArduCopter (``handle_message_set_position_target_local_ned``): LOCAL_NED, LOCAL_OFFSET_NED,
+  BODY_NED, BODY_OFFSET_NED; any other frame (BODY_FRD too) stops: ``ModeGuided::init(true)``,
+  a zero-velocity target (brake and hover), as a force setpoint, an insane velocity
+  (``sane_vel_or_acc_vector``), position + acceleration without velocity or nothing used do. In
+  the body frames the x/y of position, velocity and acceleration are rotated by the heading
+  (``AP_AHRS::body_to_earth2D``); in every frame but LOCAL_NED the position is an offset from the
+  current position (BODY_NED too; ``get_relative_position_NED_origin``, without a position
+  estimate: stop); velocities are never offset. The yaw is relative in the body frames. Then
+  pos + vel (+ acc) is a position/velocity/acceleration target, vel (+ acc) a velocity one, acc
+  alone an acceleration one, pos alone a position one (``set_pos_vel_accel_NED_m``,
+  ``set_vel_accel_NED_m``, ``set_accel_NED_mss``, ``set_pos_NED_m``).
+
+The yaw rate (type_mask YAW_RATE_IGNORE clear; rad/s NED, clockwise positive; both messages):
+
+- PX4: the offboard yawspeed. With the yaw ignored the vehicle turns at it
+  (``PositionControl::update`` keeps the yaw where it is and feeds the yawspeed forward), with a
+  yaw it is the feed-forward added to the heading correction (``AttitudeControl::update``);
+  within the model's yaw-rate limit. POSITION_TARGET_LOCAL_NED reports it.
+- ArduCopter (``ModeGuided::set_yaw_state_rad`` and ``AutoYaw``, ``autoyaw.cpp``): a rate alone is
+  RATE, a turn at the rate; yaw and rate are ANGLE_RATE, a heading target starting at the yaw
+  and advancing at the rate (``AutoYaw::yaw_rad``); a yaw alone is that heading; a relative yaw
+  (the body frames) is FIXED, the offset added to AutoYaw's angle (``set_fixed_yaw_rad``) and
+  slewed at ATC_SLEW_YAW, the rate unused. Commanded heading rates are capped at ATC_SLEW_YAW
+  (``AC_AttitudeControl::input_thrust_vector_rate_heading_rads``, ``input_thrust_vector_heading_rad``).
+  GUID_TIMEOUT without a new target turns RATE and ANGLE_RATE into HOLD for every target kind,
+  a position target too (the run functions' "stop rotating").
+
+SET_POSITION_TARGET_GLOBAL_INT (lat/lon degE7, alt m, NED velocity / acceleration, NED yaw rad
+and yaw rate rad/s as above; converted with the same :meth:`SimMavlinkVehicle._scene_from_global`
+as DO_REPOSITION and mission items):
 
 - PX4 (``mavlink_receiver.cpp`` ``handle_message_set_position_target_global_int``): position
   all or nothing, velocity / acceleration per axis; a used position needs a global position
@@ -213,7 +255,8 @@ LOCAL_POSITION_NED, ATTITUDE_QUATERNION and ATTITUDE (PX4) / ATTITUDE (ArduPilot
 GLOBAL_POSITION_INT, GPS_RAW_INT and HOME_POSITION (with a global origin; HOME_POSITION also
 without, lat/lon 0, once home is set at arming), SYSTEM_TIME, BATTERY_STATUS, MISSION_CURRENT
 (ArduPilot's EXT_STAT stream; PX4 sends it at 1 Hz from its mission manager, not as a stream);
-MISSION_ITEM_REACHED and STATUSTEXT on events; AUTOPILOT_VERSION on request. GPS_RAW_INT (outdoor only): PX4's onboard mode forwards
+MISSION_ITEM_REACHED and STATUSTEXT on events (a text over 50 characters in chunks of one id:
+PX4 ``streams/STATUSTEXT.hpp``, ArduPilot ``GCS::send_textv``); AUTOPILOT_VERSION on request. GPS_RAW_INT (outdoor only): PX4's onboard mode forwards
 every fix (``mavlink_main.cpp`` ``unlimited_rate``; the model makes 5 a second), ArduPilot sends
 it in the EXT_STAT group (``STREAM_EXTENDED_STATUS_msgs``, 2 Hz); 3D fix, 12 satellites, degE7,
 mm AMSL, eph/epv = HDOP/VDOP x 100 (MAVLink), h_acc/v_acc mm, vel cm/s, cog cdeg.
@@ -2829,10 +2872,11 @@ class SimMavlinkVehicle:
 
     def _position_target_local_ned(self):
         """What the position controller tracks, MAV_FRAME_LOCAL_NED in the estimator's frame.
-        PX4 (``streams/POSITION_TARGET_LOCAL_NED.hpp``): every setpoint component that is not
-        finite is NaN with its ignore bit; none while nothing is tracked (disarmed). ArduCopter
-        (``GCS_MAVLINK_Copter::send_position_target_local_ned``): only in GUIDED, the tracked
-        position and/or velocity, the rest ignored (0)."""
+        Targets sent in another frame are reported as flown: rotated and offset into it. PX4
+        (``streams/POSITION_TARGET_LOCAL_NED.hpp``): every setpoint component that is not finite
+        is NaN with its ignore bit (the yaw rate too); none while nothing is tracked (disarmed).
+        ArduCopter (``GCS_MAVLINK_Copter::send_position_target_local_ned``): only in GUIDED, the
+        tracked position and/or velocity, the rest (yaw and yaw rate too) ignored (0)."""
         if self._target is None or not self.armed:
             return None
         if not self.px4 and self.custom_mode != ARDUCOPTER_MODE["guided"]:
