@@ -214,9 +214,10 @@ The yaw rate (type_mask YAW_RATE_IGNORE clear; rad/s NED, clockwise positive; bo
   RATE, a turn at the rate; yaw and rate are ANGLE_RATE, a heading target starting at the yaw
   and advancing at the rate (``AutoYaw::yaw_rad``); a yaw alone is that heading; a relative yaw
   (the body frames) is FIXED, the offset added to AutoYaw's angle (``set_fixed_yaw_rad``) and
-  slewed at ATC_SLEW_YAW, the rate unused. Commanded heading rates are capped at ATC_SLEW_YAW
-  (``AC_AttitudeControl::input_thrust_vector_rate_heading_rads``, ``input_thrust_vector_heading_rad``).
-  GUID_TIMEOUT without a new target turns RATE and ANGLE_RATE into HOLD for every target kind,
+  slewed at ATC_SLEW_YAW, the rate unused. RATE's turn is capped at ATC_SLEW_YAW
+  (``AC_AttitudeControl::input_thrust_vector_rate_heading_rads``); ANGLE_RATE's heading target
+  advances at the rate as sent (only its feed-forward is capped there,
+  ``input_thrust_vector_heading_rad``, the heading correction making up the rest). GUID_TIMEOUT without a new target turns RATE and ANGLE_RATE into HOLD for every target kind,
   a position target too (the run functions' "stop rotating").
 
 SET_POSITION_TARGET_GLOBAL_INT (lat/lon degE7, alt m, NED velocity / acceleration, NED yaw rad
@@ -1922,10 +1923,11 @@ class SimMavlinkVehicle:
         frames) is a fixed yaw ``set_fixed_yaw_rad`` adds to AutoYaw's current angle and slews to
         at ATC_SLEW_YAW, the rate unused; an absolute yaw with a rate is ANGLE_RATE, a yaw target
         that advances at the rate from now on; a yaw alone is that heading (ANGLE_RATE at rate
-        0); a rate alone is RATE, a turn at the rate; neither is the default yaw mode (here: the
-        heading held). Commanded heading rates are capped at ATC_SLEW_YAW
-        (``AC_AttitudeControl::input_thrust_vector_rate_heading_rads`` /
-        ``input_thrust_vector_heading_rad``)."""
+        0); a rate alone is RATE, a turn at the rate capped at ATC_SLEW_YAW
+        (``AC_AttitudeControl::input_thrust_vector_rate_heading_rads``); neither is the default
+        yaw mode (here: the heading held). ANGLE_RATE's target advances at the rate as sent: the
+        source caps only its feed-forward (``input_thrust_vector_heading_rad``), and the heading
+        correction makes up the rest."""
         slew = math.radians(float(self.params["ATC_SLEW_YAW"]) / 100.0)
         if yaw_ned is not None and relative:
             return {"yaw": wrap_angle(self._ardu_auto_yaw_angle() - yaw_ned), "yaw_rate_limit_radps": slew}  # NED + is clockwise
