@@ -22,7 +22,7 @@ from onfly.mavlink.sim_vehicle import EARTH_RADIUS_M, SimMavlinkVehicle, SimVehi
 from mavsdk import ComponentType, Configuration, Mavsdk  # noqa: E402
 from mavsdk.plugins.action.action import Action, ActionError  # noqa: E402
 from mavsdk.plugins.manual_control.manual_control import ManualControl  # noqa: E402
-from mavsdk.plugins.offboard.offboard import Offboard, PositionGlobalYaw, PositionNedYaw, VelocityNedYaw  # noqa: E402
+from mavsdk.plugins.offboard.offboard import Offboard, PositionGlobalYaw, PositionNedYaw, VelocityBodyYawspeed, VelocityNedYaw  # noqa: E402
 from mavsdk.plugins.param.param import Param  # noqa: E402
 from mavsdk.plugins.telemetry.telemetry import FlightMode, LandedState, Telemetry  # noqa: E402
 
@@ -221,6 +221,23 @@ class MavproxyStyle:
             if msg is not None and pred(msg):
                 return msg
         raise AssertionError(f"no {mtype} satisfying the condition within {timeout_s} s")
+
+    def statustext(self, text, timeout_s=3.0):
+        """Read STATUSTEXT (older buffered ones first) until one reads ``text``, joining the
+        50-character chunks of one id as MAVProxy and MAVSDK do (id 0 is a whole text, a shorter
+        chunk ends one)."""
+        parts = {}
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            msg = self.m.recv_match(type="STATUSTEXT", blocking=True, timeout=0.5)
+            if msg is None:
+                continue
+            whole = parts.pop(msg.id, "") + msg.text
+            if msg.id != 0 and len(msg.text) == 50:
+                parts[msg.id] = whole
+            elif whole == text:
+                return
+        raise AssertionError(f"no STATUSTEXT {text!r} within {timeout_s} s")
 
 
 def test_pymavlink_mavproxy_style_ardupilot_guided_flight():
@@ -652,4 +669,163 @@ def test_pymavlink_ardupilot_manual_control_is_an_rc_override_loiter_flies_it_an
         assert v.clock() - t_last >= 3.0 - 0.1
     finally:
         stop.set()
+        v.stop()
+
+
+# -- SET_POSITION_TARGET_LOCAL_NED in the body and offset frames, and the yaw rate -------------
+def heading_unit(yaw_enu):
+    """Scene ENU unit vector (2,) of a heading (rad, ENU)."""
+    return np.array([math.cos(yaw_enu), math.sin(yaw_enu)])
+
+
+def angle_between(a, b):
+    """a - b wrapped to [-pi, pi) (radians)."""
+    return (a - b + math.pi) % (2 * math.pi) - math.pi
+
+
+def test_mavsdk_px4_set_velocity_body_starts_offboard_flies_body_forward_and_turns_at_the_yawspeed():
+    """MAVSDK's canonical offboard example: ``set_velocity_body`` (MAV_FRAME_BODY_NED, velocity
+    and yaw rate; MAVSDK ``offboard_impl.cpp`` ``send_velocity_body``) then ``offboard.start()``.
+    PX4 rotates the velocity by the heading and flies the yawspeed. The estimator frame is
+    rotated against the scene and the vehicle faces neither axis, so body-forward is neither
+    the scene's nor the estimator's x."""
+    yaw0, est_yaw = 0.5, -0.9  # ENU heading in the scene, the estimator frame's rotation
+    rig = MavsdkRig(autopilot="px4", profile="indoor", initial_yaw_rad=yaw0, estimator_yaw_rad=est_yaw,
+                    k_pos=4.0, k_vel=8.0, a_max_mps2=8.0)
+    try:
+        act, tel, v = rig.action, rig.telemetry, rig.vehicle
+        wait_until(lambda: tel.health().is_armable, 5.0, "health.is_armable")
+        off = Offboard(rig.system)
+        act.arm()
+        off.set_velocity_body(VelocityBodyYawspeed(0.0, 0.0, -1.0, 0.0))  # climb at 1 m/s
+        off.start()  # DO_SET_MODE OFFBOARD: accepted only if the body-frame setpoint counted
+        wait_until(lambda: v.mode_name == "offboard", 2.0, "OFFBOARD")
+        wait_until(lambda: v.position_enu()[2] > 1.0, 5.0, "climbing")
+        # forward at 1.5 m/s: along the heading, which is neither a scene nor an estimator axis
+        off.set_velocity_body(VelocityBodyYawspeed(1.5, 0.0, 0.0, 0.0))
+        time.sleep(1.0)
+        vel = v.velocity_enu()
+        np.testing.assert_allclose(vel[:2], 1.5 * heading_unit(yaw0), atol=0.1)  # ground truth: body forward
+        assert abs(vel[2]) < 0.1
+        pv, att = tel.position_velocity_ned().velocity, tel.attitude_euler()  # the client's view (estimator frame)
+        assert math.hypot(pv.north_m_s, pv.east_m_s) == pytest.approx(1.5, abs=0.1)
+        course = math.degrees(math.atan2(pv.east_m_s, pv.north_m_s))
+        assert abs(math.degrees(angle_between(math.radians(course), math.radians(att.yaw_deg)))) < 5.0  # where the nose points
+        assert abs(angle_between(math.radians(att.yaw_deg), math.pi / 2 - (yaw0 - est_yaw))) < 0.02  # NED, estimator frame
+        # turn clockwise at 30 deg/s (yawspeed, NED), no translation
+        off.set_velocity_body(VelocityBodyYawspeed(0.0, 0.0, 0.0, 30.0))
+        time.sleep(0.6)
+        yaw_a, t_a = tel.attitude_euler().yaw_deg, time.monotonic()
+        time.sleep(1.0)
+        yaw_b, t_b = tel.attitude_euler().yaw_deg, time.monotonic()
+        turned = math.degrees(angle_between(math.radians(yaw_b), math.radians(yaw_a)))
+        assert turned / (t_b - t_a) == pytest.approx(30.0, abs=4.0)  # deg/s, clockwise seen from above
+        assert math.degrees(v.model.yaw_rate) == pytest.approx(-30.0, abs=0.5)  # ENU: counter-clockwise positive
+        assert tel.attitude_angular_velocity_body().yaw_rad_s == pytest.approx(math.radians(30.0), abs=0.01)
+        assert np.linalg.norm(v.velocity_enu()) < 0.1
+    finally:
+        rig.close()
+
+
+def still(v):
+    """The vehicle (ground truth) has stopped: speed below 5 cm/s."""
+    return np.linalg.norm(v.velocity_enu()) < 0.05
+
+
+def test_pymavlink_ardupilot_guided_body_offset_local_offset_and_body_velocity_targets():
+    """A companion script's GUIDED targets in the frames ArduCopter takes besides LOCAL_NED
+    (``GCS_MAVLINK_Copter::handle_message_set_position_target_local_ned``): BODY_OFFSET_NED 2 m
+    forward reaches the point 2 m ahead along the heading, LOCAL_OFFSET_NED reaches the current
+    position plus the offset in the estimator's axes, BODY_NED velocity flies along the heading.
+    The estimator frame is rotated against the scene and the vehicle faces neither axis."""
+    yaw0, est_yaw = 2.2, 0.7
+    port = free_udp_port()
+    cfg = SimVehicleConfig(autopilot="ardupilot", profile="indoor", initial_yaw_rad=yaw0, estimator_yaw_rad=est_yaw,
+                           k_pos=4.0, k_vel=8.0, a_max_mps2=8.0)  # stiff: the legs stay short in wall time
+    v = SimMavlinkVehicle(MavlinkLink(f"udpout:127.0.0.1:{port}", 1, 1), cfg).start()
+    pos_only, vel_only = 0x0DF8, 0x0DC7  # type_mask: yaw and yaw rate ignored too
+
+    def target(frame, mask, p=(0.0, 0.0, 0.0), vel=(0.0, 0.0, 0.0)):
+        mp.m.mav.set_position_target_local_ned_send(0, 1, 1, frame, mask, *p, *vel, 0, 0, 0, 0, 0)
+
+    def local_position():
+        mp.drain()
+        m = mp.latest("LOCAL_POSITION_NED", lambda m: True)
+        return np.array([m.x, m.y, m.z])
+
+    try:
+        mp = MavproxyStyle(port)
+        for msg_id in (M.MAVLINK_MSG_ID_LOCAL_POSITION_NED, M.MAVLINK_MSG_ID_ATTITUDE):  # 10 Hz, not the 2-4 Hz SRn_ rates
+            assert mp.long(M.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, 100000) == M.MAV_RESULT_ACCEPTED
+        mp.guided_takeoff(v, 1.0)
+        wait_until(lambda: still(v), 5.0, "hovering")
+        p0, lp0 = v.position_enu(), local_position()
+        att = mp.latest("ATTITUDE", lambda m: True)
+        assert abs(angle_between(att.yaw, math.pi / 2 - (yaw0 - est_yaw))) < 0.01  # NED heading in the estimator frame
+        # BODY_OFFSET_NED: 2 m forward of where it is, at its altitude
+        target(M.MAV_FRAME_BODY_OFFSET_NED, pos_only, p=(2.0, 0.0, 0.0))
+        ahead = p0 + [*(2.0 * heading_unit(yaw0)), 0.0]
+        wait_until(lambda: settled(v, ahead, 0.05), 6.0, "2 m ahead along the heading")
+        assert v.model.yaw == pytest.approx(yaw0, abs=0.01)  # yaw ignored: no turn
+        moved = local_position() - lp0  # the client's view: 2 m along ATTITUDE's heading
+        assert np.hypot(*moved[:2]) == pytest.approx(2.0, abs=0.1) and abs(moved[2]) < 0.05
+        assert abs(angle_between(math.atan2(moved[1], moved[0]), att.yaw)) < 0.05
+        # LOCAL_OFFSET_NED: 1 m north, 1 m west and 0.5 m up of here, in the estimator's axes
+        p1, lp1 = v.position_enu(), local_position()
+        target(M.MAV_FRAME_LOCAL_OFFSET_NED, pos_only, p=(1.0, -1.0, -0.5))
+        c, s = math.cos(est_yaw), math.sin(est_yaw)
+        offset_scene = np.array([c * -1.0 - s * 1.0, s * -1.0 + c * 1.0, 0.5])  # ENU (-1, 1, 0.5) rotated by est_yaw
+        wait_until(lambda: settled(v, p1 + offset_scene, 0.05), 6.0, "current position plus the offset")
+        np.testing.assert_allclose(local_position() - lp1, [1.0, -1.0, -0.5], atol=0.1)
+        # BODY_NED velocity: 1 m/s forward, streamed at 10 Hz
+        t_end = time.monotonic() + 1.5
+        while time.monotonic() < t_end:
+            target(M.MAV_FRAME_BODY_NED, vel_only, vel=(1.0, 0.0, 0.0))
+            time.sleep(0.1)
+        np.testing.assert_allclose(v.velocity_enu(), [*heading_unit(yaw0), 0.0], atol=0.08)
+        gp = mp.latest("LOCAL_POSITION_NED", lambda m: math.hypot(m.vx, m.vy) > 0.9)
+        assert abs(angle_between(math.atan2(gp.vy, gp.vx), att.yaw)) < 0.08  # along the heading, in the client's frame
+    finally:
+        v.stop()
+
+
+def test_pymavlink_offset_and_frd_frames_px4_drops_with_statustext_ardupilot_stops():
+    """The per-autopilot refusals a script meets: PX4's receiver takes LOCAL_NED and BODY_NED only
+    and drops LOCAL_OFFSET_NED with a STATUSTEXT (so it is no offboard signal: OFFBOARD refused)
+    and a BODY_NED position (never used) as "invalid"; ArduCopter flies the offset frames (the
+    test above) but answers a frame it does not take (BODY_FRD) with ``ModeGuided::init(true)``:
+    it brakes and hovers, well before GUID_TIMEOUT would have stopped it."""
+    px4_offboard = (M.MAV_CMD_DO_SET_MODE, M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 6)
+    port = free_udp_port()
+    v = SimMavlinkVehicle(MavlinkLink(f"udpout:127.0.0.1:{port}", 1, 1), SimVehicleConfig(autopilot="px4", profile="indoor")).start()
+    try:
+        mp = MavproxyStyle(port)
+        assert mp.long(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+        mp.m.mav.set_position_target_local_ned_send(0, 1, 1, M.MAV_FRAME_LOCAL_OFFSET_NED, 0x0DF8, 0, 0, -1.0, 0, 0, 0, 0, 0, 0, 0, 0)
+        mp.statustext("SET_POSITION_TARGET_LOCAL_NED coordinate frame 7 unsupported")  # 61 characters: two chunks
+        assert mp.long(*px4_offboard) == M.MAV_RESULT_TEMPORARILY_REJECTED  # no recent setpoint
+        mp.m.mav.set_position_target_local_ned_send(0, 1, 1, M.MAV_FRAME_BODY_NED, 0x0DF8, 0, 0, -1.0, 0, 0, 0, 0, 0, 0, 0, 0)
+        mp.statustext("SET_POSITION_TARGET_LOCAL_NED invalid")
+        assert mp.long(*px4_offboard) == M.MAV_RESULT_TEMPORARILY_REJECTED and v.setpoints_received == 0
+        mp.m.mav.set_position_target_local_ned_send(0, 1, 1, M.MAV_FRAME_BODY_NED, 0x0DC7, 0, 0, 0, 0, 0, -0.5, 0, 0, 0, 0, 0)
+        assert mp.long(*px4_offboard) == M.MAV_RESULT_ACCEPTED and v.setpoints_received == 1  # a body-frame velocity counts
+    finally:
+        v.stop()
+
+    port = free_udp_port()
+    cfg = SimVehicleConfig(autopilot="ardupilot", profile="indoor", initial_yaw_rad=0.8, k_pos=4.0, k_vel=8.0, a_max_mps2=8.0)
+    v = SimMavlinkVehicle(MavlinkLink(f"udpout:127.0.0.1:{port}", 1, 1), cfg).start()
+    try:
+        mp = MavproxyStyle(port)
+        mp.guided_takeoff(v, 1.0)
+        for _ in range(8):  # BODY_NED: 1 m/s forward
+            mp.m.mav.set_position_target_local_ned_send(0, 1, 1, M.MAV_FRAME_BODY_NED, 0x0DC7, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0, 0)
+            time.sleep(0.1)
+        assert v.velocity_enu()[:2] @ heading_unit(0.8) > 0.9
+        mp.m.mav.set_position_target_local_ned_send(0, 1, 1, M.MAV_FRAME_BODY_FRD, 0x0DC7, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0, 0)
+        wait_until(lambda: still(v), 1.5, "stopped by the unsupported frame, not by GUID_TIMEOUT (3 s)")
+        assert v.first_event("guided: input not valid (unsupported coordinate frame 12): stop") is not None
+        assert v.first_event("guided timeout") is None and v.mode_name == "guided" and v.position_enu()[2] > 0.9
+        assert v.statustexts == [] or all("coordinate frame" not in t for _, t in v.statustexts)  # ArduCopter says nothing
+    finally:
         v.stop()

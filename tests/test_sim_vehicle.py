@@ -820,3 +820,141 @@ def test_commands_for_another_target_and_do_set_home_rules_px4_and_ardupilot():
     finally:
         c.stop()
         v.stop()
+
+
+# -- SET_POSITION_TARGET_LOCAL_NED frames and the yaw rate (the flights with real clients: test_mavlink_clients.py) --
+_T = M  # type_mask bits
+_IGN_POS = _T.POSITION_TARGET_TYPEMASK_X_IGNORE | _T.POSITION_TARGET_TYPEMASK_Y_IGNORE | _T.POSITION_TARGET_TYPEMASK_Z_IGNORE
+_IGN_VEL = _T.POSITION_TARGET_TYPEMASK_VX_IGNORE | _T.POSITION_TARGET_TYPEMASK_VY_IGNORE | _T.POSITION_TARGET_TYPEMASK_VZ_IGNORE
+_IGN_ACC = _T.POSITION_TARGET_TYPEMASK_AX_IGNORE | _T.POSITION_TARGET_TYPEMASK_AY_IGNORE | _T.POSITION_TARGET_TYPEMASK_AZ_IGNORE
+_IGN_YAW, _IGN_RATE = _T.POSITION_TARGET_TYPEMASK_YAW_IGNORE, _T.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
+
+
+def local_target(c, frame, ignore, p=(0.0, 0.0, 0.0), v=(0.0, 0.0, 0.0), a=(0.0, 0.0, 0.0), yaw=0.0, yaw_rate=0.0):
+    """Send SET_POSITION_TARGET_LOCAL_NED in ``frame`` with the type_mask ``ignore`` (m, m/s, m/s^2, rad, rad/s)."""
+    c.link.send(c.link.mav.set_position_target_local_ned_encode(0, 1, 1, frame, ignore, *p, *v, *a, yaw, yaw_rate))
+
+
+def test_px4_body_ned_rotates_velocity_by_the_heading_flies_the_yawspeed_and_the_other_frames_are_refused():
+    yaw0, est_yaw = 0.4, -0.9  # scene ENU heading; the estimator frame's rotation in the scene
+    c, v = rig(autopilot="px4", initial_yaw_rad=yaw0, estimator_yaw_rad=est_yaw)
+    try:
+        fwd, right = np.array([np.cos(yaw0), np.sin(yaw0), 0.0]), np.array([np.sin(yaw0), -np.cos(yaw0), 0.0])
+        # on the ground, level: the acceleration (rotated by the whole attitude) turns with the heading too
+        local_target(c, M.MAV_FRAME_BODY_NED, _IGN_POS | _IGN_YAW | _IGN_RATE, p=(9.0, 9.0, 9.0), v=(1.0, 0.5, -0.5), a=(1.0, 0.0, 0.0))
+        assert _wait(lambda: v.setpoints_received == 1)
+        sp = v._setpoint
+        assert sp.p is None  # PX4 never uses a BODY_NED position
+        np.testing.assert_allclose(sp.v, 1.0 * fwd + 0.5 * right + [0.0, 0.0, 0.5], atol=1e-9)  # z down -> up
+        np.testing.assert_allclose(sp.a, fwd, atol=1e-9)
+        # the yaw is absolute (a NED heading in the estimator frame), the yaw rate PX4's yawspeed
+        local_target(c, M.MAV_FRAME_BODY_NED, _IGN_POS | _IGN_ACC, yaw=0.0, yaw_rate=0.3)
+        assert _wait(lambda: v.setpoints_received == 2)
+        assert v._setpoint.yaw == pytest.approx(np.pi / 2 + est_yaw) and v._setpoint.yaw_rate == pytest.approx(-0.3)
+        time.sleep(0.35)  # past COM_OF_LOSS_T: the refusals below must not bring the offboard signal back
+        local_target(c, M.MAV_FRAME_LOCAL_OFFSET_NED, _IGN_VEL | _IGN_ACC | _IGN_YAW | _IGN_RATE, p=(1.0, 0.0, 0.0))
+        local_target(c, M.MAV_FRAME_BODY_OFFSET_NED, _IGN_POS | _IGN_ACC | _IGN_YAW | _IGN_RATE, v=(1.0, 0.0, 0.0))
+        local_target(c, M.MAV_FRAME_BODY_NED, _IGN_VEL | _IGN_ACC | _IGN_YAW | _IGN_RATE, p=(1.0, 0.0, -1.0))  # position only
+        local_target(c, M.MAV_FRAME_BODY_NED, _IGN_POS | _T.POSITION_TARGET_TYPEMASK_VZ_IGNORE | _IGN_ACC, v=(1.0, 0.0, 0.0))
+        local_target(c, M.MAV_FRAME_LOCAL_NED, _IGN_POS | _IGN_VEL | _T.POSITION_TARGET_TYPEMASK_FORCE_SET, a=(1.0, 0.0, 0.0))
+        assert _wait(lambda: len(v.statustexts) >= 5)
+        texts = [t for _, t in v.statustexts]
+        assert "SET_POSITION_TARGET_LOCAL_NED coordinate frame 7 unsupported" in texts
+        assert "SET_POSITION_TARGET_LOCAL_NED coordinate frame 9 unsupported" in texts
+        assert texts.count("SET_POSITION_TARGET_LOCAL_NED invalid") == 2  # one ignored axis ignores the body velocity
+        assert "SET_POSITION_TARGET_LOCAL_NED force not supported" in texts
+        assert v.setpoints_received == 2
+        assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+        assert c.command(M.MAV_CMD_DO_SET_MODE, 1, PX4_MAIN["offboard"]) == M.MAV_RESULT_TEMPORARILY_REJECTED
+        # flown: climb at 1 m/s, turning clockwise at 0.5 rad/s with the yaw NaN (PositionControl: yaw held, yawspeed fed forward)
+        local_target(c, M.MAV_FRAME_BODY_NED, _IGN_POS | _IGN_ACC | _IGN_YAW, v=(0.0, 0.0, -1.0), yaw_rate=0.5)
+        assert c.command(M.MAV_CMD_DO_SET_MODE, 1, PX4_MAIN["offboard"]) == M.MAV_RESULT_ACCEPTED
+        for _ in range(8):
+            local_target(c, M.MAV_FRAME_BODY_NED, _IGN_POS | _IGN_ACC | _IGN_YAW, v=(0.0, 0.0, -1.0), yaw_rate=0.5)
+            time.sleep(0.05)
+        assert v.model.yaw_rate == pytest.approx(-0.5) and v.velocity_enu()[2] == pytest.approx(1.0, abs=0.05)
+        n0 = len(c.of_type("POSITION_TARGET_LOCAL_NED"))
+        assert _wait(lambda: len(c.of_type("POSITION_TARGET_LOCAL_NED")) > n0)
+        pt = c.of_type("POSITION_TARGET_LOCAL_NED")[-1][1]  # what PX4 reports it tracks
+        assert not pt.type_mask & _IGN_RATE and pt.yaw_rate == pytest.approx(0.5) and pt.type_mask & _IGN_YAW
+        assert (pt.vx, pt.vy, pt.vz) == pytest.approx((0.0, 0.0, -1.0), abs=1e-6)
+    finally:
+        c.stop()
+        v.stop()
+
+
+def test_ardupilot_guided_targets_in_body_frames_and_the_yaw_rate_as_autoyaw_flies_them():
+    c, v = rig(autopilot="ardupilot", initial_yaw_rad=0.3, estimator_yaw_rad=0.6)
+    pos_rate = _IGN_VEL | _IGN_ACC | _IGN_YAW  # position and yaw rate used
+    try:
+        assert c.command(M.MAV_CMD_DO_SET_MODE, 1, ARDUCOPTER_MODE["guided"]) == M.MAV_RESULT_ACCEPTED
+        assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1) == M.MAV_RESULT_ACCEPTED
+        assert c.command(M.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 1.0) == M.MAV_RESULT_ACCEPTED
+        assert _wait(lambda: v.first_event("takeoff complete") is not None)
+        here = v.position_enu()
+        # BODY_NED positions are offsets from here too (every frame but LOCAL_NED), x/y along the heading
+        local_target(c, M.MAV_FRAME_BODY_NED, _IGN_VEL | _IGN_ACC | _IGN_YAW | _IGN_RATE, p=(1.0, 0.0, 0.0))
+        assert _wait(lambda: v.setpoints_received == 1)
+        np.testing.assert_allclose(v._setpoint.p, here + [np.cos(0.3), np.sin(0.3), 0.0], atol=1e-6)
+        hold_ned = frames.ned_from_enu(v.local_from_scene(here))
+        # AutoYaw RATE: a rate alone turns at it (0.5 rad/s clockwise), above ATC_SLEW_YAW (60 deg/s) at that
+        local_target(c, M.MAV_FRAME_LOCAL_NED, pos_rate, p=hold_ned, yaw_rate=0.5)
+        time.sleep(0.3)
+        assert v.model.yaw_rate == pytest.approx(-0.5)
+        local_target(c, M.MAV_FRAME_LOCAL_NED, pos_rate, p=hold_ned, yaw_rate=2.0)
+        time.sleep(0.3)
+        assert v.model.yaw_rate == pytest.approx(-np.radians(60.0))
+        # no target for GUID_TIMEOUT (0.5 s here): "stop rotating", even under a position target
+        assert _wait(lambda: v.first_event("guided timeout") is not None, 1.0)
+        time.sleep(0.05)
+        assert v.model.yaw_rate == 0.0 and np.linalg.norm(v.position_enu() - here) < 0.05
+        # AutoYaw ANGLE_RATE: yaw and rate given: the heading target advances at the rate from the given yaw
+        heading_ned = np.pi / 2 - (v.model.yaw - 0.6)  # where it points, NED in the estimator frame
+        yaw_start = v.model.yaw
+        local_target(c, M.MAV_FRAME_LOCAL_NED, _IGN_VEL | _IGN_ACC, p=hold_ned, yaw=heading_ned, yaw_rate=0.4)
+        t0 = time.monotonic()
+        time.sleep(0.4)
+        turned = -np.arctan2(np.sin(v.model.yaw - yaw_start), np.cos(v.model.yaw - yaw_start))
+        assert turned == pytest.approx(0.4 * (time.monotonic() - t0), abs=0.03)
+        assert _wait(lambda: v.model.yaw_rate == 0.0, 1.0)  # GUID_TIMEOUT again
+        # a relative yaw (the body frames): 1.2 rad clockwise of AutoYaw's angle, slewed at ATC_SLEW_YAW, the rate unused
+        yaw_held = v.model.yaw
+        local_target(c, M.MAV_FRAME_BODY_OFFSET_NED, _IGN_VEL | _IGN_ACC, yaw=1.2, yaw_rate=1.0)
+        time.sleep(0.15)
+        assert v.model.yaw_rate == pytest.approx(-np.radians(60.0)) and v._target.yaw_rate is None
+        assert np.sin(v._target.yaw - (yaw_held - 1.2)) == pytest.approx(0.0, abs=1e-6)
+        assert _wait(lambda: abs(np.sin(v.model.yaw - (yaw_held - 1.2))) < 0.05, 2.0)
+        assert np.linalg.norm(v.position_enu() - here) < 0.05  # an offset of 0: held where it was
+    finally:
+        c.stop()
+        v.stop()
+
+
+def test_ardupilot_local_target_refusals_stop_or_ignore_as_the_source_does():
+    c, v = rig(autopilot="ardupilot")
+    none = _IGN_POS | _IGN_VEL | _IGN_ACC | _IGN_YAW | _IGN_RATE
+    try:
+        local_target(c, M.MAV_FRAME_BODY_NED, none & ~_IGN_VEL, v=(1.0, 0.0, 0.0))  # STABILIZE: not in_guided_mode
+        time.sleep(0.05)
+        assert v.setpoints_received == 0 and not [e for _, e in v.events if e.startswith("guided")]
+        assert c.command(M.MAV_CMD_DO_SET_MODE, 1, ARDUCOPTER_MODE["guided"]) == M.MAV_RESULT_ACCEPTED
+        local_target(c, M.MAV_FRAME_BODY_FRD, none & ~_IGN_VEL, v=(1.0, 0.0, 0.0))
+        local_target(c, M.MAV_FRAME_LOCAL_NED, none & ~_IGN_POS & ~_IGN_ACC)  # position + acceleration without velocity
+        local_target(c, M.MAV_FRAME_LOCAL_NED, none)  # nothing used
+        local_target(c, M.MAV_FRAME_LOCAL_NED, none & ~_IGN_ACC | _T.POSITION_TARGET_TYPEMASK_FORCE_SET, a=(1.0, 0.0, 0.0))
+        local_target(c, M.MAV_FRAME_BODY_NED, none & ~_IGN_VEL, v=(2000.0, 0.0, 0.0))
+        time.sleep(0.05)
+        v.set_position_valid(False)
+        local_target(c, M.MAV_FRAME_LOCAL_OFFSET_NED, none & ~_IGN_POS, p=(1.0, 0.0, 0.0))
+        time.sleep(0.05)
+        stops = [e for _, e in v.events if e.startswith("guided: input not valid")]
+        assert stops == ["guided: input not valid (unsupported coordinate frame 12): stop",
+                         "guided: input not valid (unsupported type_mask combination): stop",
+                         "guided: input not valid (unsupported type_mask combination): stop",
+                         "guided: input not valid (force setpoint): stop",
+                         "guided: input not valid (velocity not sane): stop",
+                         "guided: input not valid (no position estimate for an offset target): stop"]
+        assert v.setpoints_received == 0 and [t for _, t in v.statustexts] == ["Mode guided"]  # the stops are silent
+    finally:
+        c.stop()
+        v.stop()

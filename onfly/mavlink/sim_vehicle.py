@@ -168,18 +168,61 @@ Companion loss
   and a position-only target is held for ever (``mode_guided.cpp``
   ``velaccel_control_run`` / ``posvelaccel_control_run`` vs ``pos_control_run``).
 
-Setpoints (SET_POSITION_TARGET_LOCAL_NED in MAV_FRAME_LOCAL_NED, SET_POSITION_TARGET_GLOBAL_INT)
-------------------------------------------------------------------------------------------------
-PX4 reads type_mask per axis: an ignored component is NaN and the controller uses what is
-finite on each axis (``mavlink_receiver.cpp`` ``handle_message_set_position_target_local_ned``;
-e.g. x/y position with z velocity). ArduCopter uses a whole vector or none: any set ignore bit
-of a vector ignores all of it (``GCS_MAVLink_Copter.cpp``
-``handle_message_set_position_target_local_ned``: ``pos_ignore = type_mask & POS_IGNORE``).
-Non-finite used fields drop the message. ArduCopter accepts targets in GUIDED only.
+Setpoints (SET_POSITION_TARGET_LOCAL_NED, SET_POSITION_TARGET_GLOBAL_INT)
+------------------------------------------------------------------------
+In MAV_FRAME_LOCAL_NED (the estimator's frame) PX4 reads type_mask per axis: an ignored
+component is NaN and the controller uses what is finite on each axis (``mavlink_receiver.cpp``
+``handle_message_set_position_target_local_ned``; e.g. x/y position with z velocity).
+ArduCopter uses a whole vector or none: any set ignore bit of a vector ignores all of it
+(``GCS_MAVLink_Copter.cpp`` ``handle_message_set_position_target_local_ned``: ``pos_ignore =
+type_mask & POS_IGNORE``). Non-finite used fields drop the message. ArduCopter takes targets in
+GUIDED only (ignored in any other mode).
 
-SET_POSITION_TARGET_GLOBAL_INT (lat/lon degE7, alt m, NED velocity / acceleration, NED yaw rad;
-converted with the same :meth:`SimMavlinkVehicle._scene_from_global` as DO_REPOSITION and
-mission items):
+The other frames of SET_POSITION_TARGET_LOCAL_NED. The body frames' vectors are in the heading
+frame (x forward, y right, z down) and turned by the vehicle's heading in the estimator frame
+(:meth:`SimMavlinkVehicle._local_ned_from_heading_frame`), so a body-frame target means the same
+in the scene whatever the estimator frame's rotation:
+
+- PX4 (``handle_message_set_position_target_local_ned``): LOCAL_NED and BODY_NED only. In
+  BODY_NED the position is never used (NaN whatever the mask), velocity and acceleration are
+  each used whole or not at all (any of their three ignore bits drops the vector), the
+  velocity's x/y are rotated by the heading (``Eulerf(R)(2)``) and its z kept, the acceleration
+  by the whole attitude (``R * acceleration_body_sp``); the yaw stays absolute. Any other frame
+  (LOCAL_OFFSET_NED, BODY_OFFSET_NED, BODY_FRD, ...) is dropped with "SET_POSITION_TARGET_LOCAL_NED
+  coordinate frame N unsupported"; a used acceleration with the force bit with "... force not
+  supported"; a message with nothing used (a BODY_NED position alone) with "... invalid". A
+  dropped message is no offboard signal (OFFBOARD refused, offboard lost in it).
+- ArduCopter (``handle_message_set_position_target_local_ned``): LOCAL_NED, LOCAL_OFFSET_NED,
+  BODY_NED, BODY_OFFSET_NED; any other frame (BODY_FRD too) stops: ``ModeGuided::init(true)``,
+  a zero-velocity target (brake and hover), as a force setpoint, an insane velocity
+  (``sane_vel_or_acc_vector``), position + acceleration without velocity or nothing used do. In
+  the body frames the x/y of position, velocity and acceleration are rotated by the heading
+  (``AP_AHRS::body_to_earth2D``); in every frame but LOCAL_NED the position is an offset from the
+  current position (BODY_NED too; ``get_relative_position_NED_origin``, without a position
+  estimate: stop); velocities are never offset. The yaw is relative in the body frames. Then
+  pos + vel (+ acc) is a position/velocity/acceleration target, vel (+ acc) a velocity one, acc
+  alone an acceleration one, pos alone a position one (``set_pos_vel_accel_NED_m``,
+  ``set_vel_accel_NED_m``, ``set_accel_NED_mss``, ``set_pos_NED_m``).
+
+The yaw rate (type_mask YAW_RATE_IGNORE clear; rad/s NED, clockwise positive; both messages):
+
+- PX4: the offboard yawspeed. With the yaw ignored the vehicle turns at it
+  (``PositionControl::update`` keeps the yaw where it is and feeds the yawspeed forward), with a
+  yaw it is the feed-forward added to the heading correction (``AttitudeControl::update``);
+  within the model's yaw-rate limit. POSITION_TARGET_LOCAL_NED reports it.
+- ArduCopter (``ModeGuided::set_yaw_state_rad`` and ``AutoYaw``, ``autoyaw.cpp``): a rate alone is
+  RATE, a turn at the rate; yaw and rate are ANGLE_RATE, a heading target starting at the yaw
+  and advancing at the rate (``AutoYaw::yaw_rad``); a yaw alone is that heading; a relative yaw
+  (the body frames) is FIXED, the offset added to AutoYaw's angle (``set_fixed_yaw_rad``) and
+  slewed at ATC_SLEW_YAW, the rate unused. RATE's turn is capped at ATC_SLEW_YAW
+  (``AC_AttitudeControl::input_thrust_vector_rate_heading_rads``); ANGLE_RATE's heading target
+  advances at the rate as sent (only its feed-forward is capped there,
+  ``input_thrust_vector_heading_rad``, the heading correction making up the rest). GUID_TIMEOUT without a new target turns RATE and ANGLE_RATE into HOLD for every target kind,
+  a position target too (the run functions' "stop rotating").
+
+SET_POSITION_TARGET_GLOBAL_INT (lat/lon degE7, alt m, NED velocity / acceleration, NED yaw rad
+and yaw rate rad/s as above; converted with the same :meth:`SimMavlinkVehicle._scene_from_global`
+as DO_REPOSITION and mission items):
 
 - PX4 (``mavlink_receiver.cpp`` ``handle_message_set_position_target_global_int``): position
   all or nothing, velocity / acceleration per axis; a used position needs a global position
@@ -213,7 +256,8 @@ LOCAL_POSITION_NED, ATTITUDE_QUATERNION and ATTITUDE (PX4) / ATTITUDE (ArduPilot
 GLOBAL_POSITION_INT, GPS_RAW_INT and HOME_POSITION (with a global origin; HOME_POSITION also
 without, lat/lon 0, once home is set at arming), SYSTEM_TIME, BATTERY_STATUS, MISSION_CURRENT
 (ArduPilot's EXT_STAT stream; PX4 sends it at 1 Hz from its mission manager, not as a stream);
-MISSION_ITEM_REACHED and STATUSTEXT on events; AUTOPILOT_VERSION on request. GPS_RAW_INT (outdoor only): PX4's onboard mode forwards
+MISSION_ITEM_REACHED and STATUSTEXT on events (a text over 50 characters in chunks of one id:
+PX4 ``streams/STATUSTEXT.hpp``, ArduPilot ``GCS::send_textv``); AUTOPILOT_VERSION on request. GPS_RAW_INT (outdoor only): PX4's onboard mode forwards
 every fix (``mavlink_main.cpp`` ``unlimited_rate``; the model makes 5 a second), ArduPilot sends
 it in the EXT_STAT group (``STREAM_EXTENDED_STATUS_msgs``, 2 Hz); 3D fix, 12 satellites, degE7,
 mm AMSL, eph/epv = HDOP/VDOP x 100 (MAVLink), h_acc/v_acc mm, vel cm/s, cog cdeg.
@@ -248,7 +292,7 @@ import math
 import struct
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
@@ -284,6 +328,13 @@ _AXIS_BITS = (
     (_M.POSITION_TARGET_TYPEMASK_AX_IGNORE, _M.POSITION_TARGET_TYPEMASK_AY_IGNORE, _M.POSITION_TARGET_TYPEMASK_AZ_IGNORE),
 )
 _POS_BITS = _AXIS_BITS[0][0] | _AXIS_BITS[0][1] | _AXIS_BITS[0][2]
+
+#: SET_POSITION_TARGET_LOCAL_NED frames whose vectors are in the vehicle's heading frame
+#: (x forward, y right, z down)
+_BODY_FRAMES = (_M.MAV_FRAME_BODY_NED, _M.MAV_FRAME_BODY_OFFSET_NED)
+#: the SET_POSITION_TARGET_LOCAL_NED frames ArduCopter takes (GCS_MAVLink_Copter.cpp
+#: ``handle_message_set_position_target_local_ned``); PX4 takes LOCAL_NED and BODY_NED only
+_ARDU_LOCAL_FRAMES = (_M.MAV_FRAME_LOCAL_NED, _M.MAV_FRAME_LOCAL_OFFSET_NED, *_BODY_FRAMES)
 
 #: ArduPilot ``mavlink_coordinate_frame_to_location_alt_frame`` (GCS_Common.cpp): the global
 #: frames and the Location altitude frame each means; any other frame is unknown
@@ -629,7 +680,15 @@ class SimVehicleConfig:
 
 @dataclass
 class _Target:
-    """What the controller tracks (scene ENU); None fields are ignored."""
+    """What the controller tracks (scene ENU); None fields are ignored.
+
+    ``yaw_rate`` (rad/s, ENU: counter-clockwise positive) is a commanded turn rate: without a
+    ``yaw`` the vehicle turns at it (PX4 offboard yawspeed with the yaw NaN, ArduCopter AutoYaw
+    RATE); with one it is the feed-forward added to the heading correction (PX4
+    ``AttitudeControl::update``, ArduCopter ``input_thrust_vector_heading_rad``). ``yaw_t_s`` set
+    means the yaw target itself advances at ``yaw_rate`` from that clock time on (ArduCopter
+    AutoYaw ANGLE_RATE); :meth:`at` gives the target at a given time.
+    """
 
     p: np.ndarray | None = None
     v: np.ndarray | None = None
@@ -638,6 +697,18 @@ class _Target:
     v_limit_mps: float | None = None
     kind: str = "position"  # position | velocity | acceleration | full (for GUID_TIMEOUT)
     yaw_rate_limit_radps: float | None = None  # a slower turn than the model's limit (CONDITION_YAW)
+    yaw_rate: float | None = None
+    yaw_t_s: float | None = None
+
+    def at(self, t_s: float) -> "_Target":
+        """This target at clock time ``t_s`` (s): a yaw that advances at ``yaw_rate`` moved on to it."""
+        if self.yaw_t_s is None or self.yaw is None or self.yaw_rate is None:
+            return self
+        return replace(self, yaw=wrap_angle(self.yaw + self.yaw_rate * (t_s - self.yaw_t_s)), yaw_t_s=t_s)
+
+    def turning(self) -> bool:
+        """A commanded turn rate is part of the target (a rate or an advancing yaw)."""
+        return self.yaw_rate is not None
 
 
 class PointMassModel:
@@ -689,13 +760,20 @@ class PointMassModel:
             a *= c.a_max_mps2 / n
         self.a = a
         self._integrate(dt_s)
-        if target.yaw is not None:
-            r_max = c.yaw_rate_max_radps if target.yaw_rate_limit_radps is None else min(c.yaw_rate_max_radps, target.yaw_rate_limit_radps)
-            rate = float(np.clip(c.k_yaw * wrap_angle(target.yaw - self.yaw), -r_max, r_max))
-        else:
-            rate = 0.0
-        self.yaw_rate = rate
-        self.yaw = wrap_angle(self.yaw + rate * dt_s)
+        self.yaw_rate = self._yaw_rate(target)
+        self.yaw = wrap_angle(self.yaw + self.yaw_rate * dt_s)
+
+    def _yaw_rate(self, target: _Target) -> float:
+        """The turn rate (rad/s, ENU) toward ``target``: a P correction toward its yaw plus its
+        commanded rate, or the commanded rate alone, within the model's limit
+        (``yaw_rate_max_radps``) and the target's own (``yaw_rate_limit_radps``)."""
+        c = self.c
+        if target.yaw is None and target.yaw_rate is None:
+            return 0.0
+        ff = 0.0 if target.yaw_rate is None else float(target.yaw_rate)
+        rate = ff if target.yaw is None else c.k_yaw * wrap_angle(target.yaw - self.yaw) + ff
+        r_max = c.yaw_rate_max_radps if target.yaw_rate_limit_radps is None else min(c.yaw_rate_max_radps, target.yaw_rate_limit_radps)
+        return float(np.clip(rate, -r_max, r_max))
 
     def _integrate(self, dt_s: float) -> None:
         self.v = self.v + self.a * dt_s
@@ -761,6 +839,7 @@ class SimMavlinkVehicle:
         self._position_valid = True
         self._accel_enu = np.zeros(3)  # the model's acceleration over the last physics step (scene ENU)
         self._ping_seq = 0
+        self._statustext_id = 0  # the id of the last chunked STATUSTEXT (PX4: of the next text)
         self._t_boot = clock()
         self._target: _Target | None = None
         self._setpoint: _Target | None = None
@@ -992,9 +1071,24 @@ class SimMavlinkVehicle:
         log.info("sim vehicle t=%.3f: %s", t, text)
 
     def _statustext(self, severity: int, text: str) -> None:
+        """STATUSTEXT: a text longer than the 50-byte field goes out in 50-byte chunks sharing one
+        id, chunk_seq counting up (clients such as MAVSDK and MAVProxy join them). PX4
+        (``streams/STATUSTEXT.hpp``): every text takes the next id (from 0), the last chunk is the
+        rest. ArduPilot (``GCS::send_textv``): id 0 for a text that fits, else the next id (never
+        0), and a text of a multiple of 50 bytes ends with an empty chunk."""
         with self._lock:
             self.statustexts.append((self.clock(), text))
-        self._send(self.link.mav.statustext_encode(severity, text.encode()[:50]))
+            data = text.encode()
+            if self.px4:
+                text_id, self._statustext_id = self._statustext_id, (self._statustext_id + 1) % 2**16
+                chunks = [data[i:i + 50] for i in range(0, max(len(data), 1), 50)]
+            elif len(data) <= 50:
+                text_id, chunks = 0, [data]
+            else:
+                self._statustext_id = self._statustext_id % 0xFFFF + 1
+                text_id, chunks = self._statustext_id, [data[i:i + 50] for i in range(0, len(data) + 1, 50)]
+        for seq, chunk in enumerate(chunks):
+            self._send(self.link.mav.statustext_encode(severity, chunk, text_id, seq))
 
     # -- physics and rules ------------------------------------------------------------------
     def _physics(self, dt: float, t: float) -> None:
@@ -1003,7 +1097,7 @@ class SimMavlinkVehicle:
             self.mission.step(t)
             self.fence.step(t)
             v0 = np.array(self.model.v, dtype=float)
-            self.model.step(dt, self._target, self.armed)
+            self.model.step(dt, None if self._target is None else self._target.at(t), self.armed)
             self._accel_enu = (np.array(self.model.v, dtype=float) - v0) / dt
             if self.armed and getattr(self.model, "crashed", False):
                 hit = getattr(self.model, "collision", None)
@@ -1123,11 +1217,15 @@ class SimMavlinkVehicle:
             self._target = None  # landed: ground handling until NAV_TAKEOFF (mode_guided.cpp run functions)
             return
         timeout = float(self.params["GUID_TIMEOUT"])
-        if sp.kind != "position" and since_sp > timeout:
+        if (sp.kind != "position" or sp.turning()) and since_sp > timeout:
             if not self._guided_timed_out:
                 self._guided_timed_out = True
-                if sp.kind == "full":  # keep the position, drop the feed-forwards
-                    self._target = _Target(p=sp.p, yaw=sp.yaw)
+                # every run function: AutoYaw RATE / ANGLE_RATE -> HOLD ("stop rotating")
+                held = replace(sp, yaw=self.model.yaw, yaw_rate=None, yaw_t_s=None) if sp.turning() else sp
+                if sp.kind == "position":  # pos_control_run: the position target is kept
+                    self._target = self._ardu_limit(held)
+                elif sp.kind == "full":  # keep the position, drop the feed-forwards
+                    self._target = _Target(p=held.p, yaw=held.yaw)
                 else:  # velocity / acceleration: stop
                     self._target = _Target(v=np.zeros(3), yaw=self.model.yaw, kind="velocity")
                 self._event(f"guided timeout ({since_sp:.2f} s without a {sp.kind} target)")
@@ -1690,26 +1788,165 @@ class SimMavlinkVehicle:
             return struct.unpack("<i", struct.pack("<f", wire))[0]
         return int(round(wire)) if math.isfinite(wire) else None
 
+    # -- SET_POSITION_TARGET_LOCAL_NED -------------------------------------------------------
     def _on_setpoint(self, msg) -> None:
-        """SET_POSITION_TARGET_LOCAL_NED in MAV_FRAME_LOCAL_NED (the estimator's frame)."""
+        """SET_POSITION_TARGET_LOCAL_NED: x/y/z m, vx/vy/vz m/s, afx/afy/afz m/s^2, yaw rad and
+        yaw_rate rad/s in the message's coordinate_frame (the module docstring, "Setpoints")."""
         if not self._for_me(msg.target_system, msg.target_component):
             self.foreign_setpoints += 1
             return
-        if msg.coordinate_frame != _M.MAV_FRAME_LOCAL_NED:
-            return
-        mask = int(msg.type_mask)
-        ned = np.array([[msg.x, msg.y, msg.z], [msg.vx, msg.vy, msg.vz], [msg.afx, msg.afy, msg.afz]], dtype=float)
-        # which NED components are used (rows: p, v, a; columns: N, E, D)
         if self.px4:
+            self._px4_local_setpoint(msg)
+        else:
+            self._ardu_local_setpoint(msg)
+
+    @staticmethod
+    def _local_setpoint_ned(msg) -> np.ndarray:
+        """The three vectors of a SET_POSITION_TARGET_LOCAL_NED as sent: rows position (m),
+        velocity (m/s), acceleration (m/s^2), columns x/y/z of the message's frame."""
+        return np.array([[msg.x, msg.y, msg.z], [msg.vx, msg.vy, msg.vz], [msg.afx, msg.afy, msg.afz]], dtype=float)
+
+    @staticmethod
+    def _yaw_fields_used(msg) -> tuple[float | None, float | None]:
+        """The message's yaw (rad) and yaw rate (rad/s), NED, each None when its type_mask bit
+        (YAW_IGNORE, YAW_RATE_IGNORE) is set."""
+        mask = int(msg.type_mask)
+        yaw = None if mask & _M.POSITION_TARGET_TYPEMASK_YAW_IGNORE else float(msg.yaw)
+        rate = None if mask & _M.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE else float(msg.yaw_rate)
+        return yaw, rate
+
+    def _px4_local_setpoint(self, msg) -> None:
+        """PX4 ``mavlink_receiver.cpp`` ``handle_message_set_position_target_local_ned``.
+
+        MAV_FRAME_LOCAL_NED: every component on its own (an ignored one is NaN). MAV_FRAME_BODY_NED:
+        the position is never used (NaN whatever the mask); velocity and acceleration are each
+        used only when none of their three ignore bits is set; the velocity's x/y are rotated by
+        the vehicle's heading (``Eulerf(R)(2)``) and its z kept (down), the acceleration is
+        rotated by the whole attitude (``R * acceleration_body_sp``). The yaw is absolute in
+        both frames and the yaw rate is the offboard yawspeed. Any other frame is dropped with
+        "SET_POSITION_TARGET_LOCAL_NED coordinate frame N unsupported", an acceleration marked as
+        force with "... force not supported", a message with nothing used with "... invalid"
+        (none of them refreshes the offboard signal)."""
+        mask = int(msg.type_mask)
+        frame = int(msg.coordinate_frame)
+        ned = self._local_setpoint_ned(msg)
+        if frame == _M.MAV_FRAME_LOCAL_NED:
             used = np.array([[not mask & b for b in row] for row in _AXIS_BITS])
-        else:  # ArduCopter: any set bit of a vector ignores the whole vector (``pos_ignore = type_mask & POS_IGNORE``)
-            used = np.array([[u] * 3 for u in _ardu_vectors_used(mask)])
-        use_yaw = not mask & _M.POSITION_TARGET_TYPEMASK_YAW_IGNORE
-        if not used.any() or not np.all(np.isfinite(ned[used])) or (use_yaw and not math.isfinite(msg.yaw)):
-            return  # PX4 and ArduPilot drop setpoints they cannot use
+        elif frame == _M.MAV_FRAME_BODY_NED:
+            vel_used = not mask & (_AXIS_BITS[1][0] | _AXIS_BITS[1][1] | _AXIS_BITS[1][2])
+            acc_used = not mask & (_AXIS_BITS[2][0] | _AXIS_BITS[2][1] | _AXIS_BITS[2][2])
+            used = np.array([[False] * 3, [vel_used] * 3, [acc_used] * 3])
+            ned[1] = self._local_ned_from_heading_frame(ned[1])
+            ned[2] = self._attitude_ned_frd() @ ned[2]
+        else:
+            self._statustext(_M.MAV_SEVERITY_CRITICAL, f"SET_POSITION_TARGET_LOCAL_NED coordinate frame {frame} unsupported")
+            return
+        if used[2].any() and mask & _M.POSITION_TARGET_TYPEMASK_FORCE_SET:
+            self._statustext(_M.MAV_SEVERITY_CRITICAL, "SET_POSITION_TARGET_LOCAL_NED force not supported")
+            return
+        if not used.any():
+            self._statustext(_M.MAV_SEVERITY_CRITICAL, "SET_POSITION_TARGET_LOCAL_NED invalid")
+            return
+        yaw, rate = self._yaw_fields_used(msg)
+        if not np.all(np.isfinite(ned[used])) or not all(math.isfinite(x) for x in (yaw, rate) if x is not None):
+            return  # non-finite values the model cannot fly: dropped
         rows, used_enu = self._setpoint_rows(ned, used)
         rows[0] = None if rows[0] is None else self.scene_from_local(rows[0])
-        self._accept_setpoint(rows, used_enu, self._setpoint_yaw(msg.yaw) if use_yaw else None)
+        self._accept_setpoint(rows, used_enu, **self._px4_yaw_fields(yaw, rate))
+
+    def _px4_yaw_fields(self, yaw_ned: float | None, rate_ned: float | None) -> dict:
+        """The :class:`_Target` yaw fields of a PX4 offboard setpoint: the yaw (absolute, NED in
+        the estimator frame) and the yawspeed, which ``PositionControl::update`` turns into a
+        yaw held where it is (yaw NaN) and a feed-forward rate the attitude controller adds to
+        its heading correction (``AttitudeControl::update``)."""
+        return {"yaw": None if yaw_ned is None else self._setpoint_yaw(yaw_ned),
+                "yaw_rate": None if rate_ned is None else frames.yaw_rate_enu_from_ned(rate_ned)}
+
+    def _ardu_local_setpoint(self, msg) -> None:
+        """ArduCopter ``GCS_MAVLINK_Copter::handle_message_set_position_target_local_ned``.
+
+        Ignored outside GUIDED. Frames LOCAL_NED, LOCAL_OFFSET_NED, BODY_NED and BODY_OFFSET_NED;
+        any other (BODY_FRD too) stops (``ModeGuided::init(true)``). Whole vectors (any set bit
+        ignores a vector). In BODY_NED and BODY_OFFSET_NED the x/y of position, velocity and
+        acceleration are rotated by the heading (``ahrs.body_to_earth2D``); in every frame but
+        LOCAL_NED the position is offset by the current position from the EKF origin (without a
+        position estimate: stop), so BODY_NED positions are offsets too; velocities are never
+        offset. The yaw is relative in the two body frames. Then as the global message: pos+vel
+        (+acc) a pos/vel/accel target, vel (+acc), acc only, pos only; anything else, a force
+        setpoint or an insane velocity (``sane_vel_or_acc_vector``) stops."""
+        if self.custom_mode != ARDUCOPTER_MODE["guided"]:
+            return  # in_guided_mode(): GUIDED (AUTO's NAV_GUIDED items are not modelled)
+        frame = int(msg.coordinate_frame)
+        if frame not in _ARDU_LOCAL_FRAMES:
+            return self._ardu_stop(f"unsupported coordinate frame {frame}")
+        mask = int(msg.type_mask)
+        pos_used, vel_used, acc_used = _ardu_vectors_used(mask)
+        if mask & _M.POSITION_TARGET_TYPEMASK_FORCE_SET and acc_used:
+            return self._ardu_stop("force setpoint")
+        ned = self._local_setpoint_ned(msg)
+        body = frame in _BODY_FRAMES
+        if body:
+            ned = self._local_ned_from_heading_frame(ned)
+        if pos_used and frame != _M.MAV_FRAME_LOCAL_NED:
+            if not self._position_valid:
+                return self._ardu_stop("no position estimate for an offset target")
+            ned[0] = ned[0] + self._local_ned()[0]
+        if vel_used and not (np.all(np.isfinite(ned[1])) and np.all(np.abs(ned[1]) <= 1000.0)):
+            return self._ardu_stop("velocity not sane")
+        yaw, rate = self._yaw_fields_used(msg)
+        used_rows = np.array([pos_used, vel_used, acc_used])
+        if not np.all(np.isfinite(ned[used_rows])) or not all(math.isfinite(x) for x in (yaw, rate) if x is not None):
+            return  # non-finite values the model cannot fly: dropped
+        if not (vel_used or pos_used != acc_used):
+            return self._ardu_stop("unsupported type_mask combination")  # pos+acc without vel, or nothing
+        used = np.repeat(used_rows[:, None], 3, axis=1)
+        rows, used_enu = self._setpoint_rows(ned, used)
+        rows[0] = None if rows[0] is None else self.scene_from_local(rows[0])
+        self._accept_setpoint(rows, used_enu, **self._ardu_yaw_fields(yaw, rate, relative=body))
+
+    def _local_ned_from_heading_frame(self, vectors) -> np.ndarray:
+        """Vectors (..., 3) in the vehicle's heading frame (x forward, y right, z down: the
+        BODY_NED / BODY_OFFSET_NED axes of both autopilots) as NED vectors of the estimator's
+        frame: x/y rotated by the current heading, z unchanged (PX4 ``Eulerf(R)(2)``, ArduPilot
+        ``AP_AHRS::body_to_earth2D``)."""
+        heading_local_enu = wrap_angle(self.model.yaw - self.c.estimator_yaw_rad)
+        return frames.ned_from_enu(frames.flu_from_frd(vectors) @ _rot_z(heading_local_enu).T)
+
+    def _attitude_ned_frd(self) -> np.ndarray:
+        """Body attitude (3, 3) rotating FRD vectors into the estimator's NED frame (what
+        ATTITUDE / ATTITUDE_QUATERNION report)."""
+        return frames.R_ENU_NED @ self._R_scene_est.T @ self.model.R_enu_flu() @ frames.R_FLU_FRD
+
+    def _ardu_yaw_fields(self, yaw_ned: float | None, rate_ned: float | None, relative: bool = False) -> dict:
+        """The :class:`_Target` yaw fields of an ArduCopter GUIDED target (``ModeGuided::set_yaw_state_rad``
+        and the ``AutoYaw`` mode it sets; yaw rad and rate rad/s, NED): a relative yaw (the body
+        frames) is a fixed yaw ``set_fixed_yaw_rad`` adds to AutoYaw's current angle and slews to
+        at ATC_SLEW_YAW, the rate unused; an absolute yaw with a rate is ANGLE_RATE, a yaw target
+        that advances at the rate from now on; a yaw alone is that heading (ANGLE_RATE at rate
+        0); a rate alone is RATE, a turn at the rate capped at ATC_SLEW_YAW
+        (``AC_AttitudeControl::input_thrust_vector_rate_heading_rads``); neither is the default
+        yaw mode (here: the heading held). ANGLE_RATE's target advances at the rate as sent: the
+        source caps only its feed-forward (``input_thrust_vector_heading_rad``), and the heading
+        correction makes up the rest."""
+        slew = math.radians(float(self.params["ATC_SLEW_YAW"]) / 100.0)
+        if yaw_ned is not None and relative:
+            return {"yaw": wrap_angle(self._ardu_auto_yaw_angle() - yaw_ned), "yaw_rate_limit_radps": slew}  # NED + is clockwise
+        rate = None if rate_ned is None else float(frames.yaw_rate_enu_from_ned(rate_ned))
+        if yaw_ned is None:
+            return {} if rate is None else {"yaw_rate": float(np.clip(rate, -slew, slew))}
+        if rate is None:
+            return {"yaw": self._setpoint_yaw(yaw_ned)}
+        return {"yaw": self._setpoint_yaw(yaw_ned), "yaw_rate": rate, "yaw_t_s": self.clock()}
+
+    def _ardu_auto_yaw_angle(self) -> float:
+        """AutoYaw's yaw angle (rad, scene ENU), which a relative yaw is added to
+        (``AutoYaw::set_fixed_yaw_rad``): the absolute heading target being flown (moved on to
+        now), else the current heading (HOLD, RATE and the default modes follow the heading; a
+        fixed yaw still slewing is where the heading has got to)."""
+        t = self._target
+        if t is not None and t.yaw is not None and t.yaw_rate_limit_radps is None:
+            return float(t.at(self.clock()).yaw)
+        return float(self.model.yaw)
 
     def _setpoint_rows(self, ned: np.ndarray, used: np.ndarray):
         """The used rows of a setpoint (rows p, v, a; NED columns) as ENU vectors, and which ENU
@@ -1731,13 +1968,14 @@ class SimMavlinkVehicle:
         """A setpoint's yaw (radians, NED heading in the estimator frame) as the scene's ENU yaw."""
         return wrap_angle(float(frames.yaw_enu_from_ned(yaw_ned)) + self.c.estimator_yaw_rad)
 
-    def _accept_setpoint(self, rows, used_enu, yaw) -> None:
-        """A setpoint the autopilot takes. PX4: an offboard setpoint (it refreshes the
-        COM_OF_LOSS_T signal, allows arming and entering OFFBOARD, and is flown in OFFBOARD).
-        ArduCopter: the GUIDED target when armed and not taking off."""
+    def _accept_setpoint(self, rows, used_enu, yaw=None, **yaw_fields) -> None:
+        """A setpoint the autopilot takes (``yaw`` and ``yaw_fields``: the :class:`_Target` yaw
+        fields). PX4: an offboard setpoint (it refreshes the COM_OF_LOSS_T signal, allows arming
+        and entering OFFBOARD, and is flown in OFFBOARD). ArduCopter: the GUIDED target when
+        armed and not taking off."""
         t = self.clock()
         with self._lock:
-            target = self._resolve(rows, used_enu, yaw)
+            target = self._resolve(rows, used_enu, yaw, **yaw_fields)
             self._last_sp_s = t
             self.setpoints_received += 1
             self.setpoint_times.append(t)
@@ -1800,15 +2038,15 @@ class SimMavlinkVehicle:
         ned = np.array([[0.0, 0.0, 0.0], [msg.vx, msg.vy, msg.vz], [msg.afx, msg.afy, msg.afz]], dtype=float)
         used = np.array([[not mask & b for b in row] for row in _AXIS_BITS])
         used[0, :] = p_scene is not None
-        use_yaw = not mask & _M.POSITION_TARGET_TYPEMASK_YAW_IGNORE
+        yaw, rate = self._yaw_fields_used(msg)
         if used[2].any() and mask & _M.POSITION_TARGET_TYPEMASK_FORCE_SET:
             self._statustext(_M.MAV_SEVERITY_CRITICAL, "SET_POSITION_TARGET_GLOBAL_INT force not supported")
             return
-        if not used.any() or not np.all(np.isfinite(ned[1:][used[1:]])) or (use_yaw and not math.isfinite(msg.yaw)):
+        if not used.any() or not np.all(np.isfinite(ned[1:][used[1:]])) or not all(math.isfinite(x) for x in (yaw, rate) if x is not None):
             return
         rows, used_enu = self._setpoint_rows(ned, used)
         rows[0] = p_scene
-        self._accept_setpoint(rows, used_enu, self._setpoint_yaw(msg.yaw) if use_yaw else None)
+        self._accept_setpoint(rows, used_enu, **self._px4_yaw_fields(yaw, rate))
 
     def _ardu_global_setpoint(self, msg) -> None:
         """ArduCopter ``GCS_MAVLINK_Copter::handle_message_set_position_target_global_int``.
@@ -1830,7 +2068,6 @@ class SimMavlinkVehicle:
             return  # in_guided_mode(): GUIDED (AUTO's NAV_GUIDED items are not modelled)
         mask = int(msg.type_mask)
         pos_used, vel_used, acc_used = _ardu_vectors_used(mask)
-        use_yaw = not mask & _M.POSITION_TARGET_TYPEMASK_YAW_IGNORE
         if mask & _M.POSITION_TARGET_TYPEMASK_FORCE_SET and acc_used:
             return self._ardu_stop("force setpoint")
         frame = int(msg.coordinate_frame)
@@ -1844,9 +2081,10 @@ class SimMavlinkVehicle:
         if vel_used and not (np.all(np.isfinite(v_ned)) and np.all(np.abs(v_ned) <= 1000.0)):
             return self._ardu_stop("velocity not sane")
         a_ned = np.array([msg.afx, msg.afy, msg.afz], dtype=float)
-        if (acc_used and not np.all(np.isfinite(a_ned))) or (use_yaw and not math.isfinite(msg.yaw)):
+        yaw_ned, rate_ned = self._yaw_fields_used(msg)
+        if (acc_used and not np.all(np.isfinite(a_ned))) or not all(math.isfinite(x) for x in (yaw_ned, rate_ned) if x is not None):
             return  # non-finite values the model cannot fly: dropped (as for LOCAL_NED)
-        yaw = self._setpoint_yaw(msg.yaw) if use_yaw else None
+        yaw_fields = self._ardu_yaw_fields(yaw_ned, rate_ned)
         v = frames.enu_from_ned(v_ned) @ self._R_scene_est.T
         a = frames.enu_from_ned(a_ned) @ self._R_scene_est.T
         every = np.ones(3, dtype=bool)
@@ -1857,11 +2095,11 @@ class SimMavlinkVehicle:
             p = self._ardu_location_scene(msg.lat_int, msg.lon_int, msg.alt, alt_frame)
             if p is None:
                 return self._ardu_stop("no vector from the EKF origin")
-            self._accept_setpoint([p, v, None], np.array([every, every, none]), yaw)
+            self._accept_setpoint([p, v, None], np.array([every, every, none]), **yaw_fields)
         elif vel_used:
-            self._accept_setpoint([None, v, a if acc_used else None], np.array([none, every, every if acc_used else none]), yaw)
+            self._accept_setpoint([None, v, a if acc_used else None], np.array([none, every, every if acc_used else none]), **yaw_fields)
         elif acc_used and not pos_used:
-            self._accept_setpoint([None, None, a], np.array([none, none, every]), yaw)
+            self._accept_setpoint([None, None, a], np.array([none, none, every]), **yaw_fields)
         elif pos_used and not acc_used:
             if alt_frame == "terrain":
                 if self._ardu_location_scene(msg.lat_int, msg.lon_int, 0.0, "absolute") is None:
@@ -1871,7 +2109,7 @@ class SimMavlinkVehicle:
             if p is None:
                 self._event("guided: global target ignored (no vector from the EKF origin)")
                 return
-            self._accept_setpoint([p, None, None], np.array([every, none, none]), yaw)
+            self._accept_setpoint([p, None, None], np.array([every, none, none]), **yaw_fields)
         else:
             self._ardu_stop("unsupported type_mask combination")
 
@@ -1900,7 +2138,7 @@ class SimMavlinkVehicle:
                 self._ardu_speed_ne_mps = None
                 self._guided_timed_out = True  # already stopped: no separate GUID_TIMEOUT event
 
-    def _resolve(self, rows, used_enu, yaw) -> _Target:
+    def _resolve(self, rows, used_enu, yaw=None, **yaw_fields) -> _Target:
         """A setpoint's used rows as a controller target; mixed per-axis PX4 setpoints become
         one velocity command (position axes through the position gain)."""
         p, v, a = rows
@@ -1908,7 +2146,7 @@ class SimMavlinkVehicle:
         if all(whole):
             kind = "position" if (p is not None and v is None and a is None) else (
                 "full" if p is not None else ("velocity" if v is not None else "acceleration"))
-            return _Target(p=p, v=v, a=a, yaw=yaw, kind=kind)
+            return _Target(p=p, v=v, a=a, yaw=yaw, kind=kind, **yaw_fields)
         pos = self.model.p
         v_cmd = np.zeros(3)
         for i in range(3):
@@ -1916,7 +2154,7 @@ class SimMavlinkVehicle:
                 v_cmd[i] = self.c.k_pos * (p[i] - pos[i]) + (v[i] if v is not None and used_enu[1, i] else 0.0)
             elif v is not None and used_enu[1, i]:
                 v_cmd[i] = v[i]
-        return _Target(v=v_cmd, yaw=yaw, kind="velocity")
+        return _Target(v=v_cmd, yaw=yaw, kind="velocity", **yaw_fields)
 
     def _on_command(self, msg, is_int: bool) -> int:
         cmd = int(msg.command)
@@ -2274,8 +2512,7 @@ class SimMavlinkVehicle:
         if self._ardu_speed_ne_mps is None or target.kind != "position" or target.p is None:
             return target
         limit = self._ardu_speed_ne_mps if target.v_limit_mps is None else min(target.v_limit_mps, self._ardu_speed_ne_mps)
-        return _Target(p=target.p, v=target.v, a=target.a, yaw=target.yaw, v_limit_mps=limit, kind=target.kind,
-                       yaw_rate_limit_radps=target.yaw_rate_limit_radps)
+        return replace(target, v_limit_mps=limit)
 
     def _cmd_condition_yaw(self, p) -> int:
         """ArduCopter MAV_CMD_CONDITION_YAW (MAVProxy ``setyaw``): param1 heading 0..360 deg
@@ -2290,11 +2527,9 @@ class SimMavlinkVehicle:
             return _M.MAV_RESULT_FAILED
         slew = math.radians(float(self.params["ATC_SLEW_YAW"]) / 100.0)
         rate_rad = min(slew, math.radians(rate)) if math.isfinite(rate) and rate > 0 else slew
-        m = self.model
         if relative == 1.0:
             sign = -1.0 if math.isfinite(direction) and int(direction) < 0 else 1.0
-            base = self._target.yaw if self._target is not None and self._target.yaw is not None else m.yaw
-            yaw = wrap_angle(base - sign * math.radians(angle))  # clockwise (NED) is negative ENU
+            yaw = wrap_angle(self._ardu_auto_yaw_angle() - sign * math.radians(angle))  # clockwise (NED) is negative ENU
         else:
             yaw = wrap_angle(float(frames.yaw_enu_from_ned(math.radians(angle))) + self.c.estimator_yaw_rad)
         self._event(f"condition yaw to {math.degrees(yaw):.1f} deg ENU at {math.degrees(rate_rad):.1f} deg/s")
@@ -2440,7 +2675,7 @@ class SimMavlinkVehicle:
                 if msg_id == _M.MAVLINK_MSG_ID_ATTITUDE_QUATERNION:
                     q = frames.quat_ned_frd_from_matrix_enu_flu(R)
                     return mav.attitude_quaternion_encode(self.time_boot_ms(), *q, *rates_frd)
-                R_ned_frd = frames.R_ENU_NED @ R @ frames.R_FLU_FRD
+                R_ned_frd = self._attitude_ned_frd()
                 roll = math.atan2(R_ned_frd[2, 1], R_ned_frd[2, 2])
                 pitch = math.asin(float(np.clip(-R_ned_frd[2, 0], -1.0, 1.0)))
                 yaw = math.atan2(R_ned_frd[1, 0], R_ned_frd[0, 0])
@@ -2639,15 +2874,16 @@ class SimMavlinkVehicle:
 
     def _position_target_local_ned(self):
         """What the position controller tracks, MAV_FRAME_LOCAL_NED in the estimator's frame.
-        PX4 (``streams/POSITION_TARGET_LOCAL_NED.hpp``): every setpoint component that is not
-        finite is NaN with its ignore bit; none while nothing is tracked (disarmed). ArduCopter
-        (``GCS_MAVLINK_Copter::send_position_target_local_ned``): only in GUIDED, the tracked
-        position and/or velocity, the rest ignored (0)."""
-        t = self._target
-        if t is None or not self.armed:
+        Targets sent in another frame are reported as flown: rotated and offset into it. PX4
+        (``streams/POSITION_TARGET_LOCAL_NED.hpp``): every setpoint component that is not finite
+        is NaN with its ignore bit (the yaw rate too); none while nothing is tracked (disarmed).
+        ArduCopter (``GCS_MAVLINK_Copter::send_position_target_local_ned``): only in GUIDED, the
+        tracked position and/or velocity, the rest (yaw and yaw rate too) ignored (0)."""
+        if self._target is None or not self.armed:
             return None
         if not self.px4 and self.custom_mode != ARDUCOPTER_MODE["guided"]:
             return None
+        t = self._target.at(self.clock())
         nan = math.nan
         rows = [None, None, None]
         if t.p is not None:
@@ -2661,7 +2897,7 @@ class SimMavlinkVehicle:
                   (T.POSITION_TARGET_TYPEMASK_VX_IGNORE | T.POSITION_TARGET_TYPEMASK_VY_IGNORE | T.POSITION_TARGET_TYPEMASK_VZ_IGNORE),
                   (T.POSITION_TARGET_TYPEMASK_AX_IGNORE | T.POSITION_TARGET_TYPEMASK_AY_IGNORE | T.POSITION_TARGET_TYPEMASK_AZ_IGNORE)]
         absent = nan if self.px4 else 0.0
-        mask = T.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
+        mask = 0
         vals = []
         for k in range(3):
             if rows[k] is None:
@@ -2674,8 +2910,13 @@ class SimMavlinkVehicle:
         else:
             yaw = absent
             mask |= T.POSITION_TARGET_TYPEMASK_YAW_IGNORE
+        if self.px4 and t.yaw_rate is not None:
+            yaw_rate = float(frames.yaw_rate_enu_from_ned(t.yaw_rate))  # the sign flip is its own inverse
+        else:
+            yaw_rate = absent
+            mask |= T.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
         return self.link.mav.position_target_local_ned_encode(self.time_boot_ms(), _M.MAV_FRAME_LOCAL_NED, mask, *vals,
-                                                              yaw, absent)
+                                                              yaw, yaw_rate)
 
     def _timesync_request(self):
         """PX4's TIMESYNC stream (``MavlinkStreamTimesync``): a request, tc1 = 0, ts1 = our time
