@@ -140,6 +140,25 @@ def test_via_objects_are_passed(yard):
     assert via.reference.path_length_m > direct.reference.path_length_m
 
 
+def test_a_via_object_is_passed_where_it_is_in_sight_not_through_the_wall_it_hangs_on():
+    # a red banner hangs on the east face of a 0.12 m partition south of the wall's gap; the
+    # reachable voxels nearest it (within the approach slack) include the partition's west side,
+    # cheaper from the gap, which a route would pass with the partition between it and the banner
+    part = _obj("partition", 4, [_box([3, -4, 2.5], [0.12, 12, 5])], target=False)
+    banner = _obj("red banner", 5, [_box([3.16, -3, 2.5], [0.2, 2, 1])])
+    scene = _scene([part, banner])
+    checker = TaskChecker(scene)
+    r = checker.check(_task(scene, _object_goal(scene, "red crate"), ["red banner", "red crate"], via=["red banner"]))
+    assert r.ok, r.problems
+    wp = densify(r.reference.waypoints_m, 0.05)
+    lo, hi = object_bounds(scene, "red banner")
+    d = np.linalg.norm(np.maximum(np.abs(wp - (lo + hi) / 2) - (hi - lo) / 2, 0), axis=1)
+    passed = wp[np.argmin(d)]
+    assert d.min() <= CheckerConfig().via_radius_m
+    assert checker.visible_mask(passed[None], "red banner", level_camera=False)[0]
+    assert not np.any((wp[:, 0] > 0.2) & (wp[:, 0] < 3.0) & (wp[:, 1] < 1.0))  # never down the partition's west side
+
+
 def test_checker_config_is_validated():
     with pytest.raises(ValueError, match="CheckerConfig.voxel_m must be positive"):
         CheckerConfig(voxel_m=0.0)

@@ -142,4 +142,7 @@ def test_check_write_keeps_the_files_own_header_and_says_what_it_wrote(external,
     assert text.startswith("# My lot, my tasks.\n#\n# Not the stock header.\nformat = ")
     assert load_tasks([path])[0].reference is not None
     assert main(["tasks", "check", "--files", str(path), "--tasks", "mine-o01"]) == 0
-    assert "1 tasks: 1 ok, 0 stale or unchecked, 0 failed" in capsys.readouterr().out
+    got = capsys.readouterr()
+    assert "1 tasks: 1 ok, 0 stale or unchecked, 0 failed" in got.out and "checking" in got.err  # the progress bar
+    assert main(["tasks", "check", "--files", str(path), "--tasks", "mine-o01", "--no-progress"]) == 0
+    assert "checking" not in capsys.readouterr().err

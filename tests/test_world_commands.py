@@ -12,13 +12,14 @@ from onfly.world import World
 
 
 def test_render_writes_images_that_match_the_renderer(tmp_path, capsys):
-    assert main(["render", "--scene", "corridor", "--pose", "3,0.5,1.2,0.3", "--out", str(tmp_path), "--width", "160", "--height", "107"]) == 0
+    # yaw in degrees, as in scene and task files
+    assert main(["render", "--scene", "corridor", "--pose", "3,0.5,1.2,17", "--out", str(tmp_path), "--width", "160", "--height", "107"]) == 0
     from onfly.world.render import Renderer
     from planning.camera import PinholeCamera
     from planning.frames import body_transform, cam_transform_from_body
 
     w = World.from_scene("corridor")
-    ref = Renderer(w.geometry, PinholeCamera.from_fov(160, 107, 90, 60)).render(cam_transform_from_body(body_transform([3, 0.5, 1.2], 0.3)))
+    ref = Renderer(w.geometry, PinholeCamera.from_fov(160, 107, 90, 60)).render(cam_transform_from_body(body_transform([3, 0.5, 1.2], np.radians(17.0))))
     rgb = cv2.imread(str(tmp_path / "rgb.png"))[:, :, ::-1]
     np.testing.assert_array_equal(rgb, ref.rgb)
     np.testing.assert_array_equal(np.load(tmp_path / "depth.npy"), ref.depth_m)

@@ -20,7 +20,7 @@ DESCRIPTION = (
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", required=True, help="committed scene name (see `onfly scenes`) or path to a scene .toml")
-    parser.add_argument("--pose", default=None, help="body pose x,y,z,yaw (metres ENU, yaw in radians; negative numbers work: --pose -3,0,6,0); default: the scene's start pose")
+    parser.add_argument("--pose", default=None, help="body pose x,y,z,yaw (metres ENU, yaw in degrees counter-clockwise from east, as yaw_deg in scene and task files; negative numbers work: --pose -3,0,6,-90); default: the scene's start pose")
     parser.add_argument("--out", type=Path, default=Path("render_out"), help="output folder (created if missing)")
     parser.add_argument("--width", type=int, default=640, help="image width in pixels")
     parser.add_argument("--height", type=int, default=427, help="image height in pixels")
@@ -28,7 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def parse_pose(text: str):
-    """``"x,y,z,yaw"`` -> (position (3,) array, yaw radians)."""
+    """``"x,y,z,yaw"`` (metres, degrees) -> (position (3,) array, yaw radians)."""
     import numpy as np
 
     try:
@@ -37,7 +37,7 @@ def parse_pose(text: str):
         raise CliError(f"--pose must be four numbers x,y,z,yaw, got {text!r}") from None
     if len(vals) != 4 or not all(math.isfinite(v) for v in vals):
         raise CliError(f"--pose must be four finite numbers x,y,z,yaw, got {text!r}")
-    return np.array(vals[:3]), vals[3]
+    return np.array(vals[:3]), math.radians(vals[3])
 
 
 def id_colors(ids):

@@ -43,6 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         if name == "check":
             p.add_argument("--write", action="store_true", help="store the new references in the task files")
             p.add_argument("--json", default=None, help="write the per-task results to this JSON file")
+            p.add_argument("--no-progress", action="store_true", help="no progress bar (as `onfly bench`)")
 
 
 def _scene_ref(path: Path) -> str | None:
@@ -92,7 +93,7 @@ def run(args) -> int:
     from onfly.bench.checker import CheckerConfig, check_tasks
     from onfly.bench.tasks import load_task_file, write_task_file
 
-    with tqdm(total=len(tasks), desc="checking", unit="task") as bar:
+    with tqdm(total=len(tasks), desc="checking", unit="task", disable=args.no_progress) as bar:
         results = check_tasks(tasks, CheckerConfig(), progress=bar)
     failed = stale = 0
     rows = []
