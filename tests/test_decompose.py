@@ -277,6 +277,10 @@ def test_a_scene_setting_statement_is_joined_to_the_subtask_after_it():
     assert decompose(text) == ["You're at the end of the hall, Fly back past the snack machine", "stop at the blue door"]
     # a statement with a movement verb asks for something and stays; one with nothing after it stays
     assert attach_context(["There is a tree, fly to it", "land"]) == ("There is a tree, fly to it", "land")
+    # what the speaker wants is context too, unless it asks for a movement
+    assert decompose("I need a coffee. Take me to the counter in the café.") == ["I need a coffee, Take me to the counter in the café"]
+    assert decompose("I\u2019d like to buy postcards. Find the postcard stand.") == ["I\u2019d like to buy postcards, Find the postcard stand"]
+    assert attach_context(["I'd like to go to the gate", "stop there"]) == ("I'd like to go to the gate", "stop there")
     assert attach_context(["fly to the tree", "There is a bench"]) == ("fly to the tree", "There is a bench")
     assert attach_context(["There are two cars", "You're near the gate", "go to the gate"]) == (
         "There are two cars, You're near the gate, go to the gate",

@@ -57,8 +57,9 @@ and stays. So does one whose first reference points back
 (:func:`opens_with_back_reference`: ``stop beside it, across from office 105``). A subtask that only closes the one before it
 (every word in :data:`CLOSING_ONLY_WORDS`: ``stop``, ``then land``) is joined the same way: on
 its own it names nothing a monitor could judge complete. Likewise a statement that only sets the
-scene (``You're at the end of the hall. Fly back past ...``: it opens with one of
-:data:`CONTEXT_OPENERS` and holds no movement verb) has nothing to complete; it is joined to
+scene or says what the speaker wants (``You're at the end of the hall. Fly back past ...``, ``I
+need a coffee. Take me to the counter ...``: it opens with one of :data:`CONTEXT_OPENERS` and
+holds no movement verb) has nothing to complete; it is joined to
 the subtask after it (:func:`attach_context`), and so is a subtask that names nothing to reach
 (``leave the study``, ``follow the hallway west``: :func:`attach_transit`), whose end no
 monitor can see except as arriving where the next subtask begins.
@@ -140,7 +141,10 @@ _FILLER_WORDS = frozenset(MOVEMENT_VERBS) | frozenset(
     }
 )  # fmt: skip
 #: openings of a statement that describes the scene instead of asking for a movement
-CONTEXT_OPENERS = ("you're", "you are", "there's", "there is", "there are", "we're", "we are", "this is")
+CONTEXT_OPENERS = (
+    "you're", "you are", "there's", "there is", "there are", "we're", "we are", "this is",
+    "i need", "i'd like", "i would like", "i want", "we need", "we'd like", "we would like", "we want",
+)  # fmt: skip
 _WORD_RE = re.compile(r"[^\W_]+(?:'[^\W_]+)?")
 
 
@@ -258,7 +262,7 @@ def attach_back_references(subtasks: list[str] | tuple[str, ...]) -> tuple[str, 
 
 
 def _is_context(subtask: str) -> bool:
-    low = " ".join(subtask.lower().split())
+    low = " ".join(subtask.lower().replace("\u2019", "'").split())
     words = set(_WORD_RE.findall(low))
     return any(low == o or low.startswith(o + " ") for o in CONTEXT_OPENERS) and not (words & set(MOVEMENT_VERBS))
 

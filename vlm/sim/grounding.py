@@ -7,6 +7,7 @@ The grounding rule is stated in :mod:`vlm.sim.error_model`.
 from __future__ import annotations
 
 import re
+import unicodedata
 from dataclasses import dataclass
 from typing import Mapping
 
@@ -65,8 +66,10 @@ PHRASE_END_WORDS = frozenset(
     close closer closest far farther further furthest nearest somewhere anywhere everywhere nowhere away home
     too instead already soon later once twice""".split()
 )
-#: Words that name no object to reach: the phrase-end words and places (rooms too: a room is
-#: where, not what), directions and units.
+#: Words that name no object to reach: the phrase-end words and places (rooms and the places a
+#: building or a yard holds too, a gallery, a café, a barn: where, not what), directions and
+#: units. A word some committed scene names an object by (``shed``, ``terrace``, ``platform``,
+#: ``reception``, ``closet``) is an object there and stays out of this list.
 #: A subtask whose words are all of these (or numbers) names no target (``fly forward``,
 #: ``continue through the intersection``, ``go to the end of the corridor``).
 NON_OBJECT_WORDS = PHRASE_END_WORDS | frozenset(
@@ -74,7 +77,11 @@ NON_OBJECT_WORDS = PHRASE_END_WORDS | frozenset(
     path footpath way aisle area space spot place position room level storey story floor ground air altitude height sky top bottom
     distance direction degree metre meter foot feet yard inch m cm half halfway couple time times view sight
     zero two three four five six seven eight nine ten few
-    study bedroom bathroom kitchen kitchenette laundry lobby foyer""".split()
+    study bedroom bathroom kitchen kitchenette laundry lobby foyer
+    gallery museum shop store cafe cafeteria canteen restaurant library gym gymnasium classroom auditorium
+    workshop studio lab laboratory clinic ward chapel theater theatre restroom washroom lavatory storeroom stockroom
+    breakroom boardroom pantry attic basement cellar vestibule entryway atrium courtyard concourse hangar depot
+    barn porch orchard""".split()
 )
 _DETERMINERS = frozenset("the a an this that these those".split())
 #: words that count the objects of a noun phrase; they say how many, not which
@@ -139,10 +146,11 @@ def _is_identifier(word: str) -> bool:
 
 
 def _lower(text: str) -> str:
-    """Lower case with contractions spelled out (``you're`` -> ``you are``, ``don't`` -> ``do
-    not``): a clitic is a word, never a noun. The possessive ``'s`` stays (its ``s`` ends a
-    phrase)."""
-    low = _NOT_RE.sub(" not", _IRREGULAR_NOT_RE.sub(lambda m: _IRREGULAR_NOT[m.group(1)], text.lower()))
+    """Lower case with accents dropped (``café`` -> ``cafe``: the words are ASCII) and
+    contractions spelled out (``you're`` -> ``you are``, ``don't`` -> ``do not``): a clitic is
+    a word, never a noun. The possessive ``'s`` stays (its ``s`` ends a phrase)."""
+    folded = "".join(ch for ch in unicodedata.normalize("NFKD", text) if not unicodedata.combining(ch))
+    low = _NOT_RE.sub(" not", _IRREGULAR_NOT_RE.sub(lambda m: _IRREGULAR_NOT[m.group(1)], folded.lower()))
     return _CLITIC_RE.sub(lambda m: " " + _CLITICS[m.group(1)], low)
 
 
