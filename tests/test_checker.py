@@ -95,15 +95,27 @@ def test_enclosed_goal_is_unreachable():
 
 
 def test_a_goal_point_behind_the_wall_its_object_stands_against_is_refused():
-    # the gem stands inside a closed cage, against its 0.2 m south wall: the reachable voxel
-    # nearest it is outside, within the goal gap, but the wall is between them
+    # the gem stands inside a closed cage, against its 0.2 m south wall: the reachable voxels
+    # nearest it are outside, within the goal gap, but the wall is between them and it
     cage = _cage()
     gem = _obj("green gem", 5, [_box([6, 6.35, 1.5], [0.4, 0.3, 0.4])])
     scene = _scene([cage, gem])
-    r = TaskChecker(scene).check(_task(scene, _object_goal(scene, "green gem"), ["green gem"]))
+    checker = TaskChecker(scene)
+    r = checker.check(_task(scene, _object_goal(scene, "green gem"), ["green gem"]))
     assert not r.ok and r.reference is None
-    assert r.stats["goal_gap_m"] <= 1.5  # reached, as far as distance goes
-    assert any("has no line of sight to 'green gem'" in p for p in r.problems)
+    assert r.problems == (f"goal region: no reachable free point within {CheckerConfig().max_goal_gap_m} m of it has a line of sight to it",)
+    # the same cage with a doorway in the north wall: the goal point is the nearest voxel that
+    # sees the gem through it, inside, not the nearer one outside the south wall
+    walls = [p for p in cage["parts"]]
+    walls[1] = _box([4.8, 9, 1.5], [0.6, 0.2, 3])
+    walls.append(_box([7.2, 9, 1.5], [0.6, 0.2, 3]))  # a 1.8 m doorway at x in [5.1, 6.9]
+    scene = _scene([{**cage, "parts": walls}, gem])
+    checker = TaskChecker(scene)
+    r = checker.check(_task(scene, _object_goal(scene, "green gem"), ["green gem"]))
+    assert r.ok, r.problems
+    goal = r.reference.goal_point_m
+    assert checker.visible_mask(goal[None], "green gem", level_camera=False)[0]
+    assert 6.0 < goal[1] < 9.0  # inside the cage
 
 
 def test_target_behind_a_tall_wall_is_not_visible():

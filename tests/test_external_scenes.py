@@ -134,6 +134,8 @@ def test_check_write_keeps_the_files_own_header_and_says_what_it_wrote(external,
     first = body.index("[tasks.reference]")
     body = body[:first] + body[body.index("[[tasks]]", first):]  # mine-o01 loses its reference
     path.write_text("# My lot, my tasks.\n#\n# Not the stock header.\n" + body)
+    assert main(["tasks", "check", "--files", str(path), "--tasks", "mine-o01", "--no-progress"]) == 1
+    assert "mine-o01               unchecked" in capsys.readouterr().out  # never checked, not stale
     rc = main(["tasks", "check", "--files", str(path), "--tasks", "mine-o01", "--write"])
     out = capsys.readouterr().out
     assert rc == 0

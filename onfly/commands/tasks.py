@@ -102,9 +102,9 @@ def run(args) -> int:
         if not r.ok:
             status, failed = "FAIL", failed + 1
         elif t.reference is None or abs(t.reference.path_length_m - r.reference.path_length_m) > STALE_LENGTH_M:
-            status, stale = "written" if args.write else "stale", stale + 1
+            status, stale = "written" if args.write else ("unchecked" if t.reference is None else "stale"), stale + 1
         length = r.reference.path_length_m if r.reference else float("nan")
-        echo(f"{t.task_id:22s} {status:5s} path {length:5.1f} m  straight to region {r.straight_distance_m:5.1f} m  {'; '.join(r.problems)}")
+        echo(f"{t.task_id:22s} {status:9s} path {length:5.1f} m  straight to region {r.straight_distance_m:5.1f} m  {'; '.join(r.problems)}")
         rows.append({"task": t.task_id, "status": status, "problems": list(r.problems), "path_length_m": None if np.isnan(length) else length})
     if args.write:
         by_file: dict[Path, dict] = defaultdict(dict)
