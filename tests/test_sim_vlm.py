@@ -529,10 +529,11 @@ def test_names_target():
 def test_the_places_a_building_holds_are_where_and_accents_fold():
     # rooms and the places a building or a yard holds name no target; written with accents too
     for text in ("leave the café", "leave the cafe", "fly through the impressionist gallery", "go into the gift shop",
-                 "head into the barn", "go out of the cafeteria and into the library"):  # fmt: skip
+                 "walk through the orchard", "go out of the cafeteria and into the library"):  # fmt: skip
         assert not names_target(text), text
     # a place word before a noun is that noun's modifier; an accent is the same word
-    assert names_target("fly to the café table") and names_target("stop at the barn door")
+    assert names_target("fly to the café table") and names_target("stop at the gallery door")
+    assert names_target("find the water trough by the barn") and names_target("head into the barn")  # a building
     table = VisibleObject(1, "cafe table", "table", (), True, False)
     assert [m.instance_id for m in ground("stop beside the café table", {1: table}, {1: 400})] == [1]
 

@@ -67,9 +67,10 @@ PHRASE_END_WORDS = frozenset(
     too instead already soon later once twice""".split()
 )
 #: Words that name no object to reach: the phrase-end words and places (rooms and the places a
-#: building or a yard holds too, a gallery, a café, a barn: where, not what), directions and
-#: units. A word some committed scene names an object by (``shed``, ``terrace``, ``platform``,
-#: ``reception``, ``closet``) is an object there and stays out of this list.
+#: building or a yard holds too, a gallery, a café, an orchard: where, not what), directions
+#: and units. A building or a structure is an object, a landmark to fly by ("the trough by the
+#: barn"), so ``barn``, ``house``, ``shed``, ``porch`` stay out of this list, as does a word some
+#: committed scene names an object by (``terrace``, ``platform``, ``reception``, ``closet``).
 #: A subtask whose words are all of these (or numbers) names no target (``fly forward``,
 #: ``continue through the intersection``, ``go to the end of the corridor``).
 NON_OBJECT_WORDS = PHRASE_END_WORDS | frozenset(
@@ -80,8 +81,7 @@ NON_OBJECT_WORDS = PHRASE_END_WORDS | frozenset(
     study bedroom bathroom kitchen kitchenette laundry lobby foyer
     gallery museum shop store cafe cafeteria canteen restaurant library gym gymnasium classroom auditorium
     workshop studio lab laboratory clinic ward chapel theater theatre restroom washroom lavatory storeroom stockroom
-    breakroom boardroom pantry attic basement cellar vestibule entryway atrium courtyard concourse hangar depot
-    barn porch orchard""".split()
+    breakroom boardroom pantry attic basement cellar vestibule entryway atrium courtyard concourse orchard""".split()
 )
 _DETERMINERS = frozenset("the a an this that these those".split())
 #: words that count the objects of a noun phrase; they say how many, not which
