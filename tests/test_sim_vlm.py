@@ -526,6 +526,19 @@ def test_names_target():
         assert names_target(text), text
 
 
+def test_front_and_back_before_a_noun_say_which_one_in_front_of_says_where():
+    side = VisibleObject(10, "side door", "door", ("small barn door",), True, False)
+    front = VisibleObject(25, "front door", "door", ("farmhouse door",), True, False)
+    both = {10: side, 25: front}
+    # "the front door" names the front door, never the barn's side door when it alone is in view
+    assert [m.instance_id for m in ground("stop right in front of the front door", both, {10: 500, 25: 100})] == [25]
+    assert ground("stop right in front of the front door", {10: side}, {10: 500}) == []
+    assert ground("fly to the back door", {10: side}, {10: 500}) == []
+    # "in front of the door" and "the door at the back" say where: any door
+    assert {m.instance_id for m in ground("stop in front of the door", both, {10: 500, 25: 100})} == {10, 25}
+    assert {m.instance_id for m in ground("go through the door at the back", both, {10: 500, 25: 100})} == {10, 25}
+
+
 def test_the_places_a_building_holds_are_where_and_accents_fold():
     # rooms and the places a building or a yard holds name no target; written with accents too
     for text in ("leave the café", "leave the cafe", "fly through the impressionist gallery", "go into the gift shop",

@@ -22,8 +22,10 @@ naive singular) and
   *Linguistic Inquiry* 12(2), 1981): a model reading "wall clock" looks for a clock;
 - every word that modifies it from before belongs to the object's own words: an attribute
   (colour, size, material: :data:`vlm.sim.grounding.ATTRIBUTE_WORDS`) or a noun or ``-ing``
-  classifier (``stairwell`` in ``the stairwell door``, ``dining`` in ``the dining table``),
-  back to a determiner, a preposition, a count word or an ``-ed`` state (``the parked car``).
+  classifier (``stairwell`` in ``the stairwell door``, ``dining`` in ``the dining table``;
+  ``front`` / ``back`` right after a determiner: ``the front door`` is no side door, while
+  ``in front of the door`` says where), back to a determiner, a preposition, a count word or
+  an ``-ed`` state (``the parked car``).
   ``red van`` thus names the object ``red van`` (label ``van``) but not ``blue van``; ``the
   stairwell door`` names the green stairwell door but not the garage's exit shutter (label
   ``door``), so with the stairwell door out of view the model says the target is not visible

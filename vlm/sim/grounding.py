@@ -394,9 +394,20 @@ def _modifiers_start(text: list[str], breaks: list[bool], i: int) -> int:
     to a determiner, a preposition or another word that ends a phrase, a count word (``the two
     garden lanterns``) or punctuation. Each of those words must be one of the object's own for the mention to name it."""
     j = i
-    while j > 0 and not breaks[j - 1] and _is_premodifier(text[j - 1]):
+    while j > 0 and not breaks[j - 1] and (_is_premodifier(text[j - 1]) or _side_premodifier(text, breaks, j - 1)):
         j -= 1
     return j
+
+
+#: words that say where a thing is (``in front of``, ``at the back``) but, between a
+#: determiner and a noun, which one it is (``the front door``, ``the back gate``)
+_SIDE_WORDS = frozenset("front back".split())
+
+
+def _side_premodifier(text: list[str], breaks: list[bool], k: int) -> bool:
+    """Whether ``text[k]`` is a side word used as a pre-modifier: right after a determiner,
+    with no punctuation between (``the front door`` names a front door, not any door)."""
+    return text[k] in _SIDE_WORDS and k > 0 and text[k - 1] in _DETERMINERS and not breaks[k - 1]
 
 
 def _of_head(text: list[str], breaks: list[bool], end: int) -> str | None:
