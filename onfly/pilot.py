@@ -77,11 +77,11 @@ from planning.trajectory import Trajectory, VehicleState
 from planning.verifier import Verifier, VerifierConfig
 from planning.volume import FlightVolume
 from vlm.compass import compass_heading
-from vlm.turns import opening_turn
 from vlm.decompose import DecompositionError, count_steps, decompose_detailed
 from vlm.following import follow_intent
 from vlm.feature_cache import FeatureCache
 from vlm.parsing import CoordFormat
+from vlm.turns import opening_turn
 from vlm.types import VlmBackend
 
 __all__ = ["PilotConfig", "PilotConfigError", "PilotMode", "PilotEvent", "PilotTick", "OnFlyPilot"]
@@ -246,12 +246,13 @@ class PilotConfig:
         behind or beside the camera: the paper's pilot flies whatever the model points at
         ahead (a held-out hotel's "turn around ...": 12 s down the corridor the wrong way, then
         a dead end). No decision is asked for or flown during the turn, a STOP is still heard,
-        and the turn ends within ``recovery_yaw_tolerance_rad`` or after
-        ``recovery_timeout_s``. Only the opening words: a later subtask's turn ("..., then turn
-        right into the small meeting room") is relative to a way the vehicle may already have
-        taken, since the decision agent is asked about the next subtask's target too
-        (``subtask_lookahead``) and flies to it once it is in view; turning again there turned
-        the hard set's ``office_floor-l06`` away from its table. False = the paper's pilot
+        and the turn ends within ``recovery_yaw_tolerance_rad`` (or, should the vehicle not get
+        there, after twice the time the planner's yaw-rate limit needs plus 2 s). Only the
+        opening words: a later subtask's turn ("..., then turn right into the small meeting
+        room") is relative to a way the vehicle may already have taken, since the decision
+        agent is asked about the next subtask's target too (``subtask_lookahead``) and flies to
+        it once it is in view; turning again there turned the hard set's ``office_floor-l06``
+        away from its table. False = the paper's pilot
     """
 
     control_period_s: float = 0.1
@@ -475,7 +476,7 @@ class OnFlyPilot:
         self.east_yaw_rad: float | None = 0.0  # where east lies in the world frame (set_east_yaw)
         self._turn_due: float | None = None  # the turn the instruction opens with, not yet begun (radians, CCW)
         self._turn_yaw: float | None = None  # the heading the turn in the words ends at (world)
-        self._turn_start_s = 0.0
+        self._turn_until_s = 0.0  # when the turn in the words gives up (seconds)
 
     # -- lifecycle ------------------------------------------------------------------------------
     def set_east_yaw(self, yaw_rad: float | None) -> None:
@@ -876,7 +877,7 @@ class OnFlyPilot:
                 search_goal, yaw_ref = self._search_control(t_s, state)
         if self.mode is PilotMode.TURNING:
             err = abs(wrap_angle(state.yaw - self._turn_yaw))
-            if err <= cfg.recovery_yaw_tolerance_rad or t_s - self._turn_start_s > cfg.recovery_timeout_s:
+            if err <= cfg.recovery_yaw_tolerance_rad or t_s > self._turn_until_s:
                 self.mode = PilotMode.HOLDING
                 self.search.reset_stall()  # the hold was on purpose
                 self._event(t_s, "turned", {"yaw": state.yaw, "yaw_error": err})
@@ -962,7 +963,7 @@ class OnFlyPilot:
             return
         angle, self._turn_due = self._turn_due, None
         self._turn_yaw = float(wrap_angle(state.yaw + angle))
-        self._turn_start_s = t_s
+        self._turn_until_s = t_s + 2.0 * abs(angle) / self.config.planner.yaw_rate_max_rps + 2.0
         self._hold_p = state.p.copy()
         self.mode = PilotMode.TURNING
         self._event(t_s, "turn_in_words", {"angle": angle, "from_yaw": state.yaw, "yaw": self._turn_yaw, "position": state.p})

@@ -628,7 +628,7 @@ def test_an_instruction_that_opens_with_a_turn_is_begun_by_turning_in_place(plan
     assert turn.t_s == pytest.approx(0.0) and turn.data["yaw"] == pytest.approx(np.pi / 2, abs=1e-9)
     assert abs(wrap_angle(turned.data["yaw"] - np.pi / 2)) <= PilotConfig().recovery_yaw_tolerance_rad + 1e-9
     # a half turn at the paper's 0.4 rad/s takes about 8 s, turned in place with no decision asked
-    assert 6.0 < turned.t_s < PilotConfig().recovery_timeout_s
+    assert 6.0 < turned.t_s < 10.0
     during = [(t, p, mode) for t, p, _, mode in steps if t < turned.t_s - 0.05]
     assert all(mode is PilotMode.TURNING for _, _, mode in during)
     assert max(np.linalg.norm(p[:2] - np.array([0.0, -26.0])) for _, p, _ in during) < 0.3
@@ -644,3 +644,19 @@ def test_without_turn_in_words_the_same_flight_asks_the_way_at_once(planner):
     assert next(e for e in m.pilot.events if e.kind == "decision").t_s < 2.0
     assert all(mode is not PilotMode.TURNING for _, _, _, mode in steps)
 
+
+
+def test_a_turn_in_the_words_the_vehicle_cannot_make_gives_up_and_the_pilot_asks_the_way(planner):
+    world = World.from_scene("urban_block", camera=CAM)
+    pilot = OnFlyPilot(PilotConfig(), ScriptedVlm("perfect"), ClockRuntime(world.clock), planner=planner)
+    pilot.begin("Turn around and fly to the red van.", 0.0)
+    stuck = VehicleState(0.0, [0.0, -26.0, 1.5], np.zeros(3), 0.0)  # a heading that never changes
+    pilot.tick(0.0, stuck)
+    assert pilot.mode is PilotMode.TURNING
+    give_up = 2.0 * np.pi / PilotConfig().planner.yaw_rate_max_rps + 2.0  # 17.7 s at 0.4 rad/s
+    pilot.tick(give_up - 0.1, stuck)
+    assert pilot.mode is PilotMode.TURNING
+    pilot.tick(give_up + 0.1, stuck)
+    assert pilot.mode is PilotMode.HOLDING
+    turned = [e for e in pilot.events if e.kind == "turned"]
+    assert len(turned) == 1 and turned[0].data["yaw_error"] == pytest.approx(np.pi)
