@@ -4,8 +4,9 @@
 fridge": the way on lies behind or beside the camera, and a model that answers with a pixel
 cannot point there (what is behind the camera is no pixel). Spoken route instructions open this
 way often: of the 2349 instructions of R2R's val-unseen split (``../shared/realdata``), 141
-begin with "turn around" and 153 with "turn left" or "turn right". The pilot reads the turn and
-turns in place before it asks where to go (:class:`onfly.pilot.PilotConfig` ``turn_in_words``).
+begin with "turn around" and 153 with "turn left" or "turn right". The pilot reads the turn an
+instruction opens with and turns in place before it asks where to go
+(:class:`onfly.pilot.PilotConfig` ``turn_in_words``).
 
 A text *opens with a turn* when, after leading fillers (``now``, ``first``, ``please``,
 ``then``, ``and``, ``okay``), it begins with one of:
@@ -85,7 +86,7 @@ def _skip_angle(tokens: list[str], i: int) -> tuple[float, int]:
     return angle, (i + 1 if i < len(tokens) and tokens[i] in _DEGREES else i)
 
 
-@functools.lru_cache(maxsize=256)  # the pilot asks about the same subtask text again and again
+@functools.lru_cache(maxsize=256)  # a benchmark flies each instruction many times
 def opening_turn(text: str) -> float | None:
     """The turn ``text`` opens with, as a yaw in the vehicle's frame (radians, counter-clockwise:
     left ``+pi / 2``, right ``-pi / 2``, around ``pi``), or None when it opens with none or the
