@@ -13,6 +13,7 @@ from typing import Mapping
 
 import numpy as np
 
+from vlm.decompose import MOVEMENT_VERBS
 from vlm.types import FrameAnnotation, VisibleObject
 
 __all__ = [
@@ -46,8 +47,10 @@ ATTRIBUTE_WORDS = frozenset(
 #: word is the phrase's head. Any other word after it (``clock`` in ``wall clock``, ``pump`` in
 #: ``fuel pump``) makes it a modifier, and the object is not named. Also numbers (``door
 #: 103``), ``-ly`` adverbs, and ``-ed`` / ``-ing`` participles (``the sedan parked on the
-#: right``, ``the person standing by``) end a phrase; so does punctuation.
-PHRASE_END_WORDS = frozenset(
+#: right``, ``the person standing by``) end a phrase; so does punctuation. Every movement verb of
+#: the splitter (:data:`vlm.decompose.MOVEMENT_VERBS`: ``cut through the gallery``, ``swing
+#: left``) is one: a verb is never the noun a subtask names.
+PHRASE_END_WORDS = frozenset(MOVEMENT_VERBS) | frozenset(
     """a an the this that these those it its it's them they their there here i you your me my we our one ones
     and or but nor so then than as if when while until till once before after because since where which who whose
     what whether to toward towards into onto in on at of off out by near nearby next beside besides behind between
