@@ -231,6 +231,9 @@ def test_a_subtask_that_only_refers_back_is_joined_to_the_one_before():
     assert decompose("Where's the ice machine on this floor? Take me there.") == ["Where's the ice machine on this floor, Take me there"]
     assert attach_back_references(["find the bench", "take us to it"]) == ("find the bench, take us to it",)
     assert attach_back_references(["fly to the tree", "take me to the reception desk"]) == ("fly to the tree", "take me to the reception desk")
+    # a distance says where to stand, not what to reach
+    assert decompose("Find the fuel pump and hover about a metre above it.") == ["Find the fuel pump, hover about a metre above it"]
+    assert attach_back_references(["fly to the bench", "land 2 m in front of it"]) == ("fly to the bench, land 2 m in front of it",)
 
 
 @pytest.mark.parametrize(
@@ -281,6 +284,9 @@ def test_a_scene_setting_statement_is_joined_to_the_subtask_after_it():
     assert decompose("I need a coffee. Take me to the counter in the café.") == ["I need a coffee, Take me to the counter in the café"]
     assert decompose("I\u2019d like to buy postcards. Find the postcard stand.") == ["I\u2019d like to buy postcards, Find the postcard stand"]
     assert attach_context(["I'd like to go to the gate", "stop there"]) == ("I'd like to go to the gate", "stop there")
+    assert decompose("I'm at the fish stall. Go east along the quay to the stacked crates.") == [
+        "I'm at the fish stall, Go east along the quay to the stacked crates"
+    ]
     assert attach_context(["fly to the tree", "There is a bench"]) == ("fly to the tree", "There is a bench")
     assert attach_context(["There are two cars", "You're near the gate", "go to the gate"]) == (
         "There are two cars, You're near the gate, go to the gate",

@@ -50,17 +50,17 @@ subtask's target (``There's a vending machine along this corridor. Go to it.`` -
 names nothing the agents can find. :func:`attach_back_references` joins such a subtask to the
 one before it (``"..., go to it"``); :func:`decompose_detailed` applies it to every
 decomposition, the model's and the fallback's. A subtask counts as a back-reference when it
-holds one of :data:`BACK_REFERENCE_WORDS` and every other word is a movement verb or a
-function word (:data:`_FILLER_WORDS`, the speaker's ``me`` / ``us`` among them): ``go to it``,
-``stop there``, ``land right next to it``, ``take me there``; ``go to that door`` names a door
-and stays. So does one whose first reference points back
+holds one of :data:`BACK_REFERENCE_WORDS` and every other word is a movement verb, a function
+word (:data:`_FILLER_WORDS`, the speaker's ``me`` / ``us`` among them) or a distance: ``go to
+it``, ``stop there``, ``land right next to it``, ``take me there``, ``hover about a metre above
+it``; ``go to that door`` names a door and stays. So does one whose first reference points back
 (:func:`opens_with_back_reference`: ``stop beside it, across from office 105``). A subtask that only closes the one before it
 (every word in :data:`CLOSING_ONLY_WORDS`: ``stop``, ``then land``) is joined the same way: on
 its own it names nothing a monitor could judge complete. Likewise a statement that only sets the
 scene or says what the speaker wants (``You're at the end of the hall. Fly back past ...``, ``I
-need a coffee. Take me to the counter ...``: it opens with one of :data:`CONTEXT_OPENERS` and
-holds no movement verb) has nothing to complete; it is joined to
-the subtask after it (:func:`attach_context`), and so is a subtask that names nothing to reach
+need a coffee. Take me to the counter ...``, ``I'm at the fish stall. Go east ...``: it opens
+with one of :data:`CONTEXT_OPENERS` and holds no movement verb) has nothing to complete; it is
+joined to the subtask after it (:func:`attach_context`), and so is a subtask that names nothing to reach
 (``leave the study``, ``follow the hallway west``: :func:`attach_transit`), whose end no
 monitor can see except as arriving where the next subtask begins.
 """
@@ -138,12 +138,15 @@ _FILLER_WORDS = frozenset(MOVEMENT_VERBS) | frozenset(
         "by", "close", "closer", "down", "front", "in", "into", "just", "near", "next", "now", "of", "off",
         "on", "onto", "over", "please", "right", "the", "then", "to", "toward", "towards", "under", "up",
         "with", "you", "your", "its", "me", "us",
+        # a distance says where to stand, not what to reach ("hover about a metre above it")
+        "metre", "metres", "meter", "meters", "m", "cm", "foot", "feet", "half", "couple", "few",
     }
 )  # fmt: skip
 #: openings of a statement that describes the scene instead of asking for a movement
 CONTEXT_OPENERS = (
     "you're", "you are", "there's", "there is", "there are", "we're", "we are", "this is",
     "i need", "i'd like", "i would like", "i want", "we need", "we'd like", "we would like", "we want",
+    "i'm", "i am",
 )  # fmt: skip
 _WORD_RE = re.compile(r"[^\W_]+(?:'[^\W_]+)?")
 
@@ -216,8 +219,13 @@ def _is_back_reference(subtask: str) -> bool:
     if words and all(w in CLOSING_ONLY_WORDS for w in words):
         return True  # "stop", "land there": closes the previous subtask
     return any(w in BACK_REFERENCE_WORDS for w in words) and all(
-        w in BACK_REFERENCE_WORDS or w in _FILLER_WORDS for w in words
+        w in BACK_REFERENCE_WORDS or _is_filler(w) for w in words
     )
+
+
+def _is_filler(word: str) -> bool:
+    """A word of :data:`_FILLER_WORDS` or a number (``land 2 m in front of it``)."""
+    return word in _FILLER_WORDS or word.isdigit()
 
 
 #: pronouns that always point back (``him`` / ``her``: the person a following leg named,
@@ -240,7 +248,7 @@ def opens_with_back_reference(subtask: str) -> bool:
         if w in BACK_REFERENCE_WORDS:
             nxt = found[k + 1] if k + 1 < len(found) else None
             return nxt is None or bool(re.search(r"[^\w\s']", low[m.end() : nxt.start()]))
-        if w not in _FILLER_WORDS:
+        if not _is_filler(w):
             return False
     return False
 
