@@ -287,7 +287,9 @@ def test_a_scene_setting_statement_is_joined_to_the_subtask_after_it():
     assert decompose("I'm at the fish stall. Go east along the quay to the stacked crates.") == [
         "I'm at the fish stall, Go east along the quay to the stacked crates"
     ]
-    assert attach_context(["fly to the tree", "There is a bench"]) == ("fly to the tree", "There is a bench")
+    # a statement after the last step is no step: it joins the one before it
+    assert attach_context(["fly to the tree", "There is a bench"]) == ("fly to the tree, There is a bench",)
+    assert decompose("Where's the vending machine? I could really use a coffee.") == ["Where's the vending machine, I could really use a coffee"]
     assert attach_context(["There are two cars", "You're near the gate", "go to the gate"]) == (
         "There are two cars, You're near the gate, go to the gate",
     )

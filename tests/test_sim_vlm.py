@@ -1136,6 +1136,9 @@ def test_decision_reads_a_multi_clause_subtask_as_legs():
     assert img.annotation.instance_ids[int(res.uv[1]), int(res.uv[0])] == gate.iid
     assert SimulatedVlm._legs("go through the wooden gate then stop") == ["go through the wooden gate then stop"]
     assert SimulatedVlm._legs(LEGS) == ["turn left at the yellow forklift", "stop in front of the fuel pump"]
+    # a statement after the last step is no leg (its "coffee" is no target); one before a step is
+    assert SimulatedVlm._legs("Where's the fuel pump? I could really use a coffee.") == ["Where's the fuel pump"]
+    assert SimulatedVlm._legs("There's a fuel pump by the road. Go to it.") == ["There's a fuel pump by the road", "Go to it"]
     # a leg naming no object is flown into open space; its later leg's target still counts
     open_img = frame("d7", [TREE], open_cols=(0, 10))
     assert json.loads(decide(sim, "fly forward, then stop at the fuel pump", open_img).text)["target_visible"] is True

@@ -84,6 +84,7 @@ __all__ = [
     "attach_back_references",
     "opens_with_back_reference",
     "attach_context",
+    "is_context",
     "attach_transit",
     "CONTEXT_OPENERS",
     "BACK_REFERENCE_WORDS",
@@ -146,7 +147,7 @@ _FILLER_WORDS = frozenset(MOVEMENT_VERBS) | frozenset(
 CONTEXT_OPENERS = (
     "you're", "you are", "there's", "there is", "there are", "we're", "we are", "this is",
     "i need", "i'd like", "i would like", "i want", "we need", "we'd like", "we would like", "we want",
-    "i'm", "i am",
+    "i'm", "i am", "i could", "we could",
 )  # fmt: skip
 _WORD_RE = re.compile(r"[^\W_]+(?:'[^\W_]+)?")
 
@@ -269,20 +270,27 @@ def attach_back_references(subtasks: list[str] | tuple[str, ...]) -> tuple[str, 
     return tuple(out)
 
 
-def _is_context(subtask: str) -> bool:
+def is_context(subtask: str) -> bool:
+    """Whether ``subtask`` only sets the scene or says what the speaker wants: it opens with one
+    of :data:`CONTEXT_OPENERS` and holds no movement verb (module docstring)."""
     low = " ".join(subtask.lower().replace("\u2019", "'").split())
     words = set(_WORD_RE.findall(low))
     return any(low == o or low.startswith(o + " ") for o in CONTEXT_OPENERS) and not (words & set(MOVEMENT_VERBS))
 
 
 def attach_context(subtasks: list[str] | tuple[str, ...]) -> tuple[str, ...]:
-    """Join every scene-setting statement (module docstring) to the subtask after it.
+    """Join every scene-setting statement (module docstring) to the subtask after it, and one
+    with no subtask after it to the one before it (a statement after the last step is no step).
 
     ``["You're at the end of the hall", "Fly back past the snack machine"]`` ->
-    ``("You're at the end of the hall, Fly back past the snack machine",)``. A statement with
-    nothing after it stays; order and words are kept.
+    ``("You're at the end of the hall, Fly back past the snack machine",)``; ``["Where's the
+    vending machine", "I could really use a coffee"]`` -> ``("Where's the vending machine, I
+    could really use a coffee",)``. A statement alone stays; order and words are kept.
     """
-    return _join_to_next(subtasks, _is_context)
+    out = list(_join_to_next(subtasks, is_context))
+    if len(out) > 1 and is_context(out[-1]):
+        out[-2:] = [f"{out[-2]}, {out[-1]}"]
+    return tuple(out)
 
 
 def attach_transit(subtasks: list[str] | tuple[str, ...]) -> tuple[str, ...]:

@@ -20,7 +20,7 @@ from typing import Sequence
 
 import numpy as np
 
-from vlm.decompose import CLOSING_ONLY_WORDS, opens_with_back_reference, split_instruction
+from vlm.decompose import CLOSING_ONLY_WORDS, is_context, opens_with_back_reference, split_instruction
 from vlm.following import follow_intent
 from vlm.prompts import (
     SPF_MAX_DEPTH_M,
@@ -444,13 +444,17 @@ class SimulatedVlm:
     def _legs(instruction: str) -> list[str]:
         """The instruction's legs: :func:`vlm.decompose.split_instruction`, with a leg that
         only closes the one before it (``then stop``, ``then land there``: words of
-        :data:`vlm.decompose.CLOSING_ONLY_WORDS`) joined back to it."""
+        :data:`vlm.decompose.CLOSING_ONLY_WORDS`) joined back to it, and a statement after the
+        last step (``Where's the vending machine? I could really use a coffee.``:
+        :func:`vlm.decompose.is_context`) left out: it is no step, and its words no target."""
         legs: list[str] = []
         for piece in split_instruction(instruction):
             if legs and set(words(piece)) <= CLOSING_ONLY_WORDS:
                 legs[-1] = f"{legs[-1]} then {piece}"
             else:
                 legs.append(piece)
+        while len(legs) > 1 and is_context(legs[-1]):
+            legs.pop()
         return legs
 
     def _leg_perceptions(self, legs: list[str], image: VlmImage) -> list[Perception]:

@@ -118,7 +118,9 @@ Legs (one rule for every prompt)
 Every prompt's text, the OnFly decision and monitoring subtask as much as a baseline's whole
 instruction, is cut into *legs* by :func:`vlm.decompose.split_instruction` (no merges); a leg
 that only closes the one before it (``then stop``, words of
-:data:`vlm.decompose.CLOSING_ONLY_WORDS`) is joined to it; a leg naming nothing visible that
+:data:`vlm.decompose.CLOSING_ONLY_WORDS`) is joined to it; a statement after the last step
+(``Where's the vending machine? I could really use a coffee.``: :func:`vlm.decompose.is_context`)
+is no leg; a leg naming nothing visible that
 refers back (``go to it``, ``stop there``, ``in front of its middle``), or whose first reference
 points back (``stop beside it, across from office 105``:
 :func:`vlm.decompose.opens_with_back_reference`), means the object the previous leg names last. The subtask's target is the *last* leg's target; completion (STOP,
