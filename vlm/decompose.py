@@ -60,8 +60,9 @@ its own it names nothing a monitor could judge complete. Likewise a statement th
 scene or says what the speaker wants (``You're at the end of the hall. Fly back past ...``, ``I
 need a coffee. Take me to the counter ...``, ``I'm at the fish stall. Go east ...``: it opens
 with one of :data:`CONTEXT_OPENERS` and holds no movement verb) has nothing to complete; it is
-joined to the subtask after it (:func:`attach_context`), and so is a subtask that names nothing to reach
-(``leave the study``, ``follow the hallway west``: :func:`attach_transit`), whose end no
+joined to the subtask after it, or after the last step to the one before it
+(:func:`attach_context`), and a subtask that names nothing to reach is joined to the next
+(``leave the study``, ``follow the hallway west``: :func:`attach_transit`): its end no
 monitor can see except as arriving where the next subtask begins.
 """
 
