@@ -76,6 +76,7 @@ def test_yaw_maps_are_wrapped_and_vectorized():
     assert out.shape == (100,) and np.all(out > -np.pi) and np.all(out <= np.pi)
     assert np.max(angle_diff(frames.yaw_ned_from_enu(out), y)) < 1e-9
     assert frames.yaw_rate_enu_from_ned(0.3) == -0.3
+    assert frames.yaw_rate_ned_from_enu(frames.yaw_rate_enu_from_ned(0.3)) == 0.3  # a round trip
 
 
 def test_identity_attitude_is_nose_north_level():

@@ -39,6 +39,7 @@ __all__ = [
     "yaw_enu_from_ned",
     "yaw_ned_from_enu",
     "yaw_rate_enu_from_ned",
+    "yaw_rate_ned_from_enu",
     "matrices_from_quats",
     "matrix_ned_frd_from_euler",
     "matrix_enu_flu_from_quat_ned_frd",
@@ -117,6 +118,11 @@ def yaw_rate_enu_from_ned(yaw_rate_ned):
     """Heading rate from NED to ENU (rad/s): the sign flips because the z axes are opposite."""
     r = -np.asarray(yaw_rate_ned, dtype=float)
     return float(r) if r.ndim == 0 else r
+
+
+def yaw_rate_ned_from_enu(yaw_rate_enu):
+    """Heading rate from ENU to NED (rad/s): the same sign flip."""
+    return yaw_rate_enu_from_ned(yaw_rate_enu)
 
 
 def matrices_from_quats(q) -> np.ndarray:

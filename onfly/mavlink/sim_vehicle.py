@@ -329,6 +329,11 @@ _AXIS_BITS = (
 )
 _POS_BITS = _AXIS_BITS[0][0] | _AXIS_BITS[0][1] | _AXIS_BITS[0][2]
 
+def _finite_or_unused(*values: float | None) -> bool:
+    """True when every used field (not None) is finite: a setpoint's yaw and yaw rate."""
+    return all(math.isfinite(v) for v in values if v is not None)
+
+
 #: SET_POSITION_TARGET_LOCAL_NED frames whose vectors are in the vehicle's heading frame
 #: (x forward, y right, z down)
 _BODY_FRAMES = (_M.MAV_FRAME_BODY_NED, _M.MAV_FRAME_BODY_OFFSET_NED)
@@ -1848,7 +1853,7 @@ class SimMavlinkVehicle:
             self._statustext(_M.MAV_SEVERITY_CRITICAL, "SET_POSITION_TARGET_LOCAL_NED invalid")
             return
         yaw, rate = self._yaw_fields_used(msg)
-        if not np.all(np.isfinite(ned[used])) or not all(math.isfinite(x) for x in (yaw, rate) if x is not None):
+        if not np.all(np.isfinite(ned[used])) or not _finite_or_unused(yaw, rate):
             return  # non-finite values the model cannot fly: dropped
         rows, used_enu = self._setpoint_rows(ned, used)
         rows[0] = None if rows[0] is None else self.scene_from_local(rows[0])
@@ -1895,7 +1900,7 @@ class SimMavlinkVehicle:
             return self._ardu_stop("velocity not sane")
         yaw, rate = self._yaw_fields_used(msg)
         used_rows = np.array([pos_used, vel_used, acc_used])
-        if not np.all(np.isfinite(ned[used_rows])) or not all(math.isfinite(x) for x in (yaw, rate) if x is not None):
+        if not np.all(np.isfinite(ned[used_rows])) or not _finite_or_unused(yaw, rate):
             return  # non-finite values the model cannot fly: dropped
         if not (vel_used or pos_used != acc_used):
             return self._ardu_stop("unsupported type_mask combination")  # pos+acc without vel, or nothing
@@ -2042,7 +2047,7 @@ class SimMavlinkVehicle:
         if used[2].any() and mask & _M.POSITION_TARGET_TYPEMASK_FORCE_SET:
             self._statustext(_M.MAV_SEVERITY_CRITICAL, "SET_POSITION_TARGET_GLOBAL_INT force not supported")
             return
-        if not used.any() or not np.all(np.isfinite(ned[1:][used[1:]])) or not all(math.isfinite(x) for x in (yaw, rate) if x is not None):
+        if not used.any() or not np.all(np.isfinite(ned[1:][used[1:]])) or not _finite_or_unused(yaw, rate):
             return
         rows, used_enu = self._setpoint_rows(ned, used)
         rows[0] = p_scene
@@ -2082,7 +2087,7 @@ class SimMavlinkVehicle:
             return self._ardu_stop("velocity not sane")
         a_ned = np.array([msg.afx, msg.afy, msg.afz], dtype=float)
         yaw_ned, rate_ned = self._yaw_fields_used(msg)
-        if (acc_used and not np.all(np.isfinite(a_ned))) or not all(math.isfinite(x) for x in (yaw_ned, rate_ned) if x is not None):
+        if (acc_used and not np.all(np.isfinite(a_ned))) or not _finite_or_unused(yaw_ned, rate_ned):
             return  # non-finite values the model cannot fly: dropped (as for LOCAL_NED)
         yaw_fields = self._ardu_yaw_fields(yaw_ned, rate_ned)
         v = frames.enu_from_ned(v_ned) @ self._R_scene_est.T
@@ -2911,7 +2916,7 @@ class SimMavlinkVehicle:
             yaw = absent
             mask |= T.POSITION_TARGET_TYPEMASK_YAW_IGNORE
         if self.px4 and t.yaw_rate is not None:
-            yaw_rate = float(frames.yaw_rate_enu_from_ned(t.yaw_rate))  # the sign flip is its own inverse
+            yaw_rate = float(frames.yaw_rate_ned_from_enu(t.yaw_rate))
         else:
             yaw_rate = absent
             mask |= T.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
