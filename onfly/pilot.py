@@ -606,21 +606,20 @@ class OnFlyPilot:
         obs = self.latest
         if obs is None:
             return
-        turning = self.mode in (PilotMode.RECOVERING, PilotMode.TURNING)
+        turning = self.mode in (PilotMode.RECOVERING, PilotMode.TURNING)  # no decision on a turning view
         if self.tasks is None:
             if not turning:
                 self._start_early_decision(obs)
             return
         subtask = self._asked_subtask()
-        recovering = turning
         if not self.config.dual_agent:
-            if not self.runtime.busy(SINGLE) and obs.frame_id != self._decision_frame and not recovering:
+            if not self.runtime.busy(SINGLE) and obs.frame_id != self._decision_frame and not turning:
                 self._decision_frame = obs.frame_id
                 goal = self.goal_world
                 snap = self.monitor.snapshot()  # taken here, on the control thread
                 self.runtime.submit(SINGLE, lambda: _SingleStream(self.decision.decide(obs, subtask, goal), self.monitor.assess(subtask, snap)))
             return
-        if not recovering and not self.runtime.busy(DECISION) and obs.frame_id != self._decision_frame:
+        if not turning and not self.runtime.busy(DECISION) and obs.frame_id != self._decision_frame:
             self._decision_frame = obs.frame_id
             goal = self.goal_world
             self.runtime.submit(DECISION, lambda: self.decision.decide(obs, subtask, goal))
