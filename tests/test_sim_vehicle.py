@@ -2,6 +2,7 @@
 model's limits, the loopback camera channel, and the `onfly sim-vehicle` command."""
 
 import argparse
+import math
 import socket
 import struct
 import threading
@@ -20,7 +21,7 @@ from onfly.mavlink.sim_vehicle import PointMassModel, SimMavlinkVehicle, SimVehi
 from onfly.mavlink.state import StateReader
 from onfly.observation import Observation
 from planning.camera import PinholeCamera
-from planning.frames import body_transform, cam_transform_from_body
+from planning.frames import body_transform, cam_transform_from_body, wrap_angle
 from vlm.types import FrameAnnotation, VisibleObject
 
 M = mavlink2
@@ -876,8 +877,26 @@ def test_px4_body_ned_rotates_velocity_by_the_heading_flies_the_yawspeed_and_the
         n0 = len(c.of_type("POSITION_TARGET_LOCAL_NED"))
         assert _wait(lambda: len(c.of_type("POSITION_TARGET_LOCAL_NED")) > n0)
         pt = c.of_type("POSITION_TARGET_LOCAL_NED")[-1][1]  # what PX4 reports it tracks
-        assert not pt.type_mask & _IGN_RATE and pt.yaw_rate == pytest.approx(0.5) and pt.type_mask & _IGN_YAW
+        # PositionControl::update: a yaw not commanded is the current one (no ignore bit); the
+        # velocity and acceleration are the controller's setpoints; the position stays NaN
+        assert pt.type_mask == _IGN_POS and all(math.isnan(x) for x in (pt.x, pt.y, pt.z))
+        assert pt.yaw_rate == pytest.approx(0.5)
+        now_ned = frames.yaw_ned_from_enu(v.model.yaw - est_yaw)
+        assert abs(wrap_angle(pt.yaw - now_ned)) < 0.1  # 0.5 rad/s between the report and now
         assert (pt.vx, pt.vy, pt.vz) == pytest.approx((0.0, 0.0, -1.0), abs=1e-6)
+        assert all(math.isfinite(x) for x in (pt.afx, pt.afy, pt.afz))
+        # a position alone: the velocity the position loop flies toward it, the yaw held, no rate
+        here = frames.ned_from_enu(v.local_from_scene(v.position_enu()))
+        goal = here + np.array([3.0, 0.0, 0.0])
+        for _ in range(6):
+            local_target(c, M.MAV_FRAME_LOCAL_NED, _IGN_VEL | _IGN_ACC | _IGN_YAW | _IGN_RATE, p=tuple(goal))
+            time.sleep(0.05)
+        n0 = len(c.of_type("POSITION_TARGET_LOCAL_NED"))
+        assert _wait(lambda: len(c.of_type("POSITION_TARGET_LOCAL_NED")) > n0)
+        pt = c.of_type("POSITION_TARGET_LOCAL_NED")[-1][1]
+        assert pt.type_mask == 0 and pt.yaw_rate == 0.0
+        np.testing.assert_allclose((pt.x, pt.y, pt.z), goal, atol=1e-4)
+        assert pt.vx > 0.1 and np.hypot(pt.vx, pt.vy) <= v.c.v_max_mps + 1e-6  # toward the goal (north)
     finally:
         c.stop()
         v.stop()

@@ -121,3 +121,19 @@ def test_the_simulated_px4_disarms_when_its_world_vehicle_crashes(model_factory)
         while vehicle.armed and time.monotonic() < deadline:
             time.sleep(0.01)
     assert not vehicle.armed and vehicle.first_event("disarmed: crashed into 'lamp post'") is not None
+
+
+def test_the_controller_setpoint_is_the_followed_plan_and_none_on_the_ground(model_factory):
+    """What the MAVLink vehicle reports as PX4's velocity and acceleration setpoints
+    (POSITION_TARGET_LOCAL_NED): the plan the world's vehicle follows at this instant; nothing
+    while it rests on the ground."""
+    m = model_factory()
+    assert m.controller_setpoint() is None
+    fly(m, sp(p=START), 3.0)  # take off to the start height
+    fly(m, sp(v=[1.0, 0.0, 0.0]), 0.5)  # a velocity setpoint: its plan holds 1 m/s east
+    v, a = m.controller_setpoint()
+    traj = m.world.vehicle.trajectory
+    _, v_ref, a_ref, _, _ = traj.sample(float(m.world.vehicle.state.t_s))
+    np.testing.assert_allclose(v, v_ref, atol=1e-12)
+    np.testing.assert_allclose(a, a_ref, atol=1e-12)
+    assert v[0] > 0.5 and abs(v[1]) < 0.05  # east, as commanded (within the world's limits)

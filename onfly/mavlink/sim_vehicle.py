@@ -736,6 +736,7 @@ class PointMassModel:
         self.yaw = float(config.initial_yaw_rad)
         self.yaw_rate = 0.0
         self.ground_z_m = float(config.initial_position_m[2])
+        self._setpoint: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def on_ground(self) -> bool:
@@ -748,6 +749,7 @@ class PointMassModel:
                 self.a = np.zeros(3) if self.on_ground else np.array([0.0, 0.0, -self.GRAVITY_MPS2])
                 self._integrate(dt_s)
                 self.yaw_rate = 0.0
+                self._setpoint = None
                 return
             target = _Target(p=self.p.copy())
         v_limit = c.v_max_mps if target.v_limit_mps is None else min(c.v_max_mps, target.v_limit_mps)
@@ -764,9 +766,16 @@ class PointMassModel:
         if n > c.a_max_mps2:
             a *= c.a_max_mps2 / n
         self.a = a
+        self._setpoint = (v_des, a.copy())
         self._integrate(dt_s)
         self.yaw_rate = self._yaw_rate(target)
         self.yaw = wrap_angle(self.yaw + self.yaw_rate * dt_s)
+
+    def controller_setpoint(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The velocity (m/s) and acceleration (m/s^2) setpoints, ENU, the last step's controller
+        flew (the position loop's output plus the feed-forward, limited; PX4 PositionControl's
+        ``_vel_sp`` and ``_acc_sp``), or None when it tracked nothing."""
+        return None if self._setpoint is None else (self._setpoint[0].copy(), self._setpoint[1].copy())
 
     def _yaw_rate(self, target: _Target) -> float:
         """The turn rate (rad/s, ENU) toward ``target``: a P correction toward its yaw plus its
@@ -2879,9 +2888,16 @@ class SimMavlinkVehicle:
 
     def _position_target_local_ned(self):
         """What the position controller tracks, MAV_FRAME_LOCAL_NED in the estimator's frame.
-        Targets sent in another frame are reported as flown: rotated and offset into it. PX4
-        (``streams/POSITION_TARGET_LOCAL_NED.hpp``): every setpoint component that is not finite
-        is NaN with its ignore bit (the yaw rate too); none while nothing is tracked (disarmed).
+        Targets sent in another frame are reported as flown: rotated and offset into it.
+
+        PX4 (``streams/POSITION_TARGET_LOCAL_NED.hpp`` sends ``vehicle_local_position_setpoint``,
+        which ``PositionControl::getLocalPositionSetpoint`` fills after ``update``): the position
+        as commanded (NaN with its ignore bits when not); the velocity and acceleration
+        setpoints the controller flew (the position loop's output plus the feed-forward, so
+        finite for a position-only target too; :meth:`controller_setpoint` of the model); a yaw
+        that was not commanded is the current yaw and a yaw rate that was not is 0
+        (``update``: "_yaw_sp = PX4_ISFINITE(_yaw_sp) ? _yaw_sp : _yaw", the yawspeed likewise
+        to 0), neither with its ignore bit. None while nothing is tracked (disarmed).
         ArduCopter (``GCS_MAVLINK_Copter::send_position_target_local_ned``): only in GUIDED, the
         tracked position and/or velocity, the rest (yaw and yaw rate too) ignored (0)."""
         if self._target is None or not self.armed:
@@ -2897,6 +2913,11 @@ class SimMavlinkVehicle:
             rows[1] = frames.ned_from_enu(t.v @ self._R_scene_est)
         if t.a is not None:
             rows[2] = frames.ned_from_enu(t.a @ self._R_scene_est)
+        flown = self.model.controller_setpoint() if self.px4 else None
+        if flown is not None:
+            if t.p is not None or t.v is not None:
+                rows[1] = frames.ned_from_enu(flown[0] @ self._R_scene_est)
+            rows[2] = frames.ned_from_enu(flown[1] @ self._R_scene_est)
         T = _M
         ignore = [(T.POSITION_TARGET_TYPEMASK_X_IGNORE | T.POSITION_TARGET_TYPEMASK_Y_IGNORE | T.POSITION_TARGET_TYPEMASK_Z_IGNORE),
                   (T.POSITION_TARGET_TYPEMASK_VX_IGNORE | T.POSITION_TARGET_TYPEMASK_VY_IGNORE | T.POSITION_TARGET_TYPEMASK_VZ_IGNORE),
@@ -2910,16 +2931,13 @@ class SimMavlinkVehicle:
                 vals += [absent] * 3
             else:
                 vals += [float(x) for x in rows[k]]
-        if self.px4 and t.yaw is not None:
-            yaw = float(frames.yaw_ned_from_enu(wrap_angle(t.yaw - self.c.estimator_yaw_rad)))
+        if self.px4:
+            held = self.model.yaw if t.yaw is None else t.yaw
+            yaw = float(frames.yaw_ned_from_enu(wrap_angle(held - self.c.estimator_yaw_rad)))
+            yaw_rate = 0.0 if t.yaw_rate is None else float(frames.yaw_rate_ned_from_enu(t.yaw_rate))
         else:
-            yaw = absent
-            mask |= T.POSITION_TARGET_TYPEMASK_YAW_IGNORE
-        if self.px4 and t.yaw_rate is not None:
-            yaw_rate = float(frames.yaw_rate_ned_from_enu(t.yaw_rate))
-        else:
-            yaw_rate = absent
-            mask |= T.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
+            yaw = yaw_rate = absent
+            mask |= T.POSITION_TARGET_TYPEMASK_YAW_IGNORE | T.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
         return self.link.mav.position_target_local_ned_encode(self.time_boot_ms(), _M.MAV_FRAME_LOCAL_NED, mask, *vals,
                                                               yaw, yaw_rate)
 

@@ -230,6 +230,17 @@ class WorldVehicleModel:
     def yaw(self) -> float:
         return float(self._state.yaw)
 
+    def controller_setpoint(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The velocity (m/s) and acceleration (m/s^2), ENU, of the plan the world's vehicle
+        follows at this instant (what its controller tracks; the MAVLink vehicle reports them as
+        PX4 reports its ``_vel_sp`` and ``_acc_sp``), or None with no plan (disarmed, landed,
+        crashed)."""
+        traj = self.world.vehicle.trajectory
+        if self.crashed or self._on_ground or traj is None:
+            return None
+        _, v, a, _, _ = traj.sample(float(self._state.t_s))
+        return np.asarray(v, float).copy(), np.asarray(a, float).copy()
+
     @property
     def yaw_rate(self) -> float:
         return float(self._state.yaw_rate)
