@@ -736,7 +736,7 @@ class PointMassModel:
         self.yaw = float(config.initial_yaw_rad)
         self.yaw_rate = 0.0
         self.ground_z_m = float(config.initial_position_m[2])
-        self._setpoint: tuple[np.ndarray, np.ndarray] | None = None
+        self._flown: tuple[np.ndarray, np.ndarray] | None = None  # (v_sp, a_sp) of the last step
 
     @property
     def on_ground(self) -> bool:
@@ -749,7 +749,7 @@ class PointMassModel:
                 self.a = np.zeros(3) if self.on_ground else np.array([0.0, 0.0, -self.GRAVITY_MPS2])
                 self._integrate(dt_s)
                 self.yaw_rate = 0.0
-                self._setpoint = None
+                self._flown = None
                 return
             target = _Target(p=self.p.copy())
         v_limit = c.v_max_mps if target.v_limit_mps is None else min(c.v_max_mps, target.v_limit_mps)
@@ -766,7 +766,7 @@ class PointMassModel:
         if n > c.a_max_mps2:
             a *= c.a_max_mps2 / n
         self.a = a
-        self._setpoint = (v_des, a.copy())
+        self._flown = (v_des, a.copy())
         self._integrate(dt_s)
         self.yaw_rate = self._yaw_rate(target)
         self.yaw = wrap_angle(self.yaw + self.yaw_rate * dt_s)
@@ -775,7 +775,7 @@ class PointMassModel:
         """The velocity (m/s) and acceleration (m/s^2) setpoints, ENU, the last step's controller
         flew (the position loop's output plus the feed-forward, limited; PX4 PositionControl's
         ``_vel_sp`` and ``_acc_sp``), or None when it tracked nothing."""
-        return None if self._setpoint is None else (self._setpoint[0].copy(), self._setpoint[1].copy())
+        return None if self._flown is None else (self._flown[0].copy(), self._flown[1].copy())
 
     def _yaw_rate(self, target: _Target) -> float:
         """The turn rate (rad/s, ENU) toward ``target``: a P correction toward its yaw plus its
