@@ -854,9 +854,8 @@ class OnFlyPilot:
         yaw_ref = None
         search_goal = None
         follow = None
-        judged = self._judged(state)
         if cfg.search.enabled and self.mode is not PilotMode.FINISHED:
-            self.search.remember(t_s, judged.p)
+            self.search.remember(t_s, state.p)
             # STARTING counts once the decomposition is in: a start whose every decision is
             # rejected (the model names its target, the verifier finds no feasible goal) is a
             # dead end like any hover, not a wait for the tenth rejection (``reject_streak``,
@@ -874,7 +873,7 @@ class OnFlyPilot:
                 self.search.leg_failed()
                 self._start_search(t_s, state, SearchTrigger.STALL, explore_first=True)
             if self.mode is PilotMode.SEARCHING:
-                search_goal, yaw_ref = self._search_control(t_s, state, judged)
+                search_goal, yaw_ref = self._search_control(t_s, state)
         if self.mode is PilotMode.TURNING:
             err = abs(wrap_angle(state.yaw - self._turn_yaw))
             if err <= cfg.recovery_yaw_tolerance_rad or t_s > self._turn_until_s:
@@ -947,9 +946,9 @@ class OnFlyPilot:
         if plan is not None and search_goal is not None and self.mode is PilotMode.SEARCHING:
             # a leg whose end the goal check holds back where the vehicle already is (behind a
             # wall, inside an obstacle's clearance) is over: the next leg, not a hover to a stall
-            held = plan.goal_adjusted and leg_end_held(plan.goal_used, search_goal, judged.p, cfg.search.explore_arrive_m)
+            held = plan.goal_adjusted and leg_end_held(plan.goal_used, search_goal, state.p, cfg.search.explore_arrive_m)
             # no safe plan toward the leg's end, the vehicle at rest on the last one flown
-            unplanned = not plan.ok and _at_rest(judged)
+            unplanned = not plan.ok and _at_rest(state)
             if self.search.leg_blocked(t_s, held or unplanned):
                 self._event(t_s, "search_leg_blocked", {"target": search_goal, "position": state.p, "held_at": plan.goal_used})
         if plan is not None and not plan.ok:
@@ -1177,30 +1176,11 @@ class OnFlyPilot:
         adjustments: the end of the flight, not the pointed pixel; without the planner, the
         decision's goal)."""
         end = self.goal_world if self._last_plan is None else self._last_plan.goal_used
-        judged = self._judged(state)
         return (
             end is not None
-            and _at_rest(judged)
-            and float(np.linalg.norm(end - judged.p)) <= self.config.search.explore_arrive_m
+            and _at_rest(state)
+            and float(np.linalg.norm(end - state.p)) <= self.config.search.explore_arrive_m
         )
-
-    def _judged(self, state: VehicleState) -> VehicleState:
-        """The state the pilot's tests of rest, arrival and progress read (the stall window, a
-        search leg's end, at rest on its goal): ``state`` itself, or, while the planner measures
-        a tracking error above its noise floor (``Planner.tracking_margin_m`` > 0: gusts, a
-        controller's lag), the plan being flown at this instant (``Planner.reference_at``).
-
-        In light turbulence a vehicle holding a point wanders 0.4-0.9 m and up to 0.8 m/s about
-        it (docs/realism.md, ``realistic``): measured, that is travel and never rest, so a
-        vehicle the goal check held short of its target was never stalled and hovered to the
-        time limit. The plan it flies says it is going nowhere. Under exact tracking (``ideal``:
-        the margin stays 0) the measured state is judged, as before."""
-        if not self.config.use_planner or self.planner.tracking_margin_m <= 0.0:
-            return state
-        ref = self.planner.reference_at(state.t_s)
-        if ref is None:
-            return state
-        return replace(state, p=ref[0], v=ref[1])
 
     def _at_dead_spot(self, goal: np.ndarray) -> bool:
         """True when ``goal`` lies within ``dead_end_radius_m`` (horizontally) of a place where
@@ -1339,9 +1319,7 @@ class OnFlyPilot:
         self.search.explore_from(t_s, target, state.p, state.yaw, kind=how)
         self._event(t_s, "search_explore", {"target": target, "position": state.p, "how": how})
 
-    def _search_control(self, t_s: float, state: VehicleState, judged: VehicleState) -> tuple[np.ndarray, float | None]:
-        """The search's point and yaw reference for this tick; ``judged`` (:meth:`_judged`) is
-        the position its arrivals are judged on."""
+    def _search_control(self, t_s: float, state: VehicleState) -> tuple[np.ndarray, float | None]:
         if self.search.may_glance(state.p) and t_s - self._glance_check_s >= _GLANCE_CHECK_PERIOD_S:
             # an opening beside the leg (a doorway passed): look in, then go on with the leg
             self._glance_check_s = t_s
@@ -1350,10 +1328,10 @@ class OnFlyPilot:
             if side is not None:
                 self.search.glance(t_s, state.p, side)
                 self._event(t_s, "search_glance", {"yaw": side, "position": state.p})
-        point, yaw_ref, ev = self.search.control(t_s, judged.p, state.yaw)
+        point, yaw_ref, ev = self.search.control(t_s, state.p, state.yaw)
         if ev == "scan_done":
             self._explore(t_s, state)
-            point, yaw_ref, _ = self.search.control(t_s, judged.p, state.yaw)
+            point, yaw_ref, _ = self.search.control(t_s, state.p, state.yaw)
         elif ev == "explore_done":
             # without a weave the camera faced forward all the leg: look to the side with the
             # most unknown space, then the next leg (the turn onto it sweeps more sectors)
@@ -1366,7 +1344,7 @@ class OnFlyPilot:
             else:
                 self.search.look(t_s, state.p, [side])
                 self._event(t_s, "search_look", {"yaw": side, "position": state.p})
-            point, yaw_ref, _ = self.search.control(t_s, judged.p, state.yaw)
+            point, yaw_ref, _ = self.search.control(t_s, state.p, state.yaw)
         return point, yaw_ref
 
 

@@ -461,11 +461,10 @@ class Planner:
         The error ``|prev_plan(t) - p|`` is recorded for the tracking margin whenever the
         previous plan covers ``t`` (at most ``reference_max_age_s`` old)."""
         c = self.config
-        ref = self.reference_at(state.t_s)
-        if ref is None:
-            return state, float("nan"), False
-        p_r, v_r = ref
         prev = self._prev_traj
+        if prev is None or not (-1e-9 <= state.t_s - prev.t0_s <= c.reference_max_age_s):
+            return state, float("nan"), False
+        p_r, v_r, _, _, _ = prev.sample(state.t_s)
         # the acceleration the reference held over the period just flown (the jerk term's
         # "last command"; the measured one carries the gusts)
         a_r = prev.sample(state.t_s - 0.5 * prev.dt_s)[2]
@@ -474,17 +473,6 @@ class Planner:
         if not c.reference_start or err > c.reference_reset_m:
             return state, err, False
         return VehicleState(state.t_s, p_r, v_r, state.yaw, state.yaw_rate, a_r), err, True
-
-    def reference_at(self, t_s: float) -> tuple[np.ndarray, np.ndarray] | None:
-        """The plan being flown sampled at ``t_s``: position (3,) metres and velocity (3,) m/s,
-        world ENU; where the vehicle is meant to be, without the disturbances it tracks the plan
-        through. None without a plan that covers ``t_s`` (none yet, or one older than
-        ``reference_max_age_s``: the reference ``reference_start`` plans from)."""
-        prev = self._prev_traj
-        if prev is None or not (-1e-9 <= t_s - prev.t0_s <= self.config.reference_max_age_s):
-            return None
-        p_r, v_r, _, _, _ = prev.sample(t_s)
-        return p_r, v_r
 
     @property
     def tracking_margin_m(self) -> float:

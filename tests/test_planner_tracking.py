@@ -276,16 +276,3 @@ def test_volume_drift_margin_ignores_hover_noise_and_can_be_switched_off():
     for bad in (-0.01, 0.5, float("nan")):
         with pytest.raises(PlannerConfigError, match="volume_drift_fraction"):
             PlannerConfig(volume_drift_fraction=bad)
-
-
-def test_reference_at_is_the_plan_being_flown_and_none_without_a_fresh_one():
-    pl = Planner(PlannerConfig())
-    assert pl.reference_at(0.0) is None  # no plan yet
-    first = pl.step(_state(0.0, [0.0, 0.0, 1.5]), np.array([5.0, 0.0, 1.5]), OPEN)
-    p, v = pl.reference_at(0.25)
-    p_s, v_s, _, _, _ = first.trajectory.sample(0.25)
-    np.testing.assert_array_equal(p, p_s)
-    np.testing.assert_array_equal(v, v_s)
-    assert p[0] > 0.0 and v[0] > 0.0  # on its way toward the goal
-    assert pl.reference_at(-0.1) is None  # before the plan began
-    assert pl.reference_at(PlannerConfig().reference_max_age_s + 0.01) is None  # stale
