@@ -2906,18 +2906,16 @@ class SimMavlinkVehicle:
             return None
         t = self._target.at(self.clock())
         nan = math.nan
-        rows = [None, None, None]
-        if t.p is not None:
-            rows[0] = frames.ned_from_enu(self.local_from_scene(t.p))
-        if t.v is not None:
-            rows[1] = frames.ned_from_enu(t.v @ self._R_scene_est)
-        if t.a is not None:
-            rows[2] = frames.ned_from_enu(t.a @ self._R_scene_est)
+        v, a = t.v, t.a  # ArduCopter: the commanded vectors
         flown = self.model.controller_setpoint() if self.px4 else None
-        if flown is not None:
-            if t.p is not None or t.v is not None:
-                rows[1] = frames.ned_from_enu(flown[0] @ self._R_scene_est)
-            rows[2] = frames.ned_from_enu(flown[1] @ self._R_scene_est)
+        if flown is not None:  # PX4: the controller's, velocity only where a position or velocity is flown
+            v = flown[0] if (t.p is not None or t.v is not None) else None
+            a = flown[1]
+        rows = [
+            None if t.p is None else frames.ned_from_enu(self.local_from_scene(t.p)),
+            None if v is None else frames.ned_from_enu(v @ self._R_scene_est),
+            None if a is None else frames.ned_from_enu(a @ self._R_scene_est),
+        ]
         T = _M
         ignore = [(T.POSITION_TARGET_TYPEMASK_X_IGNORE | T.POSITION_TARGET_TYPEMASK_Y_IGNORE | T.POSITION_TARGET_TYPEMASK_Z_IGNORE),
                   (T.POSITION_TARGET_TYPEMASK_VX_IGNORE | T.POSITION_TARGET_TYPEMASK_VY_IGNORE | T.POSITION_TARGET_TYPEMASK_VZ_IGNORE),
