@@ -517,29 +517,32 @@ class Planner:
             return state, err, False
         return VehicleState(state.t_s, p_r, v_r, state.yaw, state.yaw_rate, a_r), err, True
 
-    def _margin_of(self, column: int) -> float:
-        """The largest recorded error in ``column`` of the tracking record (1: the error, 2:
-        its vertical part) as a margin: 0 under the noise floor, capped (metres)."""
-        c = self.config
-        if c.tracking_margin_max_m <= 0 or not self._track:
-            return 0.0
-        peak = max(rec[column] for rec in self._track)
-        if peak < _TRACKING_NOISE_FLOOR_M:
-            return 0.0
-        return min(c.tracking_margin_max_m, peak)
-
     @property
     def tracking_margin_m(self) -> float:
         """The clearance and volume margin of the next step: the largest measured tracking
         error of the last ``tracking_window_s``, capped at ``tracking_margin_max_m`` (metres)."""
-        return self._margin_of(1)
+        c = self.config
+        if c.tracking_margin_max_m <= 0 or not self._track:
+            return 0.0
+        peak = max(e for _, e, _ in self._track)
+        if peak < _TRACKING_NOISE_FLOOR_M:
+            return 0.0
+        return min(c.tracking_margin_max_m, peak)
 
     @property
     def floor_margin_m(self) -> float:
         """The floor's margin of the next step (``floor_vertical_margin``): the largest measured
         vertical tracking error of the last ``tracking_window_s``, with the cap and noise floor
         of :attr:`tracking_margin_m`, which it never exceeds (metres)."""
-        return self._margin_of(2 if self.config.floor_vertical_margin else 1)
+        c = self.config
+        if c.tracking_margin_max_m <= 0 or not self._track:
+            return 0.0
+        if not c.floor_vertical_margin:
+            return self.tracking_margin_m
+        peak = max(ez for _, _, ez in self._track)
+        if peak < _TRACKING_NOISE_FLOOR_M:
+            return 0.0
+        return min(c.tracking_margin_max_m, peak)
 
     @property
     def drift_margin_m(self) -> float:
