@@ -57,8 +57,7 @@ Knownness is complete under the default policy only: with ``unknown_policy="free
 projects only obstacle voxels (the optimistic map's shortcut), so free space that rays pass
 through is never marked observed and :meth:`EsdfMap.known` is true mostly on obstacles.
 
-The map assumes nothing about which world axis is up, except :meth:`EsdfMap.floor_split`
-(world z up: the floor as a plane under the vehicle, :mod:`planning.esdf_floor`).
+The map assumes nothing about which world axis is up.
 """
 
 from __future__ import annotations
@@ -74,8 +73,6 @@ import scipy.ndimage as ndi
 from planning.camera import CameraError, PinholeCamera
 from planning.esdf_config import EsdfConfig
 from planning.esdf_edt import truncated_squared_edt
-from planning.esdf_floor import FloorSplit, floor_top_index
-from planning.esdf_interp import interpolate_grid
 from planning.esdf_occupancy import IndexBox, RollingOccupancy, shift_array
 from planning.frames import check_transform
 
@@ -139,6 +136,10 @@ class DistanceSlice:
     distance_m: np.ndarray
 
 
+# Corner offsets of a trilinear cell, ordered (dx, dy, dz) as bits 4, 2, 1.
+_CORNERS = np.array([[dx, dy, dz] for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)], dtype=np.int64)
+
+
 class EsdfMap:
     """Rolling occupancy + incrementally updated, exact, clamped ESDF.
 
@@ -158,6 +159,9 @@ class EsdfMap:
         self.shape = self._occ.shape
         self._shape_arr = np.asarray(self.shape, dtype=np.int64)
         self._strides = np.array([self.shape[1] * self.shape[2], self.shape[2], 1], dtype=np.int64)
+        self._corner_offsets = _CORNERS @ self._strides
+        self._hi_centre = (self._shape_arr - 1).astype(float)
+        self._cell_max = self._shape_arr - 2
         self._unknown_solid = cfg.unknown_policy == "occupied"
         self._k_out = cfg.max_distance_voxels
         self._k_in = cfg.max_inside_voxels
@@ -169,8 +173,6 @@ class EsdfMap:
         lut_in[0] = 0.0
         self._lut_in = lut_in.astype(np.float32)
         self._distance = np.empty(self.shape, dtype=np.float32)
-        self._version = 0  # counts rewrites of the field, keys cached derived fields
-        self._floor_cache: tuple[tuple[int, int], FloorSplit | None] | None = None
         self._update_box(((0, 0, 0), self.shape))
 
     # -- window -----------------------------------------------------------------------------
@@ -224,7 +226,6 @@ class EsdfMap:
         if shift.any():
             fill = -self.config.max_inside_distance_m if self._unknown_solid else self.config.max_distance_m
             self._distance = shift_array(self._distance, shift, np.float32(fill))
-            self._version += 1
             for box in boxes:
                 n_rewritten += self._update_box(box)
         return tuple(int(s) for s in shift), n_rewritten
@@ -393,7 +394,6 @@ class EsdfMap:
         outside lookup already gives that); only the interior ones (all six neighbours solid)
         need the inside transform, run on their bounding box grown by the inside clamp.
         """
-        self._version += 1
         shape = self._shape_arr
         lo, hi = np.asarray(box[0], dtype=np.int64), np.asarray(box[1], dtype=np.int64)
         w_lo, w_hi = np.maximum(lo - self._k_out, 0), np.minimum(hi + self._k_out, shape)
@@ -486,55 +486,36 @@ class EsdfMap:
             raise EsdfError(f"points must have shape (n, 3), got {P.shape}")
         if not np.isfinite(P).all():
             raise EsdfError("points contain NaN or inf")
-        dist, grad, e = interpolate_grid(self._distance, self._occ.origin_index, self.voxel_m, P)
-        if self._unknown_solid:
-            r = np.sqrt(np.einsum("ij,ij->i", e, e))
-            out = r > 0
-            if out.any():
+        v = self.voxel_m
+        c = P * (1.0 / v) - (self._occ.origin_index + 0.5)
+        cc = np.clip(c, 0.0, self._hi_centre)
+        i0 = np.minimum(cc.astype(np.int64), self._cell_max)
+        f = cc - i0
+        idx = (i0 @ self._strides)[:, None] + self._corner_offsets
+        vals = self._distance.reshape(-1)[idx].astype(float).reshape(-1, 2, 2, 2)
+        fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
+        dz = vals[..., 1] - vals[..., 0]  # (n, 2, 2) over (x, y)
+        a = vals[..., 0] + dz * fz[:, None, None]  # interpolated in z, (n, 2, 2)
+        ay = a[:, :, 1] - a[:, :, 0]  # (n, 2) over x
+        b = a[:, :, 0] + ay * fy[:, None]  # (n, 2) over x
+        bx = b[:, 1] - b[:, 0]
+        dist = b[:, 0] + bx * fx
+        dzy = dz[:, :, 0] + (dz[:, :, 1] - dz[:, :, 0]) * fy[:, None]  # (n, 2) over x
+        grad = np.empty_like(P)
+        grad[:, 0] = bx
+        grad[:, 1] = ay[:, 0] + (ay[:, 1] - ay[:, 0]) * fx
+        grad[:, 2] = dzy[:, 0] + (dzy[:, 1] - dzy[:, 0]) * fx
+        grad *= 1.0 / v
+        outside = c != cc
+        if outside.any():
+            grad[outside] = 0.0
+            if self._unknown_solid:
+                e = (c - cc) * v
+                r = np.sqrt(np.einsum("ij,ij->i", e, e))
+                out = r > 0
                 dist[out] -= r[out]
                 grad[out] -= e[out] / r[out, None]
         return dist, grad
-
-    def floor_split(self, below_z_m: float) -> FloorSplit | None:
-        """The floor under height ``below_z_m`` as a plane, and the field of the rest of the map.
-
-        The floor's top layer is :func:`planning.esdf_floor.floor_top_index` over the occupied
-        voxels whose centres are under ``below_z_m`` (world z, metres: the vehicle's height, so
-        a ceiling is never the floor). Every obstacle voxel (occupied or, under the occupied
-        policy, unknown) at or under that layer is floor; the rest field is the exact clamped
-        distance to every other obstacle voxel (space beside and over the window counts as
-        unknown, space under it as floor; under the floor's top layer the rest field reads 0, as
-        no point there is outside an obstacle). None when no floor is seen. Computed once per
-        change of the map and height layer: a truncated transform of the window over the
-        floor, 30-55 ms for the default 160 x 160 x 50 voxels on this machine (2 cores,
-        loaded).
-        """
-        if not math.isfinite(below_z_m):
-            raise EsdfError(f"below_z_m must be finite, got {below_z_m!r}")
-        o = self._occ.origin_index
-        below_k = int(np.clip(np.floor(below_z_m / self.voxel_m) - o[2], 0, self.shape[2]))
-        key = (self._version, below_k)
-        if self._floor_cache is not None and self._floor_cache[0] == key:
-            return self._floor_cache[1]
-        top = floor_top_index(self.occupied_grid, below_k)
-        split = None
-        if top is not None:
-            pad = ((1, 1), (1, 1), (1, 1))
-            sites = np.pad(self._occ.solid, pad, mode="constant", constant_values=bool(self._unknown_solid))
-            sites[:, :, : top + 2] = False  # the floor layers (padded index top + 1) and under them
-            n = self._shape_arr
-            # only from the floor's top layer up: under it every point is in an obstacle (the
-            # inflation then reads the plain field), and the top layer serves the
-            # interpolation just over it
-            rest = np.zeros(self.shape, dtype=np.float32)
-            d2 = truncated_squared_edt(sites, self._k_out, region=((1, 1, top + 1), tuple(int(v) + 1 for v in n)))
-            rest[:, :, top:] = np.take(self._lut_out, d2, mode="clip")
-            rest.flags.writeable = False
-            split = FloorSplit(
-                top_m=float((top + o[2] + 0.5) * self.voxel_m), rest=rest, origin_index=o.copy(), voxel_m=self.voxel_m,
-            )
-        self._floor_cache = (key, split)
-        return split
 
     def is_free(self, points, margin_m: float = 0.0) -> np.ndarray:
         """True where the interpolated distance at ``points`` (n, 3) exceeds ``margin_m`` metres.

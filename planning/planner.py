@@ -65,7 +65,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from planning.esdf_floor import FloorSplit
 from planning.field import DistanceField
 from planning.frames import unwrap_near, wrap_angle
 from planning.guide_path import carrot_on_path, guide_search, segment_clear, segment_points
@@ -203,9 +202,6 @@ class PlanResult:
         (NaN when no previous plan covers ``t``)
     tracking_margin_m : float, the margin added to ``d_safe_m`` and ``body_radius_m`` this step
         (the largest recent tracking error, capped), metres
-    floor_margin_m : float, the margin the floor got this step (``floor_vertical_margin``: the
-        largest recent vertical error when the map showed a floor, else ``tracking_margin_m``),
-        metres
     from_reference : bool, the plan started from the previous plan's reference state (else
         from the measured state)
     """
@@ -227,7 +223,6 @@ class PlanResult:
     guide_status: str = ""
     tracking_error_m: float = float("nan")
     tracking_margin_m: float = 0.0
-    floor_margin_m: float = 0.0
     from_reference: bool = False
 
     @property
@@ -354,54 +349,16 @@ class InflatedField:
     """A :class:`DistanceField` whose obstacles are inflated by ``margin_m``: ``query`` answers
     ``d - margin_m`` with the same gradient, so every clearance the planner keeps (``d_safe_m``
     in the QP, the goal check, the guide search, the plan check) grows by the margin. Every
-    other attribute (``known``, ``is_unknown`` ...) is the wrapped field's.
+    other attribute (``known``, ``is_unknown`` ...) is the wrapped field's."""
 
-    With a ``floor`` (:class:`planning.esdf_floor.FloorSplit`) and ``floor_margin_m <
-    margin_m``, the floor is inflated by ``floor_margin_m`` only: where the point lies in the
-    field's window and outside every obstacle, the answer is
-
-        ``max(d - margin_m, min(d_rest - margin_m, p_z - floor.top_m - floor_margin_m))``
-
-    (``d_rest`` the distance to every obstacle voxel but the floor's), with the gradient of the
-    term that gives it. Both terms are lower bounds of the clearance the margins ask for, so the
-    larger one is too: the answer is never kinder than inflating the floor by ``floor_margin_m``
-    and the rest by ``margin_m``, and never below the plain inflation.
-    """
-
-    def __init__(
-        self, field: DistanceField, margin_m: float, floor: FloorSplit | None = None, floor_margin_m: float | None = None,
-    ) -> None:
+    def __init__(self, field: DistanceField, margin_m: float) -> None:
         if not (np.isfinite(margin_m) and margin_m >= 0):
             raise PlannerInputError(f"margin_m must be finite and >= 0, got {margin_m}")
-        if floor is not None and not (floor_margin_m is not None and np.isfinite(floor_margin_m) and 0 <= floor_margin_m):
-            raise PlannerInputError(f"floor_margin_m must be finite and >= 0 with a floor, got {floor_margin_m}")
         self._field, self.margin_m = field, float(margin_m)
-        use = floor is not None and float(floor_margin_m) < self.margin_m
-        self.floor = floor if use else None
-        self.floor_margin_m = float(floor_margin_m) if use else self.margin_m
 
     def query(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         d, g = _query(self._field, points)
-        out = d - self.margin_m
-        if self.floor is None:
-            return out, g
-        P = np.asarray(points, dtype=float)
-        d_rest, g_rest, inside = self.floor.query(P)
-        use = inside & (d > 0.0)
-        if not use.any():
-            return out, g
-        rest = d_rest - self.margin_m
-        plane = self.floor.plane_distance(P) - self.floor_margin_m
-        split = np.minimum(rest, plane)
-        better = use & (split > out)
-        if better.any():
-            g = g.copy()
-            out[better] = split[better]
-            on_plane = better & (plane <= rest)
-            on_rest = better & ~on_plane
-            g[on_rest] = g_rest[on_rest]
-            g[on_plane] = (0.0, 0.0, 1.0)
-        return out, g
+        return d - self.margin_m, g
 
     def __getattr__(self, name: str):
         return getattr(self._field, name)
@@ -492,7 +449,7 @@ class Planner:
         self._guide_ms = 0.0
         self._guide_status = ""
         self._prev_traj: Trajectory | None = None
-        self._track: deque[tuple[float, float, float]] = deque()  # (t_s, tracking error m, its |z| part m)
+        self._track: deque[tuple[float, float]] = deque()  # (t_s, measured tracking error m)
         self._flown_m = 0.0  # distance flown since reset (estimate, counted in VOLUME_DRIFT_STEP_M moves)
         self._flown_anchor: np.ndarray | None = None  # where the last counted move ended
 
@@ -512,7 +469,7 @@ class Planner:
         # "last command"; the measured one carries the gusts)
         a_r = prev.sample(state.t_s - 0.5 * prev.dt_s)[2]
         err = float(np.linalg.norm(p_r - state.p))
-        self._track.append((float(state.t_s), err, abs(float(p_r[2] - state.p[2]))))
+        self._track.append((float(state.t_s), err))
         if not c.reference_start or err > c.reference_reset_m:
             return state, err, False
         return VehicleState(state.t_s, p_r, v_r, state.yaw, state.yaw_rate, a_r), err, True
@@ -524,22 +481,7 @@ class Planner:
         c = self.config
         if c.tracking_margin_max_m <= 0 or not self._track:
             return 0.0
-        peak = max(e for _, e, _ in self._track)
-        if peak < _TRACKING_NOISE_FLOOR_M:
-            return 0.0
-        return min(c.tracking_margin_max_m, peak)
-
-    @property
-    def floor_margin_m(self) -> float:
-        """The floor's margin of the next step (``floor_vertical_margin``): the largest measured
-        vertical tracking error of the last ``tracking_window_s``, with the cap and noise floor
-        of :attr:`tracking_margin_m`, which it never exceeds (metres)."""
-        c = self.config
-        if c.tracking_margin_max_m <= 0 or not self._track:
-            return 0.0
-        if not c.floor_vertical_margin:
-            return self.tracking_margin_m
-        peak = max(ez for _, _, ez in self._track)
+        peak = max(e for _, e in self._track)
         if peak < _TRACKING_NOISE_FLOOR_M:
             return 0.0
         return min(c.tracking_margin_max_m, peak)
@@ -661,13 +603,8 @@ class Planner:
         self._forget_old_errors(measured.t_s)
         self._count_flown(measured.p)
         margin = self.tracking_margin_m
-        floor_margin = margin
         if margin > 0:
-            floor = None
-            if c.floor_vertical_margin and self.floor_margin_m < margin and hasattr(field, "floor_split"):
-                floor = field.floor_split(float(measured.p[2]))
-            field = InflatedField(field, margin, floor, self.floor_margin_m if floor is not None else None)
-            floor_margin = field.floor_margin_m
+            field = InflatedField(field, margin)
         box = volume.shrunk(c.body_radius_m + margin + self.drift_margin_m) if volume is not None else None
         clamped = False
         if box is not None:
@@ -851,7 +788,6 @@ class Planner:
             guide_status=self._guide_status,
             tracking_error_m=track_err,
             tracking_margin_m=margin,
-            floor_margin_m=floor_margin,
             from_reference=from_ref,
         )
 

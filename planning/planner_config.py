@@ -163,13 +163,6 @@ class PlannerConfig:
         value, metres (0 = no margin). Errors under 5 cm (half a voxel of the map) give no
         margin, so under perfect tracking it is 0
     tracking_window_s : how long a measured tracking error keeps the margin up, seconds
-    floor_vertical_margin : the floor gets the *vertical* tracking margin only (the largest
-        ``|plan_z(t) - measured z|`` of the same window, same cap and noise floor), everything
-        else the full one. A floor is a plane under the vehicle, which only a vertical error
-        reaches; in gusts the horizontal error is about ten times the vertical one, and with one
-        margin for all a vehicle in a 0.95 m horizontal error must keep 1.4 m over the ground.
-        Needs a field that keeps the floor apart (:meth:`planning.esdf.EsdfMap.floor_split`);
-        other fields take the full margin everywhere. False: the full margin everywhere
     volume_drift_fraction : the flight volume's margin for odometry drift, as a fraction of the
         distance flown since ``Planner.reset()`` (by the estimate, counted in moves of at least
         ``VOLUME_DRIFT_STEP_M`` so hover noise does not add up), added to the volume's shrink.
@@ -239,7 +232,6 @@ class PlannerConfig:
     reference_max_age_s: float = 0.5
     tracking_margin_max_m: float = 1.0
     tracking_window_s: float = 10.0
-    floor_vertical_margin: bool = True
     volume_drift_fraction: float = 0.01
     volume_drift_max_m: float = 1.0
 
