@@ -13,12 +13,19 @@ it prints, per method and error model, SR / CR over all episodes and SR on each 
 failure classes of the out-of-view episodes. Records are counted as they are in the files
 (the latest record of each episode key).
 
+With ``--reference DIR`` as well (a run of the oracle, which flies the reference path with the
+goal known) it splits each side again by how long the oracle flew the task (``--edges``,
+seconds): the two sides of a task set need not be equally long, and a search costs time that
+a long route does not have. A task the reference did not fly, or failed, is left out of that
+table.
+
 The tasks are the config's selection (``[bench.tasks]``: files, ids, scenes, kinds, count), so
 ``experiments/configs/hard.toml`` gives the harder set of ``onfly/data/tasks/hard/``. Run::
 
     .venv/bin/python experiments/task_visibility.py --config experiments/configs/paper_tables.toml \\
         [--runs runs/paper_final] [--json PATH]
-    .venv/bin/python experiments/task_visibility.py --config experiments/configs/hard.toml --runs runs/hard
+    .venv/bin/python experiments/task_visibility.py --config experiments/configs/hard.toml --runs runs/hard \\
+        [--reference runs/hard_oracle --edges 30,36]
 """
 
 from __future__ import annotations
@@ -39,7 +46,7 @@ from onfly.world.world import World
 from planning.camera import PinholeCamera
 from planning.trajectory import VehicleState
 
-__all__ = ["starts_in_view", "split_by_view", "config_tasks", "main"]
+__all__ = ["starts_in_view", "split_by_view", "split_by_length", "reference_times", "config_tasks", "main"]
 
 
 def starts_in_view(tasks: Iterable[Task], camera: PinholeCamera) -> dict[str, bool]:
@@ -108,6 +115,65 @@ def split_by_view(records: Iterable[dict], in_view: dict[str, bool]) -> list[dic
     return rows
 
 
+def reference_times(records: Iterable[dict]) -> dict[str, float]:
+    """``{task id: flight time, seconds}`` of the reference's successful episodes (the latest
+    record of each key; the mean over runs). Raises ValueError when the records hold more
+    than one method: a reference is one method's run."""
+    rs = _latest(records)
+    methods = {r["method"] for r in rs}
+    if len(methods) > 1:
+        raise ValueError(f"a reference run holds one method, this one holds {sorted(methods)}")
+    times: dict[str, list[float]] = {}
+    for r in rs:
+        if r["metrics"]["success"]:
+            times.setdefault(r["task"], []).append(float(r["metrics"]["flight_time_s"]))
+    return {t: float(np.mean(v)) for t, v in times.items()}
+
+
+def _bin_label(edges: Sequence[float], k: int) -> str:
+    lo = "0" if k == 0 else f"{edges[k - 1]:g}"
+    return f"> {lo}" if k == len(edges) else f"{lo}-{edges[k]:g}"
+
+
+def split_by_length(records: Iterable[dict], in_view: dict[str, bool], ref_s: dict[str, float], edges: Sequence[float]) -> list[dict]:
+    """One row per (method, error model, reference-time bin): SR % and episodes on each side,
+    for the tasks whose reference flight time (``ref_s``, seconds) falls in the bin; bins are
+    ``(0, e0], (e0, e1], ..., (e_last, inf)``. Tasks missing from ``in_view`` or ``ref_s`` are
+    skipped."""
+    edges = [float(e) for e in edges]
+    if any(not np.isfinite(e) or e <= 0 for e in edges) or edges != sorted(set(edges)):
+        raise ValueError(f"edges must be increasing positive seconds, got {edges}")
+    groups: dict[tuple[str, str, int, bool], list[bool]] = {}
+    for r in _latest(records):
+        t = r.get("task")
+        if t not in in_view or t not in ref_s:
+            continue
+        k = int(np.searchsorted(edges, ref_s[t], side="left"))
+        groups.setdefault((r["method"], r.get("error_model", "?"), k, in_view[t]), []).append(bool(r["metrics"]["success"]))
+    rows = []
+    for method, em, k in sorted({g[:3] for g in groups}):
+        row = {"method": method, "error_model": em, "reference_s": _bin_label(edges, k)}
+        for side, name in ((True, "in_view"), (False, "out_of_view")):
+            xs = groups.get((method, em, k, side), [])
+            row[f"{name}_episodes"] = len(xs)
+            row[f"sr_{name}_pct"] = 100.0 * sum(xs) / len(xs) if xs else None
+        rows.append(row)
+    return rows
+
+
+def format_length_rows(rows: Sequence[dict]) -> str:
+    lines = [
+        "| method | error model | reference flight s | SR % in view (n) | SR % out of view (n) |",
+        "| --- | --- | --- | ---: | ---: |",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['method']} | {r['error_model']} | {r['reference_s']} | {_f(r['sr_in_view_pct'])} ({r['in_view_episodes']}) | "
+            f"{_f(r['sr_out_of_view_pct'])} ({r['out_of_view_episodes']}) |"
+        )
+    return "\n".join(lines)
+
+
 def _f(x: float | None) -> str:
     return "n/a" if x is None else f"{x:.1f}"
 
@@ -130,8 +196,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--config", required=True, help="benchmark or paper-tables TOML (its [world] sets the camera)")
     ap.add_argument("--runs", default=None, metavar="DIR", help="split the episodes of this run folder by start visibility")
+    ap.add_argument("--reference", default=None, metavar="DIR", help="an oracle run of the same tasks: split each side by its flight time")
+    ap.add_argument("--edges", default="30,36", help="reference flight-time bin edges, seconds, comma-separated (default 30,36)")
     ap.add_argument("--json", default=None, help="also write the flags (and rows) as JSON here")
     args = ap.parse_args(argv)
+    if args.reference and not args.runs:
+        ap.error("--reference needs --runs")
+    try:
+        edges = [float(x) for x in args.edges.split(",") if x.strip()]
+    except ValueError:
+        ap.error(f"--edges: comma-separated seconds expected, got {args.edges!r}")
     try:
         import tomllib
 
@@ -153,6 +227,21 @@ def main(argv: Sequence[str] | None = None) -> int:
         print()
         print(format_rows(rows))
         out["rows"] = rows
+        if args.reference:
+            try:
+                ref = reference_times(r for p in sorted(Path(args.reference).rglob(EPISODES_FILE)) for r in read_records(p))
+                length_rows = split_by_length(records, flags, ref, edges)
+            except ValueError as exc:
+                print(f"error: {exc}", file=sys.stderr)
+                return 2
+            if not ref:
+                print(f"error: no successful episode under {args.reference}", file=sys.stderr)
+                return 2
+            print()
+            print(f"by the reference's flight time ({len(ref)} tasks it flew to success)")
+            print(format_length_rows(length_rows))
+            out["reference_s"] = ref
+            out["length_rows"] = length_rows
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(out, indent=1))

@@ -6,7 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.task_visibility import split_by_view, starts_in_view
+import pytest
+
+from experiments.task_visibility import main, reference_times, split_by_length, split_by_view, starts_in_view
 from onfly.bench.tasks import load_tasks
 from planning.camera import PinholeCamera
 
@@ -26,9 +28,9 @@ def test_flags_follow_the_bearing_to_the_goal():
         assert starts_in_view([t], CAM) == {tid: expect}
 
 
-def rec(key, method, task, success, collided=False, failure=""):
+def rec(key, method, task, success, collided=False, failure="", flight_s=30.0):
     return {"key": key, "method": method, "task": task, "error_model": "nominal", "failure": failure,
-            "metrics": {"success": success, "collided": collided}}  # fmt: skip
+            "metrics": {"success": success, "collided": collided, "flight_time_s": flight_s}}  # fmt: skip
 
 
 def test_split_counts_the_latest_record_of_each_episode_per_side():
@@ -69,3 +71,49 @@ def test_hard_config_selects_the_hard_set_and_most_start_out_of_view():
     # a task built to start in view (the fridge straight ahead through the kitchen doorway) and
     # one built to start out of view (the bathtub two rooms away)
     assert flags["apartment-o01"] and not flags["apartment-o02"]
+
+
+def test_reference_times_average_the_successes_of_one_method():
+    ref = reference_times(
+        [
+            rec("o/a/0", "oracle", "a", True, flight_s=20.0),
+            rec("o/a/1", "oracle", "a", True, flight_s=30.0),
+            rec("o/b/0", "oracle", "b", False, flight_s=70.0),  # a failed reference: no time
+            rec("o/c/0", "oracle", "c", True, flight_s=99.0),
+            rec("o/c/0", "oracle", "c", True, flight_s=40.0),  # the latest record counts
+        ]
+    )
+    assert ref == {"a": 25.0, "c": 40.0}
+    with pytest.raises(ValueError, match="one method"):
+        reference_times([rec("1", "oracle", "a", True), rec("2", "onfly", "a", True)])
+
+
+def test_split_by_length_bins_each_side_by_the_reference_time():
+    flags = {"short_in": True, "short_out": False, "edge_out": False, "long_out": False, "unref": False}
+    ref = {"short_in": 12.0, "short_out": 29.0, "edge_out": 30.0, "long_out": 50.0}
+    records = [
+        rec("1", "m", "short_in", True),
+        rec("2", "m", "short_out", True),
+        rec("3", "m", "short_out", False),
+        rec("4", "m", "edge_out", True),  # 30 s is in the bin that ends at 30
+        rec("5", "m", "long_out", False),
+        rec("6", "m", "unref", True),  # no reference time: left out
+    ]
+    rows = split_by_length(records, flags, ref, [30.0])
+    assert [r["reference_s"] for r in rows] == ["0-30", "> 30"]
+    short, long = rows
+    assert (short["sr_in_view_pct"], short["in_view_episodes"]) == (100.0, 1)
+    assert (short["sr_out_of_view_pct"], short["out_of_view_episodes"]) == (200 / 3, 3)
+    assert (long["sr_in_view_pct"], long["in_view_episodes"]) == (None, 0)
+    assert (long["sr_out_of_view_pct"], long["out_of_view_episodes"]) == (0.0, 1)
+    for bad in ([30.0, 20.0], [0.0], [float("nan")]):
+        with pytest.raises(ValueError, match="edges"):
+            split_by_length(records, flags, ref, bad)
+
+
+def test_reference_without_runs_or_with_bad_edges_exits_2(capsys):
+    cfg = str(REPO / "experiments" / "configs" / "hard.toml")
+    for argv in (["--config", cfg, "--reference", "x"], ["--config", cfg, "--runs", "x", "--edges", "a,b"]):
+        with pytest.raises(SystemExit) as exc:
+            main(argv)
+        assert exc.value.code == 2
