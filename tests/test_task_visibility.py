@@ -5,7 +5,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-
 import pytest
 
 from experiments.task_visibility import main, reference_times, split_by_length, split_by_view, starts_in_view
@@ -111,7 +110,7 @@ def test_split_by_length_bins_each_side_by_the_reference_time():
             split_by_length(records, flags, ref, bad)
 
 
-def test_reference_without_runs_or_with_bad_edges_exits_2(capsys):
+def test_reference_without_runs_or_with_bad_edges_exits_2():
     cfg = str(REPO / "experiments" / "configs" / "hard.toml")
     for argv in (["--config", cfg, "--reference", "x"], ["--config", cfg, "--runs", "x", "--edges", "a,b"]):
         with pytest.raises(SystemExit) as exc:
