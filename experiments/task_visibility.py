@@ -230,12 +230,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.reference:
             try:
                 ref = reference_times(r for p in sorted(Path(args.reference).rglob(EPISODES_FILE)) for r in read_records(p))
+                if not ref:
+                    raise ValueError(f"no successful episode under {args.reference}")
                 length_rows = split_by_length(records, flags, ref, edges)
             except ValueError as exc:
                 print(f"error: {exc}", file=sys.stderr)
-                return 2
-            if not ref:
-                print(f"error: no successful episode under {args.reference}", file=sys.stderr)
                 return 2
             print()
             print(f"by the reference's flight time ({len(ref)} tasks it flew to success)")

@@ -116,3 +116,31 @@ def test_reference_without_runs_or_with_bad_edges_exits_2():
         with pytest.raises(SystemExit) as exc:
             main(argv)
         assert exc.value.code == 2
+
+
+def test_main_splits_a_run_by_its_reference_and_refuses_an_empty_one(tmp_path, capsys):
+    """The CLI path: a run and an oracle run as folders of episodes.jsonl, the hard set's
+    camera; one in-view task (apartment-o01) and one out of view (apartment-o02)."""
+    import json
+
+    cfg = str(REPO / "experiments" / "configs" / "hard.toml")
+
+    def write(folder, recs):
+        folder.mkdir()
+        (folder / "episodes.jsonl").write_text("".join(json.dumps(r) + "\n" for r in recs))
+
+    write(tmp_path / "run", [rec("a", "onfly", "apartment-o01", True), rec("b", "onfly", "apartment-o02", False)])
+    write(tmp_path / "oracle", [rec("c", "oracle", "apartment-o01", True, flight_s=12.0),
+                                rec("d", "oracle", "apartment-o02", True, flight_s=40.0)])  # fmt: skip
+    out = tmp_path / "split.json"
+    argv = ["--config", cfg, "--runs", str(tmp_path / "run"), "--reference", str(tmp_path / "oracle"), "--json", str(out)]
+    assert main(argv) == 0
+    data = json.loads(out.read_text())
+    assert data["reference_s"] == {"apartment-o01": 12.0, "apartment-o02": 40.0}
+    short, long = data["length_rows"]
+    assert (short["reference_s"], short["sr_in_view_pct"], short["out_of_view_episodes"]) == ("0-30", 100.0, 0)
+    assert (long["reference_s"], long["sr_out_of_view_pct"], long["in_view_episodes"]) == ("> 36", 0.0, 0)
+    write(tmp_path / "empty", [rec("e", "oracle", "apartment-o01", False)])
+    argv[5] = str(tmp_path / "empty")
+    assert main(argv[:6]) == 2
+    assert "no successful episode" in capsys.readouterr().err
